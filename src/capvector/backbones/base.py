@@ -1,0 +1,399 @@
+"""The backbone contract every VLA family implements, and the preset registry.
+
+A backbone is an ``nn.Module`` that turns a batch (see ``capvector.data.keys``) into an action loss
+and whatever auxiliary objectives need: hidden states of requested layers, a mask of the visual-token
+positions and, when asked, language-model logits. Objectives only use this contract, never a
+family's internals, so every objective works with every backbone.
+
+Adding a VLA means one file: a config dataclass (subclass of ``BackboneConfig``), a module
+(subclass of ``VLABackbone``), and preset functions decorated with ``@register_preset``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import fnmatch
+import importlib
+import json
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar, TypeVar
+
+import torch
+from torch import Tensor, nn
+
+from capvector.fileio import atomic_directory
+
+EXPORT_FORMAT = "capvector-export"
+CONFIG_FILE = "config.json"
+WEIGHTS_FILE = "model.safetensors"
+
+
+class BackboneError(ValueError):
+    """Bad backbone input: unknown preset, wrong checkpoint, mismatched keys. The message says what to do."""
+
+
+@dataclass
+class BackboneConfig:
+    """Fields every family shares. Families add their own architecture fields in a subclass."""
+
+    family: ClassVar[str] = ""
+
+    preset: str = ""
+    """The registered preset this config started from (filled in by ``preset_config``)."""
+    action_dim: int = 7
+    """A: dimensions of one action (7 = 6-DoF end-effector delta + gripper)."""
+    chunk_size: int = 8
+    """T: actions predicted per forward pass and executed open-loop."""
+    proprio_dim: int = 8
+    """P: proprioceptive state size (0 disables the proprio input)."""
+    num_images: int = 2
+    """N_cam: cameras per sample, in the dataset's camera order."""
+    image_size: int = 224
+    """Images are resized to this square size inside the backbone (no-op when they already match)."""
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+@dataclass
+class OutputRequest:
+    """What objectives ask a forward pass to keep besides the action loss."""
+
+    hidden_layers: tuple[int, ...] = ()
+    """Hidden-state indices to keep: 0 = input embeddings, k = output of decoder layer k (1-based,
+    before the final norm). Only these are kept."""
+    lm_logits: bool = False
+
+    def merged(self, other: OutputRequest) -> OutputRequest:
+        layers = tuple(sorted(set(self.hidden_layers) | set(other.hidden_layers)))
+        return OutputRequest(hidden_layers=layers, lm_logits=self.lm_logits or other.lm_logits)
+
+
+@dataclass
+class VLAOutput:
+    """What a forward pass returns. Shapes: B batch, S sequence, H hidden, T chunk, A action dim."""
+
+    actions: Tensor
+    """(B, T, A) predicted actions in normalised action space."""
+    loss: Tensor | None = None
+    """Scalar action loss, when the batch carries target actions."""
+    hidden_states: dict[int, Tensor] = field(default_factory=dict)
+    """Requested layers only: layer index -> (B, S, H)."""
+    visual_token_mask: Tensor | None = None
+    """(B, S) bool: True at visual-token positions, in camera order, row-major patches."""
+    attention_mask: Tensor | None = None
+    """(B, S) bool: True at real (non-padding) tokens."""
+    visual_grid: tuple[int, int] | None = None
+    """(rows, cols) of visual tokens per camera: objectives reshape per-camera tokens with it."""
+    lm_logits: Tensor | None = None
+    """(B, S, V) language-model logits, when requested."""
+
+
+ConfigT = TypeVar("ConfigT", bound=BackboneConfig)
+
+
+class VLABackbone(nn.Module, ABC):
+    """Base class of every VLA backbone. Subclasses set ``config_class`` and implement the methods."""
+
+    config_class: ClassVar[type[BackboneConfig]] = BackboneConfig
+    lora_target_modules: ClassVar[str | list[str]] = []
+    """peft ``target_modules`` (a list of names or a full-match regex) for LoRA fine-tuning."""
+    lora_trainable_modules: ClassVar[tuple[str, ...]] = ()
+    """Globs of parameters trained from scratch (heads, projectors) that stay trainable under LoRA."""
+    capability_parameters: ClassVar[tuple[str, ...]] = ("*",)
+    """Globs of the parameters a capability vector covers by default: the pretrained VLM, not task
+    heads that a pretrained model does not have."""
+
+    def __init__(self, config: BackboneConfig) -> None:
+        super().__init__()
+        self.config = config
+
+    @abstractmethod
+    def forward(self, batch: Mapping[str, Any], request: OutputRequest | None = None) -> VLAOutput:
+        """Predict the action chunk; compute the action loss when ``batch`` has target actions."""
+
+    @torch.no_grad()
+    def predict_action(self, batch: Mapping[str, Any]) -> Tensor:
+        """(B, T, A) actions in normalised space for a batch without targets."""
+        return self(batch).actions
+
+    @property
+    @abstractmethod
+    def num_layers(self) -> int:
+        """Decoder layers of the language model whose hidden states objectives may request."""
+
+    @property
+    @abstractmethod
+    def hidden_size(self) -> int:
+        """Width of the hidden states returned in ``VLAOutput.hidden_states``."""
+
+    @property
+    def tokenizer(self) -> Any:
+        """The tokenizer that turns instructions into ids, when the family has one."""
+        return None
+
+    def load_tokenizer(self, folder: str | Path) -> None:
+        """Load tokenizer files saved beside the weights (families with a tokenizer override this)."""
+
+    def capability_parameter_names(self) -> list[str]:
+        names = [name for name, _ in self.named_parameters()]
+        return [n for n in names if any(fnmatch.fnmatchcase(n, g) for g in self.capability_parameters)]
+
+    # -- persistence -------------------------------------------------------------------------
+
+    def export_config(self) -> dict[str, Any]:
+        return {
+            "format": EXPORT_FORMAT,
+            "family": self.config_class.family,
+            "backbone_config": self.config.to_dict(),
+            "capability_parameters": list(self.capability_parameters),
+        }
+
+    def save_pretrained(
+        self,
+        folder: str | Path,
+        state_dict: Mapping[str, Tensor] | None = None,
+        extra_json: Mapping[str, Any] | None = None,
+        config_extra: Mapping[str, Any] | None = None,
+        overwrite: bool = False,
+    ) -> Path:
+        """Write ``model.safetensors`` + ``config.json`` (+ tokenizer files) atomically.
+
+        ``state_dict`` defaults to this module's own; pass a LoRA-merged one from the caller.
+        ``extra_json`` maps file names to JSON-serialisable content written beside the weights;
+        ``config_extra`` adds fields to ``config.json``.
+        """
+        from safetensors.torch import save_file
+
+        tensors = dict(state_dict if state_dict is not None else self.state_dict())
+        tensors = {k: v.detach().to("cpu").contiguous() for k, v in tensors.items()}
+        with atomic_directory(folder, overwrite=overwrite) as tmp:
+            save_file(tensors, str(tmp / WEIGHTS_FILE), metadata={"format": "pt"})
+            config = {**self.export_config(), **(config_extra or {})}
+            (tmp / CONFIG_FILE).write_text(json.dumps(config, indent=2))
+            for name, content in (extra_json or {}).items():
+                (tmp / name).write_text(json.dumps(content, indent=2))
+            if self.tokenizer is not None:
+                self.tokenizer.save_pretrained(str(tmp))
+        return Path(folder)
+
+    @classmethod
+    def from_config_dict(cls, config: Mapping[str, Any]) -> VLABackbone:
+        known = {f.name for f in dataclasses.fields(cls.config_class)}
+        return cls(_config_from_dict(cls.config_class, config, known))
+
+
+# -- registry --------------------------------------------------------------------------------
+
+# Family modules are imported on first lookup so `import capvector` stays light.
+_FAMILY_MODULES = ("capvector.backbones.openvla_oft",)
+_FAMILIES: dict[str, type[VLABackbone]] = {}
+_PRESETS: dict[str, Callable[[], BackboneConfig]] = {}
+
+B = TypeVar("B", bound=type[VLABackbone])
+
+
+def register_family(cls: B) -> B:
+    """Class decorator: makes a backbone class buildable from its config class."""
+    _FAMILIES[cls.config_class.family] = cls
+    return cls
+
+
+def register_preset(name: str) -> Callable[[Callable[[], ConfigT]], Callable[[], ConfigT]]:
+    """Decorator for a function returning the config of a named preset (timm style)."""
+
+    def decorate(fn: Callable[[], ConfigT]) -> Callable[[], ConfigT]:
+        if name in _PRESETS:
+            raise ValueError(f"preset {name!r} is registered twice")
+        _PRESETS[name] = fn
+        return fn
+
+    return decorate
+
+
+def _load_families() -> None:
+    for module in _FAMILY_MODULES:
+        importlib.import_module(module)
+
+
+def list_presets() -> list[str]:
+    _load_families()
+    return sorted(_PRESETS)
+
+
+def preset_config(preset: str, **overrides: Any) -> BackboneConfig:
+    """The config of ``preset`` with ``overrides`` applied; unknown names give a clear error."""
+    _load_families()
+    if preset not in _PRESETS:
+        close = difflib.get_close_matches(preset, _PRESETS, n=3)
+        hint = f" Did you mean {', '.join(close)}?" if close else ""
+        raise BackboneError(
+            f"unknown backbone preset {preset!r}.{hint} Known presets: {', '.join(sorted(_PRESETS))}."
+        )
+    config = _PRESETS[preset]()
+    known = {f.name for f in dataclasses.fields(config)}
+    values = {**config.to_dict(), **overrides}
+    values["preset"] = values.get("preset") or preset
+    return _config_from_dict(type(config), values, known, preset)
+
+
+def _config_from_dict(
+    config_class: type[ConfigT],
+    values: Mapping[str, Any],
+    known: set[str],
+    source: str | None = None,
+) -> ConfigT:
+    unknown = sorted(set(values) - known)
+    if unknown:
+        where = f" of preset {source!r}" if source else ""
+        raise BackboneError(
+            f"unknown config field(s) {unknown}{where} ({config_class.__name__}); "
+            f"valid fields: {sorted(known)}"
+        )
+    kwargs = {}
+    for f in dataclasses.fields(config_class):
+        if f.name not in values:
+            continue
+        value = values[f.name]
+        sub = _nested_dataclass(f.type)
+        if sub is not None and isinstance(value, Mapping):
+            value = _config_from_dict(sub, value, {g.name for g in dataclasses.fields(sub)}, source)
+        kwargs[f.name] = value
+    return config_class(**kwargs)
+
+
+def _nested_dataclass(annotation: Any) -> Any:
+    """The dataclass named by a field annotation (annotations are strings under __future__)."""
+    if isinstance(annotation, str):
+        for candidate in _NESTED_CONFIGS:
+            if annotation == candidate.__name__:
+                return candidate
+        return None
+    return annotation if dataclasses.is_dataclass(annotation) else None
+
+
+_NESTED_CONFIGS: list[type] = []
+
+
+def nested_config(cls: type[ConfigT]) -> type[ConfigT]:
+    """Class decorator for dataclasses used as fields of a backbone config (restored from JSON)."""
+    _NESTED_CONFIGS.append(cls)
+    return cls
+
+
+def backbone_class(family: str) -> type[VLABackbone]:
+    _load_families()
+    if family not in _FAMILIES:
+        raise BackboneError(f"unknown backbone family {family!r}; known: {sorted(_FAMILIES)}")
+    return _FAMILIES[family]
+
+
+def build_backbone(preset: str, **overrides: Any) -> VLABackbone:
+    """Build a preset with random weights (use ``torch.device('meta')`` to only count parameters)."""
+    config = preset_config(preset, **overrides)
+    return backbone_class(config.family)(config)
+
+
+def load_export_config(folder: str | Path) -> dict[str, Any]:
+    path = Path(folder) / CONFIG_FILE
+    if not path.is_file():
+        raise BackboneError(f"{folder} has no {CONFIG_FILE}: it is not a capvector export folder")
+    config = json.loads(path.read_text())
+    if config.get("format") != EXPORT_FORMAT:
+        raise BackboneError(
+            f"{path} is not a capvector export (format {config.get('format')!r}); for an original "
+            "project's checkpoint use that family's loader, e.g. OpenVLAOFT.from_original"
+        )
+    return config
+
+
+def from_pretrained(folder: str | Path, **overrides: Any) -> VLABackbone:
+    """Load a capvector export folder (what ``save_pretrained`` / ``capvector merge`` write)."""
+    from safetensors.torch import load_file
+
+    config = load_export_config(folder)
+    cls = backbone_class(config["family"])
+    model = cls.from_config_dict({**config["backbone_config"], **overrides})
+    model.load_tokenizer(folder)
+    state = load_file(str(Path(folder) / WEIGHTS_FILE)) if _single_file(folder) else read_sharded(folder)
+    load_state_dict_strictly(model, state, source=str(folder))
+    return model
+
+
+def _single_file(folder: str | Path) -> bool:
+    return (Path(folder) / WEIGHTS_FILE).is_file()
+
+
+def read_sharded(folder: str | Path, index_name: str = "model.safetensors.index.json") -> dict[str, Tensor]:
+    """All tensors of a sharded safetensors folder (HF layout: index JSON + shards)."""
+    from safetensors.torch import load_file
+
+    index_path = Path(folder) / index_name
+    if not index_path.is_file():
+        raise BackboneError(f"{folder} has neither {WEIGHTS_FILE} nor {index_name}")
+    weight_map: dict[str, str] = json.loads(index_path.read_text())["weight_map"]
+    state: dict[str, Tensor] = {}
+    for shard in sorted(set(weight_map.values())):
+        state.update(load_file(str(Path(folder) / shard)))
+    return state
+
+
+def load_state_dict_strictly(model: nn.Module, state: Mapping[str, Tensor], source: str) -> None:
+    """Load with every key and shape checked first; errors name the offending keys."""
+    expected = model.state_dict()
+    missing = sorted(set(expected) - set(state))
+    unexpected = sorted(set(state) - set(expected))
+    mismatched = [
+        f"{k}: checkpoint {tuple(state[k].shape)} vs model {tuple(expected[k].shape)}"
+        for k in sorted(set(expected) & set(state))
+        if tuple(state[k].shape) != tuple(expected[k].shape)
+    ]
+    problems = []
+    if missing:
+        problems.append(f"{len(missing)} missing key(s), e.g. {_examples(missing)}")
+    if unexpected:
+        problems.append(f"{len(unexpected)} unexpected key(s), e.g. {_examples(unexpected)}")
+    if mismatched:
+        problems.append(f"{len(mismatched)} shape mismatch(es), e.g. {_examples(mismatched)}")
+    if problems:
+        raise BackboneError(
+            f"{source} does not fit {type(model).__name__}: " + "; ".join(problems) + ". "
+            "Is it a checkpoint of another architecture or preset? Build the model with the preset "
+            "the checkpoint was trained with."
+        )
+    model.load_state_dict(dict(state), strict=True)
+
+
+def _examples(items: Sequence[str], n: int = 3) -> str:
+    return ", ".join(f"`{x}`" for x in items[:n]) + (" ..." if len(items) > n else "")
+
+
+@contextmanager
+def keep_hidden_states(
+    layers: Sequence[nn.Module], indices: Sequence[int], store: dict[int, Tensor]
+) -> Iterator[None]:
+    """Record the outputs of decoder layers ``indices`` (1-based) into ``store`` during a forward.
+
+    Hooks keep only the requested layers instead of asking the model for all of them.
+    """
+    handles = []
+    for index in indices:
+        if index == 0:
+            continue  # the caller stores the input embeddings itself
+        if not 1 <= index <= len(layers):
+            raise BackboneError(f"hidden layer {index} requested; valid: 0..{len(layers)}")
+
+        def hook(_module: nn.Module, _args: Any, output: Any, index: int = index) -> None:
+            store[index] = output[0] if isinstance(output, tuple) else output
+
+        handles.append(layers[index - 1].register_forward_hook(hook))
+    try:
+        yield
+    finally:
+        for handle in handles:
+            handle.remove()

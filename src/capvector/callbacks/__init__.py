@@ -1,0 +1,5 @@
+"""Thin Lightning callbacks: they attach, schedule and persist; the math lives elsewhere."""
+
+from capvector.callbacks.export import ExportOnFitEnd
+
+__all__ = ["ExportOnFitEnd"]

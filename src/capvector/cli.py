@@ -1,0 +1,128 @@
+"""``capvector``: LightningCLI for training (fit/validate/test) plus the recipe's tools.
+
+Training subcommands go to LightningCLI (YAML configs, omegaconf interpolation). Tool subcommands
+are looked up in ``TOOLS`` and imported only when called, so ``capvector extract`` does not pay for
+importing the simulator and ``capvector fit`` does not pay for the vector tools.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Callable, Sequence
+
+LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
+
+TOOLS: dict[str, tuple[str, str, str]] = {
+    "backbone-info": ("capvector.cli", "backbone_info_main", "parameter counts of a preset"),
+    "export": ("capvector.cli", "export_main", "export a checkpoint to a safetensors folder"),
+    "demos": ("capvector.sim.demos", "main", "record scripted robosuite demonstrations"),
+    "extract": ("capvector.vectors.cli", "extract_main", "capability vector = aux - sft"),
+    "merge": ("capvector.vectors.cli", "merge_main", "base + sum of scaled vectors"),
+    "compose": ("capvector.vectors.cli", "compose_main", "combine vectors (sum, TIES)"),
+    "inspect": ("capvector.vectors.cli", "inspect_main", "norms, cosines and plots of vectors"),
+}
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = list(sys.argv[1:] if argv is None else argv)
+    if not args or args[0] in ("-h", "--help"):
+        print(_usage())
+        return 0
+    command, rest = args[0], args[1:]
+    if command in LIGHTNING_SUBCOMMANDS:
+        run_lightning_cli([command, *rest])
+        return 0
+    if command not in TOOLS:
+        print(f"capvector: unknown command {command!r}\n\n{_usage()}", file=sys.stderr)
+        return 2
+    module, function, _ = TOOLS[command]
+    tool: Callable[[list[str]], int] = getattr(importlib.import_module(module), function)
+    return int(tool(rest) or 0)
+
+
+def _usage() -> str:
+    lines = ["usage: capvector COMMAND [...]", "", "training (LightningCLI, --config FILE.yaml):"]
+    lines += [f"  {c}" for c in LIGHTNING_SUBCOMMANDS]
+    lines += ["", "tools:"]
+    lines += [f"  {name:<14} {help_}" for name, (_, _, help_) in TOOLS.items()]
+    lines += ["", "Run `capvector COMMAND --help` for a command's options."]
+    return "\n".join(lines)
+
+
+def run_lightning_cli(args: list[str]) -> object:
+    from lightning.pytorch.cli import LightningCLI
+
+    from capvector.data.datamodule import RobotDataModule
+    from capvector.module import VLAModule
+
+    class CapVectorCLI(LightningCLI):
+        def add_arguments_to_parser(self, parser) -> None:  # noqa: ANN001 (jsonargparse parser)
+            # Shapes, camera order and statistics come from the data, never typed twice.
+            parser.link_arguments(
+                "data", "model.data_spec", apply_on="instantiate", compute_fn=lambda dm: dm.spec
+            )
+
+    return CapVectorCLI(
+        VLAModule,
+        RobotDataModule,
+        args=args,
+        parser_kwargs={"parser_mode": "omegaconf"},
+        save_config_kwargs={"overwrite": True},
+    )
+
+
+def backbone_info_main(argv: list[str]) -> int:
+    """Parameter counts per component from a meta-device build (no memory, no download)."""
+    import torch
+
+    from capvector.backbones import BackboneError, build_backbone, list_presets
+
+    parser = argparse.ArgumentParser(prog="capvector backbone-info", description=backbone_info_main.__doc__)
+    parser.add_argument("preset", nargs="?", help="a registered preset; omit with --list")
+    parser.add_argument("--list", action="store_true", help="list the registered presets")
+    args = parser.parse_args(argv)
+    if args.list or not args.preset:
+        print("\n".join(list_presets()))
+        return 0
+    try:
+        with torch.device("meta"):
+            model = build_backbone(args.preset)
+    except BackboneError as exc:
+        print(f"capvector backbone-info: {exc}", file=sys.stderr)
+        return 2
+    print(f"{args.preset} ({type(model).__name__})")
+    rows = [(name, sum(p.numel() for p in child.parameters())) for name, child in model.named_children()]
+    capability = set(model.capability_parameter_names())
+    in_vector = sum(p.numel() for n, p in model.named_parameters() if n in capability)
+    total = sum(count for _, count in rows)
+    width = max(len(name) for name, _ in rows)
+    for name, count in rows:
+        print(f"  {name:<{width}}  {count:>15,}")
+    print(f"  {'total':<{width}}  {total:>15,}")
+    print(f"  {'capability':<{width}}  {in_vector:>15,}  (parameters a capability vector covers)")
+    return 0
+
+
+def export_main(argv: list[str]) -> int:
+    """Export a Lightning checkpoint to a folder that `extract`, `merge` and `evaluate` read."""
+    from capvector.backbones import BackboneError
+    from capvector.module import load_module
+
+    parser = argparse.ArgumentParser(prog="capvector export", description=export_main.__doc__)
+    parser.add_argument("--ckpt", required=True, help="Lightning checkpoint (.ckpt)")
+    parser.add_argument("--out", required=True, help="output folder (written atomically)")
+    parser.add_argument("--overwrite", action="store_true")
+    args = parser.parse_args(argv)
+    try:
+        folder = load_module(args.ckpt).export(args.out, overwrite=args.overwrite)
+    except (BackboneError, FileExistsError, FileNotFoundError) as exc:
+        print(f"capvector export: {exc}", file=sys.stderr)
+        return 2
+    print(f"exported {args.ckpt} to {folder}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Robot datasets, normalisation statistics, image transforms and the Lightning datamodule."""

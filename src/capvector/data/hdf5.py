@@ -1,0 +1,202 @@
+"""Robot demonstrations in the robomimic / LIBERO HDF5 layout.
+
+Layout read here (robomimic ``docs/datasets/overview.md``; LIBERO ``scripts/create_dataset.py``)::
+
+    data/                      attrs: env_args (JSON), language_instruction or problem_info (LIBERO)
+      demo_N/                  attrs: num_samples, language_instruction (optional)
+        actions                (T, A)
+        obs/<camera>_image     (T, H, W, 3) uint8, upright
+        obs/<camera>_depth     (T, H, W) float32 metres (optional)
+        obs/<proprio key>      (T, d) for each key in ``proprio_keys``, concatenated in order
+        annotations            (T,) UTF-8 text about the scene (optional)
+
+A sample is the observation at step t and the action chunk t..t+T-1. Chunks never run past the end
+of an episode: as OFT (``chunk_act_obs``), only steps 0..len-T start a sample.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from capvector.data import keys
+from capvector.data.statistics import Normalizer, compute_statistics
+from capvector.data.transforms import ImageTransform
+
+
+class DatasetError(ValueError):
+    """A dataset file that does not have what the config asks for; the message says what to change."""
+
+
+@dataclass
+class EpisodeRef:
+    file: int
+    demo: str
+    length: int
+    instruction: str
+
+
+def _demo_names(data: h5py.Group) -> list[str]:
+    names = [k for k in data if k.startswith("demo_")]
+    return sorted(names, key=lambda k: int(k.split("_")[1]) if k.split("_")[1].isdigit() else k)
+
+
+def _instruction(data: h5py.Group, demo: h5py.Group, fallback: str | None, path: str) -> str:
+    for attrs in (demo.attrs, data.attrs):
+        if "language_instruction" in attrs:
+            value = attrs["language_instruction"]
+            return value.decode() if isinstance(value, bytes) else str(value)
+    if "problem_info" in data.attrs:  # LIBERO keeps it inside a JSON attribute
+        return json.loads(data.attrs["problem_info"])["language_instruction"]
+    if fallback:
+        return fallback
+    raise DatasetError(
+        f"{path} has no language instruction (attr `language_instruction` on `data` or the demo, "
+        "or LIBERO's `problem_info`); set data.instruction in the config"
+    )
+
+
+class HDF5RobotDataset(Dataset):
+    """Samples (observation at t, action chunk t..t+T-1) from one or more HDF5 files."""
+
+    def __init__(
+        self,
+        files: Sequence[str | Path],
+        cameras: Sequence[str],
+        proprio_keys: Sequence[str],
+        chunk_size: int,
+        statistics: dict[str, Any] | None = None,
+        transform: ImageTransform | None = None,
+        instruction: str | None = None,
+        load_depth: bool = False,
+        load_annotations: bool = False,
+    ) -> None:
+        if not files:
+            raise DatasetError("no dataset files given; set data.train_files")
+        self.files = [str(f) for f in files]
+        self.cameras = list(cameras)
+        self.proprio_keys = list(proprio_keys)
+        self.chunk_size = chunk_size
+        self.transform = transform or ImageTransform(augment=False, center_crop=False)
+        self.load_depth = load_depth
+        self.load_annotations = load_annotations
+        self.episodes: list[EpisodeRef] = []
+        self.index: list[tuple[int, int]] = []  # (episode, start step)
+        all_actions, all_proprio = [], []
+        for file_index, path in enumerate(self.files):
+            if not Path(path).is_file():
+                raise DatasetError(f"dataset file {path} does not exist")
+            with h5py.File(path, "r") as f:
+                if "data" not in f:
+                    raise DatasetError(f"{path} has no `data` group: not a robomimic/LIBERO file")
+                data = f["data"]
+                for name in _demo_names(data):
+                    demo = data[name]
+                    self._check_demo(demo, path, name)
+                    actions = demo["actions"][()]
+                    proprio = self._read_proprio(demo)
+                    length = actions.shape[0]
+                    episode = EpisodeRef(
+                        file_index, name, length, _instruction(data, demo, instruction, path)
+                    )
+                    if length < chunk_size:
+                        continue  # too short for one full chunk; OFT drops such windows as well
+                    self.episodes.append(episode)
+                    ep = len(self.episodes) - 1
+                    self.index.extend((ep, t) for t in range(length - chunk_size + 1))
+                    all_actions.append(actions)
+                    all_proprio.append(proprio)
+        if not self.index:
+            raise DatasetError(
+                f"{self.files} hold no episode of at least chunk_size={chunk_size} steps"
+            )
+        self.action_dim = all_actions[0].shape[1]
+        self.proprio_dim = all_proprio[0].shape[1]
+        self.statistics = statistics or compute_statistics(
+            np.concatenate(all_actions), np.concatenate(all_proprio), len(self.episodes)
+        )
+        self.normalizer = Normalizer(self.statistics)
+        self._handles: dict[int, h5py.File] = {}
+
+    def _check_demo(self, demo: h5py.Group, path: str, name: str) -> None:
+        where = f"{path}:data/{name}"
+        if "actions" not in demo:
+            raise DatasetError(f"{where} has no `actions` dataset")
+        obs = demo.get("obs")
+        available = sorted(obs.keys()) if obs is not None else []
+        wanted = [f"{c}_image" for c in self.cameras] + self.proprio_keys
+        if self.load_depth:
+            wanted += [f"{c}_depth" for c in self.cameras]
+        missing = [k for k in wanted if k not in available]
+        if missing:
+            raise DatasetError(
+                f"{where}/obs lacks {missing}; it has {available}. Set data.cameras (without the "
+                "`_image` suffix) and data.proprio_keys to keys the file has"
+            )
+        if self.load_annotations and "annotations" not in demo:
+            raise DatasetError(f"{where} has no `annotations`; regenerate the demos or set load_annotations=false")
+
+    def _read_proprio(self, demo: h5py.Group, step: int | None = None) -> np.ndarray:
+        """(T, P) for the whole episode, or (P,) at ``step``."""
+        length = demo["actions"].shape[0]
+        parts = []
+        for key in self.proprio_keys:
+            values = np.asarray(demo["obs"][key][()] if step is None else demo["obs"][key][step], np.float32)
+            parts.append(values.reshape(length, -1) if step is None else values.reshape(-1))
+        if not parts:
+            return np.zeros((length, 0) if step is None else (0,), np.float32)
+        return np.concatenate(parts, axis=-1)
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def _file(self, index: int) -> h5py.File:
+        # One handle per process: h5py handles must not cross a DataLoader worker fork.
+        if index not in self._handles:
+            self._handles[index] = h5py.File(self.files[index], "r")
+        return self._handles[index]
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        state["_handles"] = {}
+        return state
+
+    def __getitem__(self, i: int) -> dict[str, Any]:
+        ep_index, t = self.index[i]
+        episode = self.episodes[ep_index]
+        demo = self._file(episode.file)["data"][episode.demo]
+        actions = demo["actions"][t : t + self.chunk_size].astype(np.float32)
+        images, depths = [], []
+        for camera in self.cameras:
+            image = torch.from_numpy(np.ascontiguousarray(demo["obs"][f"{camera}_image"][t])).permute(2, 0, 1)
+            depth = torch.from_numpy(demo["obs"][f"{camera}_depth"][t].astype(np.float32)) if self.load_depth else None
+            image, depth = self.transform(image, depth)
+            images.append(image)
+            depths.append(depth)
+        sample: dict[str, Any] = {
+            keys.IMAGES: torch.stack(images),
+            keys.PROPRIO: torch.from_numpy(self.normalizer.normalize("proprio", self._read_proprio(demo, t))),
+            keys.ACTIONS: torch.from_numpy(self.normalizer.normalize("action", actions)),
+            keys.INSTRUCTION: episode.instruction,
+        }
+        if self.load_depth:
+            sample[keys.DEPTH] = torch.stack(depths)
+        if self.load_annotations:
+            text = demo["annotations"][t]
+            sample[keys.ANNOTATION] = text.decode() if isinstance(text, bytes) else str(text)
+        return sample
+
+
+def read_camera_intrinsics(path: str | Path, cameras: Sequence[str]) -> dict[str, np.ndarray]:
+    """3x3 intrinsics per camera from ``data`` attrs ``<camera>_intrinsics`` (our demo files)."""
+    with h5py.File(path, "r") as f:
+        attrs = f["data"].attrs
+        return {c: np.asarray(attrs[f"{c}_intrinsics"], dtype=np.float32) for c in cameras if f"{c}_intrinsics" in attrs}

@@ -1,0 +1,64 @@
+"""LoRA through peft: injection into a backbone and the merged (plain-key) state dict for export."""
+
+from __future__ import annotations
+
+import fnmatch
+from dataclasses import dataclass
+
+from torch import Tensor
+
+from capvector.backbones.base import VLABackbone
+
+ADAPTER = "default"
+
+
+@dataclass
+class LoraSettings:
+    """OpenVLA-OFT's LoRA: r 32, alpha min(r, 16), no dropout, gaussian init."""
+
+    r: int = 32
+    alpha: float = 16.0
+    dropout: float = 0.0
+    init: str = "gaussian"
+
+    @property
+    def scaling(self) -> float:
+        return self.alpha / self.r
+
+
+def inject_lora(backbone: VLABackbone, settings: LoraSettings) -> None:
+    """Add LoRA to the backbone's target modules; only LoRA and the heads stay trainable."""
+    from peft import LoraConfig, inject_adapter_in_model
+
+    config = LoraConfig(
+        r=settings.r,
+        lora_alpha=settings.alpha,
+        lora_dropout=settings.dropout,
+        init_lora_weights=True if settings.init == "default" else settings.init,
+        target_modules=backbone.lora_target_modules,
+    )
+    inject_adapter_in_model(config, backbone, adapter_name=ADAPTER)
+    for name, param in backbone.named_parameters():
+        is_lora = ".lora_" in name
+        is_head = any(fnmatch.fnmatchcase(name, g) for g in backbone.lora_trainable_modules)
+        param.requires_grad_(is_lora or is_head)
+
+
+def has_lora(backbone: VLABackbone) -> bool:
+    return any(".lora_A." in name for name, _ in backbone.named_parameters())
+
+
+def merged_state_dict(backbone: VLABackbone) -> dict[str, Tensor]:
+    """The backbone's state dict with LoRA merged in and peft's key changes undone.
+
+    ``X.base_layer.weight`` + scaling * B @ A becomes ``X.weight``, so exports of LoRA and of full
+    fine-tuning have the same keys and capability vectors subtract them directly.
+    """
+    from peft.tuners.lora import LoraLayer
+
+    state = {k: v.detach() for k, v in backbone.state_dict().items() if ".lora_" not in k}
+    for name, module in backbone.named_modules():
+        if isinstance(module, LoraLayer) and ADAPTER in module.lora_A:
+            key = f"{name}.base_layer.weight"
+            state[key] = state[key] + module.get_delta_weight(ADAPTER).detach().to(state[key].dtype)
+    return {k.replace(".base_layer.", "."): v for k, v in state.items()}

@@ -1,0 +1,223 @@
+"""VLAModule: thin Lightning wiring around a backbone and a set of named loss terms."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+from torch import Tensor, nn
+
+from capvector.backbones.base import (
+    BackboneError,
+    OutputRequest,
+    VLABackbone,
+    backbone_class,
+    build_backbone,
+    from_pretrained,
+    load_export_config,
+)
+from capvector.data.spec import DataSpec
+from capvector.lora import LoraSettings, has_lora, inject_lora, merged_state_dict
+from capvector.objectives.base import Objective
+
+STATISTICS_FILE = "dataset_statistics.json"
+
+
+@dataclass
+class OptimizerSettings:
+    """AdamW + schedule. Defaults follow OpenVLA-OFT: lr 5e-4, torch AdamW defaults, no warmup."""
+
+    lr: float = 5e-4
+    weight_decay: float = 0.01
+    betas: tuple[float, float] = (0.9, 0.999)
+    schedule: str = "constant"
+    """'constant', 'cosine' (to min_lr_ratio * lr at the trainer's max_steps) or 'step'."""
+    warmup_steps: int = 0
+    decay_steps: list[int] = field(default_factory=list)
+    """'step' schedule: multiply by decay_factor at these steps (OFT: x0.1 at 100k)."""
+    decay_factor: float = 0.1
+    min_lr_ratio: float = 1e-3
+
+
+class VLAModule(L.LightningModule):
+    """A backbone plus named loss terms: loss = action loss + sum of weighted objectives."""
+
+    def __init__(
+        self,
+        backbone: str = "openvla-oft-tiny",
+        backbone_overrides: dict[str, Any] | None = None,
+        pretrained: str | None = None,
+        data_spec: DataSpec | None = None,
+        lora: LoraSettings | None = None,
+        optimizer: OptimizerSettings | None = None,
+    ) -> None:
+        """
+        Args:
+            backbone: a registered preset (``capvector backbone-info --list``).
+            backbone_overrides: config fields to change, e.g. ``{head_blocks: 1}``.
+            pretrained: an export folder (θ_pre) to start from instead of random weights; its
+                architecture wins over ``backbone``.
+            data_spec: cameras, shapes and statistics; the CLI links it from the datamodule.
+            lora: fine-tune with LoRA (only LoRA and the heads train) instead of all weights.
+            optimizer: AdamW and learning-rate schedule.
+        """
+        super().__init__()
+        self.save_hyperparameters()
+        self.data_spec = data_spec or DataSpec()
+        self.optimizer_settings = optimizer or OptimizerSettings()
+        self.lora_settings = lora
+        overrides = {**self.data_spec.backbone_overrides(), **(backbone_overrides or {})}
+        self.backbone: VLABackbone = self._build_backbone(backbone, pretrained, overrides)
+        if lora is not None:
+            inject_lora(self.backbone, lora)
+        self.objectives = nn.ModuleDict()
+
+    @staticmethod
+    def _build_backbone(preset: str, pretrained: str | None, overrides: dict[str, Any]) -> VLABackbone:
+        if pretrained is None:
+            return build_backbone(preset, **overrides)
+        config = load_export_config(pretrained)["backbone_config"]
+        clashes = {k: (config[k], v) for k, v in overrides.items() if k in config and config[k] != v}
+        if clashes:
+            raise BackboneError(
+                f"the data does not fit the pretrained model {pretrained}: "
+                + ", ".join(f"{k} is {a} in the model but {b} in the data" for k, (a, b) in clashes.items())
+            )
+        return from_pretrained(pretrained)
+
+    # -- objectives ----------------------------------------------------------------------------
+
+    def add_objective(self, objective: Objective) -> None:
+        """Attach a loss term (callbacks call this in ``setup``, before optimizers exist)."""
+        if objective.name in self.objectives or objective.name == "action":
+            raise ValueError(f"an objective named {objective.name!r} is already attached")
+        self.objectives[objective.name] = objective
+
+    def remove_objective(self, name: str) -> None:
+        del self.objectives[name]
+
+    def output_request(self) -> OutputRequest:
+        request = OutputRequest()
+        for objective in self.objectives.values():
+            request = request.merged(objective.request)
+        return request
+
+    # -- steps ---------------------------------------------------------------------------------
+
+    def forward(self, batch: Mapping[str, Any]) -> Tensor:
+        """(B, T, A) normalised actions."""
+        return self.backbone(batch).actions
+
+    def compute_losses(self, batch: Mapping[str, Any]) -> dict[str, Tensor]:
+        output = self.backbone(batch, self.output_request())
+        losses = {"action": output.loss}
+        for name, objective in self.objectives.items():
+            losses[name] = objective(batch, output, self.backbone)
+        return losses
+
+    def training_step(self, batch: Mapping[str, Any], batch_idx: int) -> Tensor:
+        losses = self.compute_losses(batch)
+        total = losses["action"]
+        for name, objective in self.objectives.items():
+            total = total + objective.weight * losses[name]
+        batch_size = len(batch["instruction"])
+        for name, value in losses.items():
+            self.log(f"train/loss_{name}", value.detach(), batch_size=batch_size)
+        self.log("train/loss", total.detach(), prog_bar=True, batch_size=batch_size)
+        return total
+
+    def validation_step(self, batch: Mapping[str, Any], batch_idx: int) -> None:
+        output = self.backbone(batch)
+        self.log("val/action_l1", output.loss, prog_bar=True, sync_dist=True, batch_size=len(batch["instruction"]))
+
+    # -- optimisation ------------------------------------------------------------------------
+
+    def configure_optimizers(self) -> dict[str, Any]:
+        settings = self.optimizer_settings
+        params = [p for p in self.parameters() if p.requires_grad]
+        optimizer = torch.optim.AdamW(
+            params, lr=settings.lr, weight_decay=settings.weight_decay, betas=tuple(settings.betas)
+        )
+        total = max(1, self.trainer.max_steps) if self.trainer.max_steps > 0 else None
+        scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, _schedule(settings, total))
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+
+    # -- persistence ---------------------------------------------------------------------------
+
+    def checkpoint_metadata(self) -> dict[str, Any]:
+        """What tools outside Lightning need to read a checkpoint (``capvector.vectors``, eval)."""
+        lora = self.lora_settings
+        return {
+            "family": self.backbone.config_class.family,
+            "backbone_config": self.backbone.config.to_dict(),
+            "capability_parameters": list(self.backbone.capability_parameters),
+            "lora": None if lora is None else {"r": lora.r, "alpha": lora.alpha, "scaling": lora.scaling},
+            "data_spec": dataclasses.asdict(self.data_spec),
+            "objectives": sorted(self.objectives),
+        }
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        checkpoint["capvector"] = self.checkpoint_metadata()
+
+    def export(self, folder: str | Path, overwrite: bool = False) -> Path:
+        """An export folder: ``model.safetensors`` (LoRA merged) + config + statistics + tokenizer."""
+        state = merged_state_dict(self.backbone) if has_lora(self.backbone) else self.backbone.state_dict()
+        extra = {
+            "capvector_data_spec.json": dataclasses.asdict(self.data_spec),
+            STATISTICS_FILE: self.data_spec.statistics,
+        }
+        return self.backbone.save_pretrained(
+            folder,
+            state_dict=state,
+            extra_json=extra,
+            config_extra={"objectives": sorted(self.objectives)},
+            overwrite=overwrite,
+        )
+
+
+def _schedule(settings: OptimizerSettings, total_steps: int | None) -> Any:
+    kind = settings.schedule
+    if kind not in ("constant", "cosine", "step"):
+        raise ValueError(f"unknown lr schedule {kind!r}; use constant, cosine or step")
+    if kind == "cosine" and total_steps is None:
+        raise ValueError("the cosine schedule needs trainer.max_steps")
+
+    def factor(step: int) -> float:
+        if step < settings.warmup_steps:
+            return (step + 1) / settings.warmup_steps
+        if kind == "step":
+            return settings.decay_factor ** sum(step >= s for s in settings.decay_steps)
+        if kind == "cosine":
+            progress = min(1.0, (step - settings.warmup_steps) / max(1, total_steps - settings.warmup_steps))
+            floor = settings.min_lr_ratio
+            return floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * progress))
+        return 1.0
+
+    return factor
+
+
+def load_module(checkpoint: str | Path, map_location: str = "cpu") -> VLAModule:
+    """A trained module from a Lightning checkpoint (objectives are training-only and dropped)."""
+    ckpt = torch.load(checkpoint, map_location=map_location, weights_only=False)
+    if "capvector" not in ckpt:
+        raise BackboneError(f"{checkpoint} is not a capvector checkpoint (no `capvector` metadata)")
+    hparams = dict(ckpt.get("hyper_parameters", {}))
+    meta = ckpt["capvector"]
+    backbone_class(meta["family"])  # clear error for an unknown family
+    # The checkpoint holds every weight and the resolved architecture: the θ_pre folder it started
+    # from may be gone, so rebuild from the saved config instead of from `pretrained`.
+    hparams["pretrained"] = None
+    hparams["backbone"] = meta["backbone_config"]["preset"]
+    hparams["backbone_overrides"] = dict(meta["backbone_config"])
+    module = VLAModule(**hparams)
+    state = {k: v for k, v in ckpt["state_dict"].items() if not k.startswith("objectives.")}
+    missing, unexpected = module.load_state_dict(state, strict=False)
+    if missing or unexpected:
+        raise BackboneError(f"{checkpoint} does not fit: missing {missing[:3]}, unexpected {unexpected[:3]}")
+    return module

@@ -1,0 +1,32 @@
+"""The objective contract: a loss term is an ``nn.Module`` (its parameters train and checkpoint)."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Mapping
+from typing import Any
+
+from torch import Tensor, nn
+
+from capvector.backbones.base import OutputRequest, VLABackbone, VLAOutput
+
+
+class Objective(nn.Module, ABC):
+    """A named loss term. ``VLAModule`` adds ``weight * forward(...)`` to the action loss.
+
+    ``weight`` is a plain attribute so a callback can schedule it; subclasses declare what they
+    need from the forward pass in ``request`` (hidden layers, LM logits).
+    """
+
+    def __init__(self, name: str, weight: float = 1.0) -> None:
+        super().__init__()
+        self.name = name
+        self.weight = float(weight)
+
+    @property
+    def request(self) -> OutputRequest:
+        return OutputRequest()
+
+    @abstractmethod
+    def forward(self, batch: Mapping[str, Any], output: VLAOutput, backbone: VLABackbone) -> Tensor:
+        """The unweighted scalar loss of this term."""

@@ -1,0 +1,57 @@
+"""Shared fixtures: small real HDF5 demo files written with h5py."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+CAMERAS = ("agentview", "robot0_eye_in_hand")
+
+
+def write_demo_file(
+    path: Path,
+    lengths: tuple[int, ...] = (12, 10),
+    image_size: int = 64,
+    instruction: str = "lift the red cube",
+    seed: int = 0,
+) -> Path:
+    """A robomimic/LIBERO-layout file with the keys `capvector demos` writes (random content)."""
+    rng = np.random.default_rng(seed)
+    with h5py.File(path, "w") as f:
+        data = f.create_group("data")
+        data.attrs["env_args"] = json.dumps({"env_name": "Lift", "type": 1, "env_kwargs": {}})
+        data.attrs["language_instruction"] = instruction
+        data.attrs["total"] = sum(lengths)
+        for i, length in enumerate(lengths):
+            demo = data.create_group(f"demo_{i}")
+            demo.attrs["num_samples"] = length
+            actions = rng.uniform(-1, 1, size=(length, 7)).astype(np.float32)
+            actions[:, -1] = np.sign(actions[:, -1])
+            demo["actions"] = actions
+            obs = demo.create_group("obs")
+            for camera in CAMERAS:
+                obs[f"{camera}_image"] = rng.integers(0, 255, (length, image_size, image_size, 3), dtype=np.uint8)
+                obs[f"{camera}_depth"] = rng.uniform(0.5, 2.0, (length, image_size, image_size)).astype(np.float32)
+            obs["robot0_eef_pos"] = rng.normal(size=(length, 3)).astype(np.float32)
+            obs["robot0_eef_axis_angle"] = rng.normal(size=(length, 3)).astype(np.float32)
+            obs["robot0_gripper_qpos"] = rng.normal(size=(length, 2)).astype(np.float32)
+            demo.create_dataset(
+                "annotations", data=[f"step {t} of demo {i}" for t in range(length)], dtype=h5py.string_dtype()
+            )
+    return path
+
+
+@pytest.fixture
+def demo_file(tmp_path: Path) -> Path:
+    return write_demo_file(tmp_path / "demos.hdf5")
+
+
+@pytest.fixture(autouse=True)
+def _deterministic() -> None:
+    torch.manual_seed(0)
+    torch.set_num_threads(1)  # tests run beside each other on 2 cores; avoid oversubscription
