@@ -35,13 +35,19 @@ def write_demo_file(
             demo["actions"] = actions
             obs = demo.create_group("obs")
             for camera in CAMERAS:
-                obs[f"{camera}_image"] = rng.integers(0, 255, (length, image_size, image_size, 3), dtype=np.uint8)
-                obs[f"{camera}_depth"] = rng.uniform(0.5, 2.0, (length, image_size, image_size)).astype(np.float32)
+                obs[f"{camera}_image"] = rng.integers(
+                    0, 255, (length, image_size, image_size, 3), dtype=np.uint8
+                )
+                obs[f"{camera}_depth"] = rng.uniform(
+                    0.5, 2.0, (length, image_size, image_size)
+                ).astype(np.float32)
             obs["robot0_eef_pos"] = rng.normal(size=(length, 3)).astype(np.float32)
             obs["robot0_eef_axis_angle"] = rng.normal(size=(length, 3)).astype(np.float32)
             obs["robot0_gripper_qpos"] = rng.normal(size=(length, 2)).astype(np.float32)
             demo.create_dataset(
-                "annotations", data=[f"step {t} of demo {i}" for t in range(length)], dtype=h5py.string_dtype()
+                "annotations",
+                data=[f"step {t} of demo {i}" for t in range(length)],
+                dtype=h5py.string_dtype(),
             )
     return path
 

@@ -30,16 +30,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not args or args[0] in ("-h", "--help"):
         print(_usage())
         return 0
+    from capvector.errors import CapVectorError
+
     command, rest = args[0], args[1:]
-    if command in LIGHTNING_SUBCOMMANDS:
-        run_lightning_cli([command, *rest])
-        return 0
-    if command not in TOOLS:
+    if command not in LIGHTNING_SUBCOMMANDS and command not in TOOLS:
         print(f"capvector: unknown command {command!r}\n\n{_usage()}", file=sys.stderr)
         return 2
-    module, function, _ = TOOLS[command]
-    tool: Callable[[list[str]], int] = getattr(importlib.import_module(module), function)
-    return int(tool(rest) or 0)
+    try:
+        if command in LIGHTNING_SUBCOMMANDS:
+            run_lightning_cli([command, *rest])
+            return 0
+        module, function, _ = TOOLS[command]
+        tool: Callable[[list[str]], int] = getattr(importlib.import_module(module), function)
+        return int(tool(rest) or 0)
+    except (CapVectorError, FileExistsError) as exc:
+        print(f"capvector {command}: error: {exc}", file=sys.stderr)
+        return 2
 
 
 def _usage() -> str:
@@ -77,23 +83,23 @@ def backbone_info_main(argv: list[str]) -> int:
     """Parameter counts per component from a meta-device build (no memory, no download)."""
     import torch
 
-    from capvector.backbones import BackboneError, build_backbone, list_presets
+    from capvector.backbones import build_backbone, list_presets
 
-    parser = argparse.ArgumentParser(prog="capvector backbone-info", description=backbone_info_main.__doc__)
+    parser = argparse.ArgumentParser(
+        prog="capvector backbone-info", description=backbone_info_main.__doc__
+    )
     parser.add_argument("preset", nargs="?", help="a registered preset; omit with --list")
     parser.add_argument("--list", action="store_true", help="list the registered presets")
     args = parser.parse_args(argv)
     if args.list or not args.preset:
         print("\n".join(list_presets()))
         return 0
-    try:
-        with torch.device("meta"):
-            model = build_backbone(args.preset)
-    except BackboneError as exc:
-        print(f"capvector backbone-info: {exc}", file=sys.stderr)
-        return 2
+    with torch.device("meta"):
+        model = build_backbone(args.preset)
     print(f"{args.preset} ({type(model).__name__})")
-    rows = [(name, sum(p.numel() for p in child.parameters())) for name, child in model.named_children()]
+    rows = [
+        (name, sum(p.numel() for p in child.parameters())) for name, child in model.named_children()
+    ]
     capability = set(model.capability_parameter_names())
     in_vector = sum(p.numel() for n, p in model.named_parameters() if n in capability)
     total = sum(count for _, count in rows)
@@ -107,7 +113,6 @@ def backbone_info_main(argv: list[str]) -> int:
 
 def export_main(argv: list[str]) -> int:
     """Export a Lightning checkpoint to a folder that `extract`, `merge` and `evaluate` read."""
-    from capvector.backbones import BackboneError
     from capvector.module import load_module
 
     parser = argparse.ArgumentParser(prog="capvector export", description=export_main.__doc__)
@@ -115,11 +120,7 @@ def export_main(argv: list[str]) -> int:
     parser.add_argument("--out", required=True, help="output folder (written atomically)")
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args(argv)
-    try:
-        folder = load_module(args.ckpt).export(args.out, overwrite=args.overwrite)
-    except (BackboneError, FileExistsError, FileNotFoundError) as exc:
-        print(f"capvector export: {exc}", file=sys.stderr)
-        return 2
+    folder = load_module(args.ckpt).export(args.out, overwrite=args.overwrite)
     print(f"exported {args.ckpt} to {folder}")
     return 0
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -69,6 +70,8 @@ class VLAModule(L.LightningModule):
         """
         super().__init__()
         self.save_hyperparameters()
+        if isinstance(data_spec, Mapping):  # from YAML or a checkpoint saved as plain data
+            data_spec = DataSpec(**data_spec)
         self.data_spec = data_spec or DataSpec()
         self.optimizer_settings = optimizer or OptimizerSettings()
         self.lora_settings = lora
@@ -79,15 +82,21 @@ class VLAModule(L.LightningModule):
         self.objectives = nn.ModuleDict()
 
     @staticmethod
-    def _build_backbone(preset: str, pretrained: str | None, overrides: dict[str, Any]) -> VLABackbone:
+    def _build_backbone(
+        preset: str, pretrained: str | None, overrides: dict[str, Any]
+    ) -> VLABackbone:
         if pretrained is None:
             return build_backbone(preset, **overrides)
         config = load_export_config(pretrained)["backbone_config"]
-        clashes = {k: (config[k], v) for k, v in overrides.items() if k in config and config[k] != v}
+        clashes = {
+            k: (config[k], v) for k, v in overrides.items() if k in config and config[k] != v
+        }
         if clashes:
             raise BackboneError(
                 f"the data does not fit the pretrained model {pretrained}: "
-                + ", ".join(f"{k} is {a} in the model but {b} in the data" for k, (a, b) in clashes.items())
+                + ", ".join(
+                    f"{k} is {a} in the model but {b} in the data" for k, (a, b) in clashes.items()
+                )
             )
         return from_pretrained(pretrained)
 
@@ -134,7 +143,13 @@ class VLAModule(L.LightningModule):
 
     def validation_step(self, batch: Mapping[str, Any], batch_idx: int) -> None:
         output = self.backbone(batch)
-        self.log("val/action_l1", output.loss, prog_bar=True, sync_dist=True, batch_size=len(batch["instruction"]))
+        self.log(
+            "val/action_l1",
+            output.loss,
+            prog_bar=True,
+            sync_dist=True,
+            batch_size=len(batch["instruction"]),
+        )
 
     # -- optimisation ------------------------------------------------------------------------
 
@@ -146,7 +161,10 @@ class VLAModule(L.LightningModule):
         )
         total = max(1, self.trainer.max_steps) if self.trainer.max_steps > 0 else None
         scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, _schedule(settings, total))
-        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+        return {
+            "optimizer": optimizer,
+            "lr_scheduler": {"scheduler": scheduler, "interval": "step"},
+        }
 
     # -- persistence ---------------------------------------------------------------------------
 
@@ -157,7 +175,9 @@ class VLAModule(L.LightningModule):
             "family": self.backbone.config_class.family,
             "backbone_config": self.backbone.config.to_dict(),
             "capability_parameters": list(self.backbone.capability_parameters),
-            "lora": None if lora is None else {"r": lora.r, "alpha": lora.alpha, "scaling": lora.scaling},
+            "lora": None
+            if lora is None
+            else {"r": lora.r, "alpha": lora.alpha, "scaling": lora.scaling},
             "data_spec": dataclasses.asdict(self.data_spec),
             "objectives": sorted(self.objectives),
         }
@@ -167,7 +187,11 @@ class VLAModule(L.LightningModule):
 
     def export(self, folder: str | Path, overwrite: bool = False) -> Path:
         """An export folder: ``model.safetensors`` (LoRA merged) + config + statistics + tokenizer."""
-        state = merged_state_dict(self.backbone) if has_lora(self.backbone) else self.backbone.state_dict()
+        state = (
+            merged_state_dict(self.backbone)
+            if has_lora(self.backbone)
+            else self.backbone.state_dict()
+        )
         extra = {
             "capvector_data_spec.json": dataclasses.asdict(self.data_spec),
             STATISTICS_FILE: self.data_spec.statistics,
@@ -194,7 +218,9 @@ def _schedule(settings: OptimizerSettings, total_steps: int | None) -> Any:
         if kind == "step":
             return settings.decay_factor ** sum(step >= s for s in settings.decay_steps)
         if kind == "cosine":
-            progress = min(1.0, (step - settings.warmup_steps) / max(1, total_steps - settings.warmup_steps))
+            progress = min(
+                1.0, (step - settings.warmup_steps) / max(1, total_steps - settings.warmup_steps)
+            )
             floor = settings.min_lr_ratio
             return floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * progress))
         return 1.0
@@ -204,10 +230,14 @@ def _schedule(settings: OptimizerSettings, total_steps: int | None) -> Any:
 
 def load_module(checkpoint: str | Path, map_location: str = "cpu") -> VLAModule:
     """A trained module from a Lightning checkpoint (objectives are training-only and dropped)."""
+    if not Path(checkpoint).is_file():
+        raise BackboneError(f"checkpoint {checkpoint} does not exist")
     ckpt = torch.load(checkpoint, map_location=map_location, weights_only=False)
     if "capvector" not in ckpt:
         raise BackboneError(f"{checkpoint} is not a capvector checkpoint (no `capvector` metadata)")
-    hparams = dict(ckpt.get("hyper_parameters", {}))
+    accepted = inspect.signature(VLAModule.__init__).parameters
+    # LightningCLI adds bookkeeping entries (`_instantiator`, `_class_path`) to the hparams.
+    hparams = {k: v for k, v in ckpt.get("hyper_parameters", {}).items() if k in accepted}
     meta = ckpt["capvector"]
     backbone_class(meta["family"])  # clear error for an unknown family
     # The checkpoint holds every weight and the resolved architecture: the θ_pre folder it started
@@ -219,5 +249,7 @@ def load_module(checkpoint: str | Path, map_location: str = "cpu") -> VLAModule:
     state = {k: v for k, v in ckpt["state_dict"].items() if not k.startswith("objectives.")}
     missing, unexpected = module.load_state_dict(state, strict=False)
     if missing or unexpected:
-        raise BackboneError(f"{checkpoint} does not fit: missing {missing[:3]}, unexpected {unexpected[:3]}")
+        raise BackboneError(
+            f"{checkpoint} does not fit: missing {missing[:3]}, unexpected {unexpected[:3]}"
+        )
     return module

@@ -26,6 +26,7 @@ from typing import Any, ClassVar, TypeVar
 import torch
 from torch import Tensor, nn
 
+from capvector.errors import CapVectorError
 from capvector.fileio import atomic_directory
 
 EXPORT_FORMAT = "capvector-export"
@@ -33,7 +34,7 @@ CONFIG_FILE = "config.json"
 WEIGHTS_FILE = "model.safetensors"
 
 
-class BackboneError(ValueError):
+class BackboneError(CapVectorError):
     """Bad backbone input: unknown preset, wrong checkpoint, mismatched keys. The message says what to do."""
 
 
@@ -142,7 +143,9 @@ class VLABackbone(nn.Module, ABC):
 
     def capability_parameter_names(self) -> list[str]:
         names = [name for name, _ in self.named_parameters()]
-        return [n for n in names if any(fnmatch.fnmatchcase(n, g) for g in self.capability_parameters)]
+        return [
+            n for n in names if any(fnmatch.fnmatchcase(n, g) for g in self.capability_parameters)
+        ]
 
     # -- persistence -------------------------------------------------------------------------
 
@@ -226,7 +229,7 @@ def list_presets() -> list[str]:
     return sorted(_PRESETS)
 
 
-def preset_config(preset: str, **overrides: Any) -> BackboneConfig:
+def preset_config(preset: str, /, **overrides: Any) -> BackboneConfig:
     """The config of ``preset`` with ``overrides`` applied; unknown names give a clear error."""
     _load_families()
     if preset not in _PRESETS:
@@ -293,7 +296,7 @@ def backbone_class(family: str) -> type[VLABackbone]:
     return _FAMILIES[family]
 
 
-def build_backbone(preset: str, **overrides: Any) -> VLABackbone:
+def build_backbone(preset: str, /, **overrides: Any) -> VLABackbone:
     """Build a preset with random weights (use ``torch.device('meta')`` to only count parameters)."""
     config = preset_config(preset, **overrides)
     return backbone_class(config.family)(config)
@@ -320,7 +323,11 @@ def from_pretrained(folder: str | Path, **overrides: Any) -> VLABackbone:
     cls = backbone_class(config["family"])
     model = cls.from_config_dict({**config["backbone_config"], **overrides})
     model.load_tokenizer(folder)
-    state = load_file(str(Path(folder) / WEIGHTS_FILE)) if _single_file(folder) else read_sharded(folder)
+    state = (
+        load_file(str(Path(folder) / WEIGHTS_FILE))
+        if _single_file(folder)
+        else read_sharded(folder)
+    )
     load_state_dict_strictly(model, state, source=str(folder))
     return model
 
@@ -329,7 +336,9 @@ def _single_file(folder: str | Path) -> bool:
     return (Path(folder) / WEIGHTS_FILE).is_file()
 
 
-def read_sharded(folder: str | Path, index_name: str = "model.safetensors.index.json") -> dict[str, Tensor]:
+def read_sharded(
+    folder: str | Path, index_name: str = "model.safetensors.index.json"
+) -> dict[str, Tensor]:
     """All tensors of a sharded safetensors folder (HF layout: index JSON + shards)."""
     from safetensors.torch import load_file
 

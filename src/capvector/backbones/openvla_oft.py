@@ -162,10 +162,18 @@ class FusedVisionBackbone(nn.Module):
         super().__init__()
         self.featurizer = _build_vit(config.featurizer, config.image_size)
         self.fused_featurizer = _build_vit(config.fused_featurizer, config.image_size)
-        self.register_buffer("dino_mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("dino_std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("siglip_mean", torch.tensor(SIGLIP_MEAN).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("siglip_std", torch.tensor(SIGLIP_STD).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer(
+            "dino_mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False
+        )
+        self.register_buffer(
+            "dino_std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False
+        )
+        self.register_buffer(
+            "siglip_mean", torch.tensor(SIGLIP_MEAN).view(1, 3, 1, 1), persistent=False
+        )
+        self.register_buffer(
+            "siglip_std", torch.tensor(SIGLIP_STD).view(1, 3, 1, 1), persistent=False
+        )
         self.grid = config.image_size // config.featurizer.patch_size
 
     @property
@@ -231,7 +239,9 @@ class MLPResNet(nn.Module):
         self.layer_norm1 = nn.LayerNorm(input_dim)
         self.fc1 = nn.Linear(input_dim, hidden_dim)
         self.relu = nn.ReLU()
-        self.mlp_resnet_blocks = nn.ModuleList(MLPResNetBlock(hidden_dim) for _ in range(num_blocks))
+        self.mlp_resnet_blocks = nn.ModuleList(
+            MLPResNetBlock(hidden_dim) for _ in range(num_blocks)
+        )
         self.layer_norm2 = nn.LayerNorm(hidden_dim)
         self.fc2 = nn.Linear(hidden_dim, output_dim)
 
@@ -305,7 +315,9 @@ class OpenVLAOFT(VLABackbone):
         self.proprio_projector = (
             ProprioProjector(config.proprio_dim, llm.hidden_size) if config.proprio_dim else None
         )
-        self.action_head = L1RegressionActionHead(llm.hidden_size, config.action_dim, config.head_blocks)
+        self.action_head = L1RegressionActionHead(
+            llm.hidden_size, config.action_dim, config.head_blocks
+        )
 
     # -- contract ----------------------------------------------------------------------------
 
@@ -339,12 +351,16 @@ class OpenVLAOFT(VLABackbone):
             hidden[0] = embeds
         # Bidirectional attention as the OFT transformers fork: every token sees every non-pad
         # token (key-padding mask only), passed as an additive 4-D mask so SDPA is non-causal.
-        mask = torch.zeros(valid.shape[0], 1, valid.shape[1], valid.shape[1], dtype=embeds.dtype, device=device)
+        mask = torch.zeros(
+            valid.shape[0], 1, valid.shape[1], valid.shape[1], dtype=embeds.dtype, device=device
+        )
         mask.masked_fill_(~valid[:, None, None, :], torch.finfo(embeds.dtype).min)
         positions = torch.arange(valid.shape[1], device=device).expand(valid.shape[0], -1)
         decoder = self.language_model.model
         with keep_hidden_states(decoder.layers, request.hidden_layers, hidden):
-            last = decoder(inputs_embeds=embeds, attention_mask=mask, position_ids=positions).last_hidden_state
+            last = decoder(
+                inputs_embeds=embeds, attention_mask=mask, position_ids=positions
+            ).last_hidden_state
         # Readout one position before each action slot: the next-token shift OFT keeps even with
         # bidirectional attention (finetune.py slices hidden states with labels[:, 1:]).
         readout = torch.gather(last, 1, (slot_pos - 1).unsqueeze(-1).expand(-1, -1, last.shape[-1]))
@@ -378,7 +394,9 @@ class OpenVLAOFT(VLABackbone):
         flat = images.flatten(0, 1)
         size = self.config.image_size
         if flat.shape[-2:] != (size, size):
-            flat = F.interpolate(flat, size=(size, size), mode="bicubic", align_corners=False, antialias=True)
+            flat = F.interpolate(
+                flat, size=(size, size), mode="bicubic", align_corners=False, antialias=True
+            )
             flat = flat.clamp(0, 1)
         patches = self.vision_backbone(flat.to(self.projector.fc1.weight.dtype))
         visual = self.projector(patches.reshape(b, -1, patches.shape[-1]))
@@ -395,10 +413,14 @@ class OpenVLAOFT(VLABackbone):
         text = text * (~slot_mask).unsqueeze(-1).to(text.dtype)
         embeds = torch.cat([text[:, :1], prefix_tokens, text[:, 1:]], dim=1)
         n_prefix = prefix_tokens.shape[1]
-        valid = torch.cat([text_valid[:, :1], text_valid.new_ones(b, n_prefix), text_valid[:, 1:]], dim=1)
+        valid = torch.cat(
+            [text_valid[:, :1], text_valid.new_ones(b, n_prefix), text_valid[:, 1:]], dim=1
+        )
         return embeds, valid, slot_pos + n_prefix, n_prefix
 
-    def _tokenize(self, instructions: list[str], device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
+    def _tokenize(
+        self, instructions: list[str], device: torch.device
+    ) -> tuple[Tensor, Tensor, Tensor]:
         """Right-padded ``[BOS] prompt [T*A slots] [</s>]`` ids, valid mask, slot positions."""
         tok = self.tokenizer
         if tok is None:
@@ -521,7 +543,9 @@ def _read_component(root: Path, name: str, prefix: str) -> dict[str, Tensor]:
     if not files:
         raise BackboneError(f"{root} has no {name}--<step>_checkpoint.pt file")
     if len(files) > 1:
-        raise BackboneError(f"{root} has several {name} files ({[f.name for f in files]}); keep one")
+        raise BackboneError(
+            f"{root} has several {name} files ({[f.name for f in files]}); keep one"
+        )
     raw = torch.load(files[0], map_location="cpu", weights_only=True)
     # Saved from DDP-wrapped modules, hence the `module.` prefix (OFT's remove_ddp_in_checkpoint).
     return {prefix + k.removeprefix("module."): v for k, v in raw.items()}
@@ -539,7 +563,9 @@ def _merge_peft_adapter(state: dict[str, Tensor], adapter_dir: Path) -> None:
     if weights_path.is_file():
         weights = load_file(str(weights_path))
     else:
-        weights = torch.load(adapter_dir / "adapter_model.bin", map_location="cpu", weights_only=True)
+        weights = torch.load(
+            adapter_dir / "adapter_model.bin", map_location="cpu", weights_only=True
+        )
     scaling = config["lora_alpha"] / config["r"]
     for key, lora_a in weights.items():
         if not key.endswith(".lora_A.weight"):

@@ -23,8 +23,8 @@ class RobotDataModule(L.LightningDataModule):
         self,
         train_files: list[str],
         val_files: list[str] | None = None,
-        cameras: list[str] = list(DEFAULT_CAMERAS),
-        proprio_keys: list[str] = list(DEFAULT_PROPRIO),
+        cameras: list[str] = None,
+        proprio_keys: list[str] = None,
         chunk_size: int = 8,
         batch_size: int = 8,
         num_workers: int = 0,
@@ -48,6 +48,10 @@ class RobotDataModule(L.LightningDataModule):
             load_depth: also load ``obs/<camera>_depth`` (geometric teachers need it).
             load_annotations: also load per-step text (the reasoning objective needs it).
         """
+        if proprio_keys is None:
+            proprio_keys = list(DEFAULT_PROPRIO)
+        if cameras is None:
+            cameras = list(DEFAULT_CAMERAS)
         super().__init__()
         self.save_hyperparameters()
         missing = [f for f in [*train_files, *(val_files or [])] if not Path(f).is_file()]
@@ -105,4 +109,8 @@ class RobotDataModule(L.LightningDataModule):
     def val_dataloader(self) -> DataLoader | list:
         if self.val_dataset is None:
             return []
-        return DataLoader(self.val_dataset, batch_size=self.hparams.batch_size, num_workers=self.hparams.num_workers)
+        return DataLoader(
+            self.val_dataset,
+            batch_size=self.hparams.batch_size,
+            num_workers=self.hparams.num_workers,
+        )

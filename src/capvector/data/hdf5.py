@@ -30,9 +30,10 @@ from torch.utils.data import Dataset
 from capvector.data import keys
 from capvector.data.statistics import Normalizer, compute_statistics
 from capvector.data.transforms import ImageTransform
+from capvector.errors import CapVectorError
 
 
-class DatasetError(ValueError):
+class DatasetError(CapVectorError):
     """A dataset file that does not have what the config asks for; the message says what to change."""
 
 
@@ -142,14 +143,18 @@ class HDF5RobotDataset(Dataset):
                 "`_image` suffix) and data.proprio_keys to keys the file has"
             )
         if self.load_annotations and "annotations" not in demo:
-            raise DatasetError(f"{where} has no `annotations`; regenerate the demos or set load_annotations=false")
+            raise DatasetError(
+                f"{where} has no `annotations`; regenerate the demos or set load_annotations=false"
+            )
 
     def _read_proprio(self, demo: h5py.Group, step: int | None = None) -> np.ndarray:
         """(T, P) for the whole episode, or (P,) at ``step``."""
         length = demo["actions"].shape[0]
         parts = []
         for key in self.proprio_keys:
-            values = np.asarray(demo["obs"][key][()] if step is None else demo["obs"][key][step], np.float32)
+            values = np.asarray(
+                demo["obs"][key][()] if step is None else demo["obs"][key][step], np.float32
+            )
             parts.append(values.reshape(length, -1) if step is None else values.reshape(-1))
         if not parts:
             return np.zeros((length, 0) if step is None else (0,), np.float32)
@@ -176,14 +181,22 @@ class HDF5RobotDataset(Dataset):
         actions = demo["actions"][t : t + self.chunk_size].astype(np.float32)
         images, depths = [], []
         for camera in self.cameras:
-            image = torch.from_numpy(np.ascontiguousarray(demo["obs"][f"{camera}_image"][t])).permute(2, 0, 1)
-            depth = torch.from_numpy(demo["obs"][f"{camera}_depth"][t].astype(np.float32)) if self.load_depth else None
+            image = torch.from_numpy(
+                np.ascontiguousarray(demo["obs"][f"{camera}_image"][t])
+            ).permute(2, 0, 1)
+            depth = (
+                torch.from_numpy(demo["obs"][f"{camera}_depth"][t].astype(np.float32))
+                if self.load_depth
+                else None
+            )
             image, depth = self.transform(image, depth)
             images.append(image)
             depths.append(depth)
         sample: dict[str, Any] = {
             keys.IMAGES: torch.stack(images),
-            keys.PROPRIO: torch.from_numpy(self.normalizer.normalize("proprio", self._read_proprio(demo, t))),
+            keys.PROPRIO: torch.from_numpy(
+                self.normalizer.normalize("proprio", self._read_proprio(demo, t))
+            ),
             keys.ACTIONS: torch.from_numpy(self.normalizer.normalize("action", actions)),
             keys.INSTRUCTION: episode.instruction,
         }
@@ -199,4 +212,8 @@ def read_camera_intrinsics(path: str | Path, cameras: Sequence[str]) -> dict[str
     """3x3 intrinsics per camera from ``data`` attrs ``<camera>_intrinsics`` (our demo files)."""
     with h5py.File(path, "r") as f:
         attrs = f["data"].attrs
-        return {c: np.asarray(attrs[f"{c}_intrinsics"], dtype=np.float32) for c in cameras if f"{c}_intrinsics" in attrs}
+        return {
+            c: np.asarray(attrs[f"{c}_intrinsics"], dtype=np.float32)
+            for c in cameras
+            if f"{c}_intrinsics" in attrs
+        }

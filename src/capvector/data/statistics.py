@@ -63,7 +63,9 @@ class Normalizer:
         q01 = np.asarray(entry["q01"], dtype=np.float32)
         q99 = np.asarray(entry["q99"], dtype=np.float32)
         mask = np.asarray(entry.get("mask", [True] * len(q01)), dtype=bool)
-        constant = np.asarray(entry["min"], dtype=np.float32) == np.asarray(entry["max"], dtype=np.float32)
+        constant = np.asarray(entry["min"], dtype=np.float32) == np.asarray(
+            entry["max"], dtype=np.float32
+        )
         return q01, q99, mask, constant
 
     def normalize(self, kind: str, x: np.ndarray) -> np.ndarray:

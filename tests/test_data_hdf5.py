@@ -1,0 +1,135 @@
+"""The robomimic/LIBERO HDF5 reader: chunks, normalisation, statistics, clear errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from capvector.data import keys
+from capvector.data.datamodule import RobotDataModule
+from capvector.data.hdf5 import DatasetError, HDF5RobotDataset
+from capvector.data.statistics import Normalizer, compute_statistics
+from capvector.data.transforms import ImageTransform
+from conftest import CAMERAS, write_demo_file
+
+PROPRIO = ["robot0_eef_pos", "robot0_eef_axis_angle", "robot0_gripper_qpos"]
+
+
+def dataset(path: Path, **kwargs) -> HDF5RobotDataset:
+    return HDF5RobotDataset([path], cameras=CAMERAS, proprio_keys=PROPRIO, chunk_size=8, **kwargs)
+
+
+def test_chunks_never_cross_an_episode_end(demo_file: Path) -> None:
+    ds = dataset(demo_file)
+    assert len(ds) == (12 - 8 + 1) + (10 - 8 + 1)  # OFT: starts at t <= T - chunk
+    with h5py.File(demo_file) as f:
+        raw = f["data/demo_1/actions"][()]
+    last = ds[len(ds) - 1]
+    expected = ds.normalizer.normalize("action", raw[2:10])
+    np.testing.assert_allclose(last[keys.ACTIONS].numpy(), expected, rtol=1e-6)
+    assert last[keys.IMAGES].shape == (2, 3, 64, 64)
+    assert last[keys.PROPRIO].shape == (8,)
+    assert last[keys.INSTRUCTION] == "lift the red cube"
+
+
+def test_q01_q99_normalisation_keeps_the_gripper_raw(demo_file: Path) -> None:
+    ds = dataset(demo_file)
+    stats = ds.statistics
+    assert stats["action"]["mask"] == [True] * 6 + [False]
+    norm = Normalizer(stats)
+    q01, q99 = np.array(stats["action"]["q01"]), np.array(stats["action"]["q99"])
+    np.testing.assert_allclose(norm.normalize("action", q01[None])[0, :6], -1, atol=1e-5)
+    np.testing.assert_allclose(norm.normalize("action", q99[None])[0, :6], 1, atol=1e-5)
+    beyond = norm.normalize("action", (q99 + 10)[None])[0]
+    assert (beyond[:6] == 1).all()  # clipped
+    assert beyond[6] == q99[6] + 10  # gripper passes through
+    x = np.random.default_rng(0).uniform(q01, q99, size=(5, 7)).astype(np.float32)
+    np.testing.assert_allclose(
+        norm.unnormalize("action", norm.normalize("action", x)), x, rtol=1e-5, atol=1e-5
+    )
+
+
+def test_statistics_schema_matches_openvla_oft(demo_file: Path) -> None:
+    dm = RobotDataModule(train_files=[str(demo_file)], dataset_name="lift_demo")
+    spec = dm.spec
+    entry = spec.statistics["lift_demo"]
+    assert set(entry) == {"action", "proprio", "num_transitions", "num_trajectories"}
+    assert set(entry["action"]) == {"mean", "std", "max", "min", "q01", "q99", "mask"}
+    assert entry["num_transitions"] == 22 and entry["num_trajectories"] == 2
+    assert (spec.action_dim, spec.proprio_dim, spec.chunk_size) == (7, 8, 8)
+    json.dumps(spec.statistics)  # must serialise as dataset_statistics.json
+
+
+def test_constant_dimensions_normalise_to_zero() -> None:
+    actions = np.zeros((10, 7), np.float32)
+    actions[:, 0] = np.linspace(-1, 1, 10)
+    stats = compute_statistics(actions, np.zeros((10, 2), np.float32), 1)
+    out = Normalizer(stats).normalize("action", actions)
+    assert (out[:, 1:6] == 0).all()
+
+
+def test_depth_and_annotations_are_optional_fields(demo_file: Path) -> None:
+    sample = dataset(demo_file, load_depth=True, load_annotations=True)[0]
+    assert sample[keys.DEPTH].shape == (2, 64, 64)
+    assert sample[keys.ANNOTATION] == "step 0 of demo 0"
+
+
+def test_augmentation_is_per_camera_and_eval_crop_is_deterministic() -> None:
+    image = torch.randint(0, 255, (3, 64, 64), dtype=torch.uint8)
+    train = ImageTransform(
+        augment=True, center_crop=False, generator=torch.Generator().manual_seed(0)
+    )
+    a, _ = train(image)
+    b, _ = train(image)
+    assert a.shape == (3, 64, 64) and a.min() >= 0 and a.max() <= 1
+    assert not torch.allclose(a, b)  # fresh randomness per call, so per camera
+    evaluate = ImageTransform(augment=False, center_crop=True)
+    torch.testing.assert_close(evaluate(image)[0], evaluate(image)[0])
+    plain = ImageTransform(augment=False, center_crop=False)
+    torch.testing.assert_close(plain(image)[0], image.float() / 255)
+
+
+def test_missing_camera_names_what_the_file_has(demo_file: Path) -> None:
+    with pytest.raises(
+        DatasetError, match=r"lacks \['frontview_image'\].*agentview_image.*data.cameras"
+    ):
+        HDF5RobotDataset([demo_file], cameras=["frontview"], proprio_keys=PROPRIO, chunk_size=8)
+
+
+def test_missing_actions_and_malformed_files(tmp_path: Path) -> None:
+    broken = write_demo_file(tmp_path / "broken.hdf5")
+    with h5py.File(broken, "a") as f:
+        del f["data/demo_1/actions"]
+    with pytest.raises(DatasetError, match=r"data/demo_1 has no `actions`"):
+        dataset(broken)
+    not_robomimic = tmp_path / "other.hdf5"
+    with h5py.File(not_robomimic, "w") as f:
+        f["x"] = np.zeros(3)
+    with pytest.raises(DatasetError, match="no `data` group"):
+        dataset(not_robomimic)
+    with pytest.raises(DatasetError, match="does not exist"):
+        dataset(tmp_path / "missing.hdf5")
+
+
+def test_missing_instruction_is_a_clear_error_unless_given(tmp_path: Path) -> None:
+    path = write_demo_file(tmp_path / "noinstr.hdf5")
+    with h5py.File(path, "a") as f:
+        del f["data"].attrs["language_instruction"]
+    with pytest.raises(DatasetError, match="no language instruction"):
+        dataset(path)
+    assert dataset(path, instruction="open the door")[0][keys.INSTRUCTION] == "open the door"
+
+
+def test_libero_problem_info_instruction(tmp_path: Path) -> None:
+    path = write_demo_file(tmp_path / "libero.hdf5")
+    with h5py.File(path, "a") as f:
+        del f["data"].attrs["language_instruction"]
+        f["data"].attrs["problem_info"] = json.dumps(
+            {"language_instruction": "put the bowl on the plate"}
+        )
+    assert dataset(path)[0][keys.INSTRUCTION] == "put the bowl on the plate"
