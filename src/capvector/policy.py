@@ -1,0 +1,51 @@
+"""A trained backbone as a closed-loop policy: simulator observation in, raw action chunk out.
+
+Preprocessing is the training pipeline's own, read from the model's ``DataSpec`` (camera order,
+normalisation statistics, the evaluation crop), never re-typed here.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+import torch
+
+from capvector.backbones.base import VLABackbone
+from capvector.data import keys
+from capvector.data.spec import DataSpec
+from capvector.data.statistics import Normalizer
+from capvector.data.transforms import ImageTransform
+
+
+class VLAPolicy:
+    """Callable ``policy(observation) -> (T, A) float32`` in the simulator's raw action units.
+
+    ``observation``: ``images`` {camera: uint8 (H, W, 3) upright}, ``proprio`` raw (P,),
+    ``instruction`` str — the format ``capvector.sim.rollout.run_episode`` passes.
+    """
+
+    def __init__(self, backbone: VLABackbone, data_spec: DataSpec) -> None:
+        self.backbone = backbone
+        self.spec = data_spec
+        self.normalizer = Normalizer(data_spec.stats_entry)
+        self.transform = ImageTransform(augment=False, center_crop=data_spec.center_crop)
+
+    def observation_to_batch(self, observation: Mapping[str, Any]) -> dict[str, Any]:
+        device = next(self.backbone.parameters()).device
+        images = []
+        for camera in self.spec.cameras:
+            image = torch.from_numpy(np.ascontiguousarray(observation["images"][camera])).permute(2, 0, 1)
+            images.append(self.transform(image)[0])
+        proprio = self.normalizer.normalize("proprio", np.asarray(observation["proprio"], np.float32))
+        return {
+            keys.IMAGES: torch.stack(images)[None].to(device),
+            keys.PROPRIO: torch.from_numpy(proprio)[None].to(device),
+            keys.INSTRUCTION: [observation["instruction"]],
+        }
+
+    @torch.no_grad()
+    def __call__(self, observation: Mapping[str, Any]) -> np.ndarray:
+        actions = self.backbone.predict_action(self.observation_to_batch(observation))[0]
+        return self.normalizer.unnormalize("action", actions.float().cpu().numpy())
