@@ -27,6 +27,11 @@ def write_demo_file(
         data.attrs["env_args"] = json.dumps({"env_name": "Lift", "type": 1, "env_kwargs": {}})
         data.attrs["language_instruction"] = instruction
         data.attrs["total"] = sum(lengths)
+        for camera in CAMERAS:
+            f_px = image_size / (2 * np.tan(np.deg2rad(45) / 2))
+            data.attrs[f"{camera}_intrinsics"] = np.array(
+                [[f_px, 0, image_size / 2], [0, f_px, image_size / 2], [0, 0, 1]], dtype=np.float32
+            )
         for i, length in enumerate(lengths):
             demo = data.create_group(f"demo_{i}")
             demo.attrs["num_samples"] = length

@@ -76,6 +76,7 @@ def test_constant_dimensions_normalise_to_zero() -> None:
 def test_depth_and_annotations_are_optional_fields(demo_file: Path) -> None:
     sample = dataset(demo_file, load_depth=True, load_annotations=True)[0]
     assert sample[keys.DEPTH].shape == (2, 64, 64)
+    assert sample[keys.INTRINSICS].shape == (2, 3, 3)
     assert sample[keys.ANNOTATION] == "step 0 of demo 0"
 
 
@@ -84,12 +85,18 @@ def test_augmentation_is_per_camera_and_eval_crop_is_deterministic() -> None:
     train = ImageTransform(
         augment=True, center_crop=False, generator=torch.Generator().manual_seed(0)
     )
-    a, _ = train(image)
-    b, _ = train(image)
+    a = train(image)[0]
+    b = train(image)[0]
     assert a.shape == (3, 64, 64) and a.min() >= 0 and a.max() <= 1
     assert not torch.allclose(a, b)  # fresh randomness per call, so per camera
     evaluate = ImageTransform(augment=False, center_crop=True)
     torch.testing.assert_close(evaluate(image)[0], evaluate(image)[0])
+    # The crop moves the principal point and scales the focal length with the resize.
+    K = torch.tensor([[50.0, 0, 32], [0, 50.0, 32], [0, 0, 1]])
+    _, _, cropped = evaluate(image, torch.ones(64, 64), K)
+    scale = 64 / 61  # round(64 * sqrt(0.9)) = 61 pixels resized back to 64
+    torch.testing.assert_close(cropped[0, 0], torch.tensor(50.0 * scale))
+    torch.testing.assert_close(cropped[0, 2], torch.tensor((32.0 - 1) * scale))
     plain = ImageTransform(augment=False, center_crop=False)
     torch.testing.assert_close(plain(image)[0], image.float() / 255)
 

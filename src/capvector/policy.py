@@ -36,9 +36,13 @@ class VLAPolicy:
         device = next(self.backbone.parameters()).device
         images = []
         for camera in self.spec.cameras:
-            image = torch.from_numpy(np.ascontiguousarray(observation["images"][camera])).permute(2, 0, 1)
+            image = torch.from_numpy(np.ascontiguousarray(observation["images"][camera])).permute(
+                2, 0, 1
+            )
             images.append(self.transform(image)[0])
-        proprio = self.normalizer.normalize("proprio", np.asarray(observation["proprio"], np.float32))
+        proprio = self.normalizer.normalize(
+            "proprio", np.asarray(observation["proprio"], np.float32)
+        )
         return {
             keys.IMAGES: torch.stack(images)[None].to(device),
             keys.PROPRIO: torch.from_numpy(proprio)[None].to(device),

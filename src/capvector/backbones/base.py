@@ -134,6 +134,23 @@ class VLABackbone(nn.Module, ABC):
         """Width of the hidden states returned in ``VLAOutput.hidden_states``."""
 
     @property
+    def alignment_layer(self) -> int:
+        """Default hidden-state layer for spatial alignment: deep but not deepest (Spatial Forcing
+        aligns OFT's layer 24 of 32, pi0 12 of 18)."""
+        return round(0.75 * self.num_layers)
+
+    def language_model_logits(
+        self, batch: Mapping[str, Any], prompts: list[str], answers: list[str]
+    ) -> tuple[Tensor, Tensor]:
+        """(B, S, V) logits of a causal pass over the observation, ``prompts`` and ``answers``, and
+        (B, S) token ids at their own positions, -100 everywhere but on the answer tokens (the
+        logits at position i predict the label at i + 1).
+
+        Used by multimodal-reasoning co-training; families with a language head override it.
+        """
+        raise BackboneError(f"{type(self).__name__} has no language-model head for text objectives")
+
+    @property
     def tokenizer(self) -> Any:
         """The tokenizer that turns instructions into ids, when the family has one."""
         return None
@@ -194,7 +211,7 @@ class VLABackbone(nn.Module, ABC):
 # -- registry --------------------------------------------------------------------------------
 
 # Family modules are imported on first lookup so `import capvector` stays light.
-_FAMILY_MODULES = ("capvector.backbones.openvla_oft",)
+_FAMILY_MODULES = ("capvector.backbones.openvla_oft", "capvector.backbones.pi05")
 _FAMILIES: dict[str, type[VLABackbone]] = {}
 _PRESETS: dict[str, Callable[[], BackboneConfig]] = {}
 

@@ -382,8 +382,8 @@ class OpenVLAOFT(VLABackbone):
             lm_logits=logits,
         )
 
-    def _embed_inputs(self, batch: Mapping[str, Any]) -> tuple[Tensor, Tensor, Tensor, int]:
-        """Input embeddings (B, S, H), valid mask (B, S), action-slot positions (B, T*A)."""
+    def _prefix_tokens(self, batch: Mapping[str, Any]) -> Tensor:
+        """(B, n_visual [+ 1 proprio], H): projected patch tokens of every camera, then proprio."""
         images: Tensor = batch[keys.IMAGES]
         b, n_cam = images.shape[:2]
         if n_cam != self.config.num_images:
@@ -400,50 +400,86 @@ class OpenVLAOFT(VLABackbone):
             flat = flat.clamp(0, 1)
         patches = self.vision_backbone(flat.to(self.projector.fc1.weight.dtype))
         visual = self.projector(patches.reshape(b, -1, patches.shape[-1]))
-        prefix = [visual]
-        if self.proprio_projector is not None:
-            prefix.append(self.proprio_projector(batch[keys.PROPRIO].to(visual.dtype)).unsqueeze(1))
-        prefix_tokens = torch.cat(prefix, dim=1)
+        if self.proprio_projector is None:
+            return visual
+        proprio = self.proprio_projector(batch[keys.PROPRIO].to(visual.dtype)).unsqueeze(1)
+        return torch.cat([visual, proprio], dim=1)
 
-        ids, text_valid, slot_pos = self._tokenize(batch[keys.INSTRUCTION], images.device)
-        embed = self.language_model.get_input_embeddings()
-        text = embed(ids)
+    def _embed_inputs(self, batch: Mapping[str, Any]) -> tuple[Tensor, Tensor, Tensor, int]:
+        """Input embeddings (B, S, H), valid mask (B, S), action-slot positions (B, T*A)."""
+        prefix_tokens = self._prefix_tokens(batch)
+        ids, text_valid, slot_pos = self._tokenize(batch[keys.INSTRUCTION], prefix_tokens.device)
+        text = self.language_model.get_input_embeddings()(ids)
         # Continuous-action mode: action-slot embeddings are zeroed, the slots carry position only.
         slot_mask = torch.zeros_like(ids, dtype=torch.bool).scatter_(1, slot_pos, True)
         text = text * (~slot_mask).unsqueeze(-1).to(text.dtype)
-        embeds = torch.cat([text[:, :1], prefix_tokens, text[:, 1:]], dim=1)
+        embeds, valid = _splice_after_bos(text, text_valid, prefix_tokens)
         n_prefix = prefix_tokens.shape[1]
-        valid = torch.cat(
-            [text_valid[:, :1], text_valid.new_ones(b, n_prefix), text_valid[:, 1:]], dim=1
-        )
         return embeds, valid, slot_pos + n_prefix, n_prefix
+
+    def language_model_logits(
+        self, batch: Mapping[str, Any], prompts: list[str], answers: list[str]
+    ) -> tuple[Tensor, Tensor]:
+        """A causal pass over ``[BOS] [visual] [proprio] prompt answer [</s>]``.
+
+        Causal, unlike the action pass: this is the VLM's own next-token objective (StarVLA's VLM
+        co-training), run separately so the action pathway's bidirectional attention is untouched.
+        """
+        tok = self._require_tokenizer()
+        prefix_tokens = self._prefix_tokens(batch)
+        rows, label_rows = [], []
+        for prompt, answer in zip(prompts, answers, strict=True):
+            prompt_ids = tok(prompt, add_special_tokens=False)["input_ids"]
+            answer_ids = [*tok(answer, add_special_tokens=False)["input_ids"], tok.eos_token_id]
+            rows.append([tok.bos_token_id, *prompt_ids, *answer_ids])
+            label_rows.append([-100] * (1 + len(prompt_ids)) + answer_ids)
+        ids, text_valid = _right_pad(rows, tok.pad_token_id, prefix_tokens.device)
+        text_labels, _ = _right_pad(label_rows, -100, prefix_tokens.device)
+        text = self.language_model.get_input_embeddings()(ids)
+        embeds, valid = _splice_after_bos(text, text_valid, prefix_tokens)
+        n_prefix = prefix_tokens.shape[1]
+        labels = torch.cat(
+            [
+                text_labels[:, :1],
+                text_labels.new_full((ids.shape[0], n_prefix), -100),
+                text_labels[:, 1:],
+            ],
+            1,
+        )
+        seq = valid.shape[1]
+        causal = torch.ones(seq, seq, dtype=torch.bool, device=valid.device).tril()
+        allowed = causal[None, None] & valid[:, None, None, :]
+        mask = torch.zeros(allowed.shape, dtype=embeds.dtype, device=valid.device)
+        mask.masked_fill_(~allowed, torch.finfo(embeds.dtype).min)
+        positions = torch.arange(seq, device=valid.device).expand(valid.shape[0], -1)
+        hidden = self.language_model.model(
+            inputs_embeds=embeds, attention_mask=mask, position_ids=positions
+        )
+        return self.language_model.lm_head(hidden.last_hidden_state), labels
+
+    def _require_tokenizer(self) -> Any:
+        if self.tokenizer is None:
+            raise BackboneError(
+                "this backbone has no tokenizer: load a checkpoint folder that contains one "
+                "(from_pretrained / from_original) or set tokenizer to a tokenizer folder"
+            )
+        return self.tokenizer
 
     def _tokenize(
         self, instructions: list[str], device: torch.device
     ) -> tuple[Tensor, Tensor, Tensor]:
         """Right-padded ``[BOS] prompt [T*A slots] [</s>]`` ids, valid mask, slot positions."""
-        tok = self.tokenizer
-        if tok is None:
-            raise BackboneError(
-                "this backbone has no tokenizer: load a checkpoint folder that contains one "
-                "(from_pretrained / from_original) or set tokenizer to a tokenizer folder"
-            )
+        tok = self._require_tokenizer()
         n_slots = self.config.chunk_size * self.config.action_dim
         rows = []
         for instruction in instructions:
             prompt = self.config.prompt_template.format(instruction=instruction.lower().strip())
             ids = tok(prompt, add_special_tokens=False)["input_ids"]
             rows.append([tok.bos_token_id, *ids, *([tok.pad_token_id] * n_slots), tok.eos_token_id])
-        length = max(len(r) for r in rows)
-        ids = torch.full((len(rows), length), tok.pad_token_id, dtype=torch.long)
-        valid = torch.zeros((len(rows), length), dtype=torch.bool)
-        slots = torch.empty((len(rows), n_slots), dtype=torch.long)
-        for i, row in enumerate(rows):
-            ids[i, : len(row)] = torch.tensor(row)
-            valid[i, : len(row)] = True
-            start = len(row) - 1 - n_slots
-            slots[i] = torch.arange(start, start + n_slots)
-        return ids.to(device), valid.to(device), slots.to(device)
+        ids, valid = _right_pad(rows, tok.pad_token_id, device)
+        starts = torch.tensor([len(r) - 1 - n_slots for r in rows], device=device)
+        slots = starts[:, None] + torch.arange(n_slots, device=device)
+        return ids, valid, slots
 
     # -- original OpenVLA-OFT checkpoints -----------------------------------------------------
 
@@ -481,6 +517,23 @@ class OpenVLAOFT(VLABackbone):
         stats_path = root / "dataset_statistics.json"
         stats = json.loads(stats_path.read_text()) if stats_path.is_file() else {}
         return model, stats
+
+
+def _right_pad(rows: list[list[int]], pad: int, device: torch.device) -> tuple[Tensor, Tensor]:
+    length = max(len(r) for r in rows)
+    ids = torch.full((len(rows), length), pad, dtype=torch.long)
+    valid = torch.zeros((len(rows), length), dtype=torch.bool)
+    for i, row in enumerate(rows):
+        ids[i, : len(row)] = torch.tensor(row)
+        valid[i, : len(row)] = True
+    return ids.to(device), valid.to(device)
+
+
+def _splice_after_bos(text: Tensor, text_valid: Tensor, prefix: Tensor) -> tuple[Tensor, Tensor]:
+    """Insert the visual/proprio tokens right after BOS, as Prismatic does."""
+    embeds = torch.cat([text[:, :1], prefix, text[:, 1:]], dim=1)
+    ones = text_valid.new_ones(prefix.shape[:2])
+    return embeds, torch.cat([text_valid[:, :1], ones, text_valid[:, 1:]], dim=1)
 
 
 # LayerScale parameters are called `gamma` in timm; HF renames parameters containing "gamma", so

@@ -1,5 +1,6 @@
 """Thin Lightning callbacks: they attach, schedule and persist; the math lives elsewhere."""
 
+from capvector.callbacks.auxiliary import AuxiliaryObjective
 from capvector.callbacks.export import ExportOnFitEnd
 
-__all__ = ["ExportOnFitEnd"]
+__all__ = ["AuxiliaryObjective", "ExportOnFitEnd"]

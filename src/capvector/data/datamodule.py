@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import lightning as L
@@ -9,6 +10,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from capvector.data.hdf5 import DatasetError, HDF5RobotDataset
+from capvector.data.lerobot import LeRobotV3Dataset
 from capvector.data.spec import DataSpec
 from capvector.data.transforms import ImageTransform
 
@@ -17,14 +19,15 @@ DEFAULT_PROPRIO = ("robot0_eef_pos", "robot0_eef_axis_angle", "robot0_gripper_qp
 
 
 class RobotDataModule(L.LightningDataModule):
-    """Training samples from HDF5 demos; optional held-out demos for an action-L1 validation."""
+    """Training samples from HDF5 demos or a LeRobot v3 folder; optional held-out demos (files, or
+    episodes of the folder) for an action-L1 validation."""
 
     def __init__(
         self,
-        train_files: list[str],
+        train_files: list[str] | None = None,
         val_files: list[str] | None = None,
-        cameras: list[str] = None,
-        proprio_keys: list[str] = None,
+        cameras: Sequence[str] = DEFAULT_CAMERAS,
+        proprio_keys: Sequence[str] = DEFAULT_PROPRIO,
         chunk_size: int = 8,
         batch_size: int = 8,
         num_workers: int = 0,
@@ -34,6 +37,9 @@ class RobotDataModule(L.LightningDataModule):
         load_depth: bool = False,
         load_annotations: bool = False,
         seed: int = 0,
+        lerobot_root: str | None = None,
+        train_episodes: list[int] | None = None,
+        val_episodes: list[int] | None = None,
     ) -> None:
         """
         Args:
@@ -47,13 +53,31 @@ class RobotDataModule(L.LightningDataModule):
             dataset_name: the key of the statistics in ``dataset_statistics.json``.
             load_depth: also load ``obs/<camera>_depth`` (geometric teachers need it).
             load_annotations: also load per-step text (the reasoning objective needs it).
+            lerobot_root: a LeRobotDataset v3.0 folder, read instead of ``train_files``. Then
+                ``cameras`` are video feature keys (``observation.images.image``),
+                ``proprio_keys`` is ``[<state feature>]`` or ``[]``, the instruction is the task.
+            train_episodes: LeRobot ``episode_index`` values to train on (None: all).
+            val_episodes: LeRobot episodes for validation; leave them out of ``train_episodes``.
         """
-        if proprio_keys is None:
-            proprio_keys = list(DEFAULT_PROPRIO)
-        if cameras is None:
-            cameras = list(DEFAULT_CAMERAS)
         super().__init__()
         self.save_hyperparameters()
+        if (lerobot_root is None) == (not train_files):
+            raise DatasetError(
+                "set exactly one of data.train_files (HDF5 files) and data.lerobot_root "
+                "(a LeRobot v3 folder)"
+            )
+        if lerobot_root is not None:
+            if len(proprio_keys) > 1 or load_depth or load_annotations or instruction or val_files:
+                raise DatasetError(
+                    "with data.lerobot_root, proprio_keys is one state feature (e.g. "
+                    "['observation.state']) or [], validation uses data.val_episodes, and "
+                    "instruction, load_depth, load_annotations and val_files are not available"
+                )
+            self.train_dataset = self._dataset(None, augment=augment, episodes=train_episodes)
+            self.val_dataset = (
+                self._dataset(None, augment=False, episodes=val_episodes) if val_episodes else None
+            )
+            return
         missing = [f for f in [*train_files, *(val_files or [])] if not Path(f).is_file()]
         if missing:
             raise DatasetError(
@@ -63,18 +87,31 @@ class RobotDataModule(L.LightningDataModule):
         self.train_dataset = self._dataset(train_files, augment=augment)
         self.val_dataset = self._dataset(val_files, augment=False) if val_files else None
 
-    def _dataset(self, files: list[str], augment: bool) -> HDF5RobotDataset:
+    def _dataset(
+        self, files: list[str] | None, augment: bool, episodes: list[int] | None = None
+    ) -> HDF5RobotDataset | LeRobotV3Dataset:
         hp = self.hparams
         statistics = None
         if getattr(self, "train_dataset", None) is not None:
             statistics = self.train_dataset.statistics  # validation uses the training statistics
+        transform = ImageTransform(augment=augment, center_crop=hp.augment and not augment)
+        if hp.lerobot_root is not None:
+            return LeRobotV3Dataset(
+                hp.lerobot_root,
+                cameras=list(hp.cameras),
+                state_key=hp.proprio_keys[0] if hp.proprio_keys else None,
+                chunk_size=hp.chunk_size,
+                statistics=statistics,
+                transform=transform,
+                episodes=episodes,
+            )
         return HDF5RobotDataset(
             files,
-            cameras=hp.cameras,
-            proprio_keys=hp.proprio_keys,
+            cameras=list(hp.cameras),
+            proprio_keys=list(hp.proprio_keys),
             chunk_size=hp.chunk_size,
             statistics=statistics,
-            transform=ImageTransform(augment=augment, center_crop=hp.augment and not augment),
+            transform=transform,
             instruction=hp.instruction,
             load_depth=hp.load_depth,
             load_annotations=hp.load_annotations,

@@ -126,6 +126,21 @@ class HDF5RobotDataset(Dataset):
         )
         self.normalizer = Normalizer(self.statistics)
         self._handles: dict[int, h5py.File] = {}
+        self.intrinsics = [self._read_intrinsics(path) for path in self.files] if load_depth else []
+
+    def _read_intrinsics(self, path: str) -> torch.Tensor:
+        """(N_cam, 3, 3) from ``data`` attrs ``<camera>_intrinsics`` (written by ``capvector demos``)."""
+        with h5py.File(path, "r") as f:
+            attrs = f["data"].attrs
+            missing = [c for c in self.cameras if f"{c}_intrinsics" not in attrs]
+            if missing:
+                raise DatasetError(
+                    f"{path} has depth but no camera intrinsics for {missing} (attr "
+                    "`data.<camera>_intrinsics`, 3x3 in pixels); regenerate with `capvector demos --depth`"
+                )
+            return torch.tensor(
+                np.stack([attrs[f"{c}_intrinsics"] for c in self.cameras]), dtype=torch.float32
+            )
 
     def _check_demo(self, demo: h5py.Group, path: str, name: str) -> None:
         where = f"{path}:data/{name}"
@@ -179,19 +194,19 @@ class HDF5RobotDataset(Dataset):
         episode = self.episodes[ep_index]
         demo = self._file(episode.file)["data"][episode.demo]
         actions = demo["actions"][t : t + self.chunk_size].astype(np.float32)
-        images, depths = [], []
-        for camera in self.cameras:
+        images, depths, intrinsics = [], [], []
+        for c, camera in enumerate(self.cameras):
             image = torch.from_numpy(
                 np.ascontiguousarray(demo["obs"][f"{camera}_image"][t])
             ).permute(2, 0, 1)
-            depth = (
-                torch.from_numpy(demo["obs"][f"{camera}_depth"][t].astype(np.float32))
-                if self.load_depth
-                else None
-            )
-            image, depth = self.transform(image, depth)
+            depth = K = None
+            if self.load_depth:
+                depth = torch.from_numpy(demo["obs"][f"{camera}_depth"][t].astype(np.float32))
+                K = self.intrinsics[episode.file][c]
+            image, depth, K = self.transform(image, depth, K)
             images.append(image)
             depths.append(depth)
+            intrinsics.append(K)
         sample: dict[str, Any] = {
             keys.IMAGES: torch.stack(images),
             keys.PROPRIO: torch.from_numpy(
@@ -202,18 +217,8 @@ class HDF5RobotDataset(Dataset):
         }
         if self.load_depth:
             sample[keys.DEPTH] = torch.stack(depths)
+            sample[keys.INTRINSICS] = torch.stack(intrinsics)
         if self.load_annotations:
             text = demo["annotations"][t]
             sample[keys.ANNOTATION] = text.decode() if isinstance(text, bytes) else str(text)
         return sample
-
-
-def read_camera_intrinsics(path: str | Path, cameras: Sequence[str]) -> dict[str, np.ndarray]:
-    """3x3 intrinsics per camera from ``data`` attrs ``<camera>_intrinsics`` (our demo files)."""
-    with h5py.File(path, "r") as f:
-        attrs = f["data"].attrs
-        return {
-            c: np.asarray(attrs[f"{c}_intrinsics"], dtype=np.float32)
-            for c in cameras
-            if f"{c}_intrinsics" in attrs
-        }

@@ -27,6 +27,9 @@ class Objective(nn.Module, ABC):
     def request(self) -> OutputRequest:
         return OutputRequest()
 
+    def bind(self, backbone: VLABackbone) -> None:  # noqa: B027 (optional hook, empty by default)
+        """Build parameters that depend on the backbone (called once, before optimizers exist)."""
+
     @abstractmethod
     def forward(self, batch: Mapping[str, Any], output: VLAOutput, backbone: VLABackbone) -> Tensor:
         """The unweighted scalar loss of this term."""

@@ -1,0 +1,53 @@
+"""Multimodal-reasoning co-training (StarVLA's VLM co-training, ``train_starvla_cotrain.py``).
+
+A next-token loss on text answers about the scene — the per-step annotations the demos carry (what
+the robot is doing, where things are) — through the backbone's own language head in a separate,
+causal pass, so the action pathway's bidirectional attention is untouched. L = L_action + λ·L_text
+with λ = 0.1 as StarVLA's ``loss_scale.vlm``. Only answer tokens are scored; prompt, visual and
+padding positions carry label -100.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import torch.nn.functional as F
+from torch import Tensor
+
+from capvector.backbones.base import VLABackbone, VLAOutput
+from capvector.data import keys
+from capvector.errors import CapVectorError
+from capvector.objectives.base import Objective
+
+DEFAULT_QUESTION = "What is the robot doing, and where are the objects?"
+
+
+class ReasoningCoTraining(Objective):
+    def __init__(
+        self,
+        weight: float = 0.1,
+        question: str = DEFAULT_QUESTION,
+        prompt_template: str = "Task: {instruction}. Question: {question}\nAnswer: ",
+        name: str = "reasoning",
+    ) -> None:
+        super().__init__(name=name, weight=weight)
+        self.question = question
+        self.prompt_template = prompt_template
+
+    def forward(self, batch: Mapping[str, Any], output: VLAOutput, backbone: VLABackbone) -> Tensor:
+        if keys.ANNOTATION not in batch:
+            raise CapVectorError(
+                "reasoning co-training needs per-step text annotations: set data.load_annotations=true "
+                "(demos from `capvector demos` carry them)"
+            )
+        prompts = [
+            self.prompt_template.format(instruction=instruction, question=self.question)
+            for instruction in batch[keys.INSTRUCTION]
+        ]
+        logits, labels = backbone.language_model_logits(
+            batch, prompts, list(batch[keys.ANNOTATION])
+        )
+        return F.cross_entropy(
+            logits[:, :-1].flatten(0, 1).float(), labels[:, 1:].flatten(), ignore_index=-100
+        )

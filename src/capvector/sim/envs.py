@@ -1,0 +1,515 @@
+"""robosuite 1.5 environments: the task table, env construction, observations and fast rendering.
+
+Facts this module relies on (measured on the project's 2-core CPU machines, see
+``research/toy_benchmark_feasibility.md`` and ``research/merging_orth_eval.md`` §C1):
+
+- The env is built with ``has_offscreen_renderer=False, use_camera_obs=False, ignore_done=True``;
+  images come from our own :class:`CameraRenderer` on the env's raw ``MjModel``/``MjData``. It
+  costs a fraction of robosuite's camera observables and only runs when a caller asks for pixels.
+- ``hard_reset=False``: a reset reuses the compiled model (no XML rebuild, no new GL context),
+  so one env and one renderer serve any number of episodes. Model-construction randomness (Lift
+  draws its cube size when the model is built) is fixed by ``seed=0`` in the make kwargs; episode
+  randomness (object placement, joint noise) is reseeded on every :meth:`SimEnv.reset`.
+- Success is ``env._check_success()`` after every step: robosuite's ``done`` only marks the horizon.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from types import ModuleType
+from typing import Any
+
+import mujoco
+import numpy as np
+from mujoco import gl_context
+
+# robosuite logs five notices at import and one per controller load; none applies to us (no
+# private macro file is needed, robosuite_models and mink only matter for GR1/humanoids).
+_ROBOSUITE_NOISE = (
+    "No private macro file found",
+    "It is recommended to use a private macro file",
+    "To setup, run:",
+    "Could not import robosuite_models",
+    "Could not load the mink-based whole-body IK",
+    "Loading controller configuration from",
+)
+
+
+class _DropRobosuiteNoise(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not record.getMessage().startswith(_ROBOSUITE_NOISE)
+
+
+def _import_robosuite() -> ModuleType:
+    # The filter must sit on robosuite's logger before `import robosuite` emits the notices.
+    logger = logging.getLogger("robosuite_logs")
+    if not any(isinstance(f, _DropRobosuiteNoise) for f in logger.filters):
+        logger.addFilter(_DropRobosuiteNoise())
+    import robosuite
+
+    return robosuite
+
+
+suite = _import_robosuite()
+from robosuite.utils.transform_utils import quat2axisangle  # noqa: E402  (needs the filter first)
+
+log = logging.getLogger(__name__)
+
+DEFAULT_CAMERAS: tuple[str, ...] = ("agentview", "robot0_eye_in_hand")
+DEFAULT_IMAGE_SIZE = 64
+ACTION_DIM = 7
+"""OSC_POSE delta (dx, dy, dz, drx, dry, drz) in [-1, 1] + gripper (-1 open, +1 close)."""
+
+PROPRIO_KEYS: tuple[str, ...] = ("robot0_eef_pos", "robot0_eef_axis_angle", "robot0_gripper_qpos")
+"""The 8-d proprio, as in OpenVLA-OFT/openpi LIBERO: eef position, axis-angle, 2 finger joints."""
+
+
+def _pick_place_can_target(env: Any) -> dict[str, np.ndarray]:
+    # Centre of the can's compartment in the goal bin (robosuite PickPlace.target_bin_placements).
+    return {"Can_target_pos": np.array(env.target_bin_placements[env.object_id], dtype=np.float64)}
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """A robosuite task as the toolkit uses it."""
+
+    env_name: str
+    instruction: str
+    objects: Mapping[str, str]
+    """Position key -> how the annotations name it, e.g. ``{"cube_pos": "red cube"}``."""
+    orientations: tuple[str, ...]
+    """robosuite observation keys of object quaternions (xyzw) kept in the observation."""
+    max_steps: int
+    """Rollout step limit: room above the expert's longest demo, as OFT sets LIBERO's limits."""
+    camera_fovy: Mapping[str, float] = field(default_factory=dict)
+    """Vertical field of view overrides (degrees), applied to the model before rendering."""
+    extra_positions: Callable[[Any], dict[str, np.ndarray]] | None = None
+    """Positions that are not robosuite observations (e.g. a goal), computed from the env."""
+
+
+# Step limits: the longest scripted demo (DART noise 0.1, 200 seeds) is 59 steps for Lift,
+# 131 for Stack and 179 for PickPlaceCan; the limits leave room for a slower learned policy
+# (Lift/Stack as in the feasibility study's evaluations).
+# agentview fovy: robosuite's 45 degrees renders Lift's cube at ~35 px of a 64x64 image; 35
+# degrees doubles that (63 px) and keeps the gripper's whole path (start pose to lift height) in
+# view. PickPlaceCan's bins fill the default view already, so it keeps 45.
+TASKS: dict[str, TaskSpec] = {
+    "Lift": TaskSpec(
+        env_name="Lift",
+        instruction="lift the red cube",
+        objects={"cube_pos": "red cube"},
+        orientations=("cube_quat",),
+        max_steps=150,
+        camera_fovy={"agentview": 35.0},
+    ),
+    "Stack": TaskSpec(
+        env_name="Stack",
+        instruction="stack the red cube on the green cube",
+        objects={"cubeA_pos": "red cube", "cubeB_pos": "green cube"},
+        orientations=("cubeA_quat", "cubeB_quat"),
+        max_steps=300,
+        camera_fovy={"agentview": 35.0},
+    ),
+    "PickPlaceCan": TaskSpec(
+        env_name="PickPlaceCan",
+        instruction="put the red can in its compartment of the dark bin",
+        objects={"Can_pos": "red can", "Can_target_pos": "can's compartment"},
+        orientations=("Can_quat",),
+        max_steps=400,
+        extra_positions=_pick_place_can_target,
+    ),
+}
+
+
+def get_task(name: str) -> TaskSpec:
+    """The :class:`TaskSpec` called ``name``, with the known names in the error."""
+    try:
+        return TASKS[name]
+    except KeyError:
+        raise KeyError(f"unknown task {name!r}; known tasks: {', '.join(TASKS)}") from None
+
+
+def make_env_kwargs(
+    task: str,
+    robot: str = "Panda",
+    *,
+    gripper: str | None = None,
+    cameras: Sequence[str] = DEFAULT_CAMERAS,
+    image_size: int = DEFAULT_IMAGE_SIZE,
+    depth: bool = False,
+) -> dict[str, Any]:
+    """The ``robosuite.make`` kwargs (JSON-serialisable) for ``task`` on ``robot``.
+
+    These go verbatim into the HDF5 ``env_args`` so robomimic-style readers rebuild the same env.
+    The camera entries describe what we render ourselves; robosuite's own camera observables stay
+    off (``use_camera_obs=False``).
+    """
+    get_task(task)
+    # robosuite 1.5 "BASIC" composite controller = OSC_POSE delta for the arm, input range ±1,
+    # 0.05 m / 0.5 rad per step, input_ref_frame "base"; the same 7-d action on every arm.
+    controller = suite.load_composite_controller_config(controller="BASIC", robot=robot)
+    # basic.json also configures left arm, torso, head, base and legs; a single arm only has the
+    # "right" part, and robosuite warns about each missing part on every reset.
+    parts = controller.get("body_parts", {})
+    if "right" not in parts:
+        raise ValueError(f"robosuite's BASIC controller config has no right arm for {robot!r}")
+    controller["body_parts"] = {"right": parts["right"]}
+    kwargs: dict[str, Any] = {
+        "robots": robot,
+        "controller_configs": controller,
+        "has_renderer": False,
+        "has_offscreen_renderer": False,
+        "use_camera_obs": False,
+        "use_object_obs": True,
+        "ignore_done": True,
+        "hard_reset": False,
+        "reward_shaping": False,
+        "control_freq": 20,
+        "seed": 0,
+        "camera_names": list(cameras),
+        "camera_heights": image_size,
+        "camera_widths": image_size,
+        "camera_depths": depth,
+    }
+    if gripper is not None:
+        kwargs["gripper_types"] = gripper
+    return kwargs
+
+
+def camera_intrinsics(fovy_degrees: float, height: int, width: int | None = None) -> np.ndarray:
+    """(3, 3) pinhole intrinsics in pixels for a MuJoCo camera with vertical field of view ``fovy``.
+
+    Same convention as robosuite's ``camera_utils.get_camera_intrinsic_matrix``: square pixels
+    (MuJoCo's fovy is vertical), principal point at (W/2, H/2) in continuous pixel coordinates
+    where pixel (i, j) covers [j, j+1) x [i, i+1), rows counted from the top of the upright image.
+    """
+    width = height if width is None else width
+    f = 0.5 * height / math.tan(math.radians(fovy_degrees) / 2)
+    return np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
+
+
+class SimulationFault(RuntimeError):
+    """The simulator went wrong in this episode (instability, NaN, exception); the env survives."""
+
+
+# MuJoCo's own instability signals; it auto-resets the data after BADQACC, so a finite state alone
+# does not prove the step was fine.
+_FAULT_WARNINGS = (
+    mujoco.mjtWarning.mjWARN_BADQPOS,
+    mujoco.mjtWarning.mjWARN_BADQVEL,
+    mujoco.mjtWarning.mjWARN_BADQACC,
+    mujoco.mjtWarning.mjWARN_BADCTRL,
+)
+
+
+class CameraRenderer:
+    """Renders fixed cameras of a MuJoCo model, upright, at the cost of one GPU/llvmpipe readback.
+
+    All cameras are drawn side by side into one offscreen buffer and read back with a single
+    ``mjr_readPixels``; depth, when asked, comes from the same pass (no second render as
+    ``mujoco.Renderer`` needs). Shadows and reflections are off and only geom group 1 (robosuite's
+    visual meshes) is drawn: group 0 holds the collision geoms, which would paint the robot blue.
+    Multisampling stays at MuJoCo's default of 4 samples: at 64 px the anti-aliased edges carry
+    sub-pixel position information about small objects; ``msaa_samples=0`` renders ~35% faster.
+    """
+
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        cameras: Sequence[str],
+        size: int,
+        *,
+        depth: bool = False,
+        msaa_samples: int = 4,
+    ) -> None:
+        if not cameras:
+            raise ValueError("CameraRenderer needs at least one camera")
+        self._gl: Any = None
+        self._ctx: mujoco.MjrContext | None = None
+        self.model = model
+        self.cameras = tuple(cameras)
+        self.size = size
+        self.depth = depth
+        known = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_CAMERA, i) for i in range(model.ncam)]
+        self._cams = []
+        for name in self.cameras:
+            cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, name)
+            if cam_id < 0:
+                raise ValueError(f"camera {name!r} is not in the model; it has: {', '.join(known)}")
+            cam = mujoco.MjvCamera()
+            cam.type = mujoco.mjtCamera.mjCAMERA_FIXED
+            cam.fixedcamid = cam_id
+            self._cams.append(cam)
+        width = size * len(self.cameras)
+        # The offscreen framebuffer is sized from the model when the context is made.
+        model.vis.global_.offwidth = max(model.vis.global_.offwidth, width)
+        model.vis.global_.offheight = max(model.vis.global_.offheight, size)
+        model.vis.quality.offsamples = msaa_samples
+        if gl_context.GLContext is None:
+            raise RuntimeError(
+                "MuJoCo has no headless OpenGL backend; set MUJOCO_GL=egl (or osmesa) before "
+                "importing mujoco"
+            )
+        self._gl = gl_context.GLContext(width, size)
+        self._gl.make_current()
+        self._ctx = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150.value)
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self._ctx)
+        # Reversed-Z float depth, as mujoco.Renderer sets it (precise over the whole range).
+        self._ctx.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
+        self._scene = mujoco.MjvScene(model, maxgeom=2000)
+        self._scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
+        self._scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+        self._option = mujoco.MjvOption()
+        self._option.geomgroup[:] = 0
+        self._option.geomgroup[1] = 1
+        self._full = mujoco.MjrRect(0, 0, width, size)
+        self._rects = [mujoco.MjrRect(i * size, 0, size, size) for i in range(len(self.cameras))]
+        self._rgb = np.empty((size, width, 3), dtype=np.uint8)
+        self._zbuf = np.empty((size, width), dtype=np.float32) if depth else None
+
+    def render(
+        self, data: mujoco.MjData
+    ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray] | None]:
+        """Images ``{camera: (H, W, 3) uint8}`` upright, and depth ``{camera: (H, W) float32}``
+        in metres along the optical axis (None unless built with ``depth=True``)."""
+        if self._ctx is None:
+            raise RuntimeError("CameraRenderer.render called after close()")
+        self._gl.make_current()
+        for cam, rect in zip(self._cams, self._rects, strict=True):
+            mujoco.mjv_updateScene(
+                self.model,
+                data,
+                self._option,
+                None,
+                cam,
+                mujoco.mjtCatBit.mjCAT_ALL.value,
+                self._scene,
+            )
+            mujoco.mjr_render(rect, self._scene, self._ctx)
+        mujoco.mjr_readPixels(self._rgb, self._zbuf, self._full, self._ctx)
+        # OpenGL rows start at the bottom: flip once here so every image we hand out is upright.
+        rgb = self._rgb[::-1]
+        s = self.size
+        images = {
+            name: np.ascontiguousarray(rgb[:, i * s : (i + 1) * s])
+            for i, name in enumerate(self.cameras)
+        }
+        if self._zbuf is None:
+            return images, None
+        metres = self._linear_depth(self._zbuf[::-1])
+        depth = {
+            name: np.ascontiguousarray(metres[:, i * s : (i + 1) * s])
+            for i, name in enumerate(self.cameras)
+        }
+        return images, depth
+
+    def _linear_depth(self, zbuf: np.ndarray) -> np.ndarray:
+        # Undo the reversed-Z projection with the model's clip planes (znear/zfar are fractions of
+        # the model extent). Same arithmetic as mujoco/rendering/classic/renderer.py (3.3-3.9):
+        # float32 glFrustum coefficients, then float64 for the division.
+        extent = self.model.stat.extent
+        znear = np.float32(self.model.vis.map.znear * extent)
+        zfar = np.float32(self.model.vis.map.zfar * extent)
+        c = -(zfar + znear) / (zfar - znear)
+        d = -(np.float32(2) * zfar * znear) / (zfar - znear)
+        c = np.float32(-0.5) * c - np.float32(0.5)
+        d = np.float32(-0.5) * d
+        return (d / (zbuf.astype(np.float64) + c)).astype(np.float32)
+
+    def close(self) -> None:
+        """Free the GL resources (idempotent)."""
+        if self._ctx is not None:
+            self._gl.make_current()
+            self._ctx.free()
+            self._ctx = None
+        if self._gl is not None:
+            self._gl.free()
+            self._gl = None
+
+    def __del__(self) -> None:
+        # At interpreter exit EGL may already be torn down; freeing then raises inside PyOpenGL.
+        try:
+            self.close()
+        except Exception:
+            pass
+
+
+def proprio_from(obs: Mapping[str, np.ndarray]) -> np.ndarray:
+    """The (8,) float32 proprio of a low-dim observation: eef pos, axis-angle, finger joints."""
+    return np.concatenate([np.asarray(obs[k], dtype=np.float32) for k in PROPRIO_KEYS])
+
+
+class SimEnv:
+    """One robosuite task on one arm, with deterministic seeded resets and optional cameras.
+
+    ``observation`` is the low-dim state after the last reset/step: ``robot0_eef_pos`` (3,),
+    ``robot0_eef_quat`` (4,) xyzw, ``robot0_eef_axis_angle`` (3,), ``robot0_gripper_qpos`` (2,),
+    the task's object positions (e.g. ``cube_pos``) and quaternions (e.g. ``cube_quat``, xyzw). ``robot0_eef_quat`` is robosuite's
+    body-frame quaternion, the key LIBERO/OFT datasets use for the axis-angle proprio.
+    """
+
+    def __init__(
+        self,
+        task: str,
+        robot: str = "Panda",
+        *,
+        gripper: str | None = None,
+        cameras: Sequence[str] = DEFAULT_CAMERAS,
+        image_size: int = DEFAULT_IMAGE_SIZE,
+        depth: bool = False,
+        camera_fovy: Mapping[str, float] | None = None,
+        msaa_samples: int = 4,
+    ) -> None:
+        self.task = task
+        self.spec = get_task(task)
+        self.robot = robot
+        self.gripper = gripper
+        self.cameras = tuple(cameras)
+        self.image_size = image_size
+        self.depth = depth
+        self.env_kwargs = make_env_kwargs(
+            task, robot, gripper=gripper, cameras=cameras, image_size=image_size, depth=depth
+        )
+        self.env = suite.make(self.spec.env_name, **copy.deepcopy(self.env_kwargs))
+        self.seed: int | None = None
+        self.steps = 0
+        self._renderer: CameraRenderer | None = None
+        self.observation = self._lowdim(self.env.reset())
+        model = self.env.sim.model._model
+        self.camera_fovy: dict[str, float] = {}
+        for name, fovy in {**self.spec.camera_fovy, **(camera_fovy or {})}.items():
+            cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, name)
+            if cam_id < 0:
+                raise ValueError(f"camera_fovy names {name!r}, which {task} does not have")
+            model.cam_fovy[cam_id] = fovy
+        for name in self.cameras:
+            cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, name)
+            if cam_id < 0:
+                raise ValueError(f"camera {name!r} is not in {task}")
+            self.camera_fovy[name] = float(model.cam_fovy[cam_id])
+        n_fingers = self.observation["robot0_gripper_qpos"].shape[0]
+        if n_fingers != 2:
+            grip = type(self.env.robots[0].gripper["right"]).__name__
+            self.close()
+            raise ValueError(
+                f"{robot} with {grip} has {n_fingers} finger joints, but the 8-d proprio "
+                "(eef pos + axis-angle + 2 finger joints) needs a gripper with two: pass "
+                "gripper='PandaGripper' (CLI: --gripper PandaGripper) or 'RethinkGripper'"
+            )
+        if self.cameras:
+            self._renderer = CameraRenderer(
+                model, self.cameras, image_size, depth=depth, msaa_samples=msaa_samples
+            )
+
+    @property
+    def instruction(self) -> str:
+        return self.spec.instruction
+
+    @property
+    def max_steps(self) -> int:
+        return self.spec.max_steps
+
+    def intrinsics(self) -> dict[str, np.ndarray]:
+        """``{camera: (3, 3)}`` pinhole intrinsics of the rendered images (after fovy overrides)."""
+        return {
+            name: camera_intrinsics(fovy, self.image_size)
+            for name, fovy in self.camera_fovy.items()
+        }
+
+    def reset(self, seed: int) -> dict[str, np.ndarray]:
+        """Reset to the initial state drawn from ``seed`` (same seed, same state, in any env)."""
+        # Reseed in place: the placement samplers and robot reset hold this very Generator.
+        self.env.rng.bit_generator.state = np.random.default_rng(seed).bit_generator.state
+        self.observation = self._lowdim(self.env.reset())
+        self.seed = seed
+        self.steps = 0
+        return self.observation
+
+    def step(self, action: np.ndarray) -> float:
+        """Execute one 7-d action; returns the reward. Raises :class:`SimulationFault`."""
+        a = np.asarray(action, dtype=np.float64).reshape(-1)
+        if a.shape != (ACTION_DIM,):
+            raise ValueError(f"action must have {ACTION_DIM} values, got shape {np.shape(action)}")
+        if not np.all(np.isfinite(a)):
+            raise SimulationFault(f"non-finite action {a.tolist()}")
+        data = self.env.sim.data._data
+        before = [data.warning[w].number for w in _FAULT_WARNINGS]
+        try:
+            raw, reward, _, _ = self.env.step(a)
+        except Exception as e:  # robosuite/MuJoCo errors; the env is reset by the next reset()
+            raise SimulationFault(f"step raised {type(e).__name__}: {e}") from e
+        for w, n in zip(_FAULT_WARNINGS, before, strict=True):
+            if data.warning[w].number > n:
+                raise SimulationFault(
+                    f"MuJoCo {mujoco.mjtWarning(w).name} (unstable simulation) at t={data.time:.3f}s"
+                )
+        if not (np.all(np.isfinite(data.qpos)) and np.all(np.isfinite(data.qvel))):
+            raise SimulationFault("non-finite qpos/qvel")
+        self.steps += 1
+        self.observation = self._lowdim(raw)
+        return float(reward)
+
+    def finger_axis(self) -> np.ndarray:
+        """(3,) unit vector from the right to the left fingerpad (the direction the fingers close
+        along), from the gripper's ``important_geoms``; experts use it to choose a grasp yaw."""
+        gripper = self.env.robots[0].gripper["right"]
+        data, model = self.env.sim.data, self.env.sim.model
+        pads = [gripper.important_geoms[f"{side}_fingerpad"][0] for side in ("left", "right")]
+        left, right = (data.geom_xpos[model.geom_name2id(name)] for name in pads)
+        axis = np.asarray(left - right, dtype=np.float64)
+        return axis / np.linalg.norm(axis)
+
+    def success(self) -> bool:
+        return bool(self.env._check_success())
+
+    def proprio(self) -> np.ndarray:
+        """(8,) float32: eef pos, eef axis-angle, finger joints (same as the demos)."""
+        return proprio_from(self.observation)
+
+    def render(self) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray] | None]:
+        """Upright images and optional depth of the current state; see :class:`CameraRenderer`."""
+        if self._renderer is None:
+            raise RuntimeError("this SimEnv was built without cameras")
+        return self._renderer.render(self.env.sim.data._data)
+
+    def flat_state(self) -> np.ndarray:
+        """robosuite/robomimic flattened sim state: [time, qpos, qvel]."""
+        return np.asarray(self.env.sim.get_state().flatten(), dtype=np.float64)
+
+    def model_xml(self) -> str:
+        return self.env.sim.model.get_xml()
+
+    def env_args(self) -> dict[str, Any]:
+        """robomimic ``env_args``: env_name, type 1 (robosuite), env_version, env_kwargs."""
+        return {
+            "env_name": self.spec.env_name,
+            "type": 1,
+            "env_version": suite.__version__,
+            "env_kwargs": copy.deepcopy(self.env_kwargs),
+        }
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+        self.env.close()
+
+    def _lowdim(self, raw: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        quat = np.array(raw["robot0_eef_quat"], dtype=np.float64)
+        obs = {
+            "robot0_eef_pos": np.array(raw["robot0_eef_pos"], dtype=np.float64),
+            "robot0_eef_quat": quat,
+            # quat2axisangle clips its argument in place, hence the copy.
+            "robot0_eef_axis_angle": np.asarray(quat2axisangle(quat.copy()), dtype=np.float64),
+            "robot0_gripper_qpos": np.array(raw["robot0_gripper_qpos"], dtype=np.float64),
+        }
+        extra = self.spec.extra_positions(self.env) if self.spec.extra_positions else {}
+        for key in self.spec.objects:
+            obs[key] = np.array(extra[key] if key in extra else raw[key], dtype=np.float64)
+        for key in self.spec.orientations:
+            obs[key] = np.array(raw[key], dtype=np.float64)
+        return obs

@@ -1,0 +1,656 @@
+"""Reading model weights (export folders, Lightning checkpoints) and streaming safetensors writes.
+
+Everything here works tensor by tensor, and within a tensor row-chunk by row-chunk, so the memory
+a tool needs is bounded by a chunk size, not by the model size. Reads go through
+``safetensors.safe_open`` with one short-lived handle per chunk: a long-lived handle keeps its whole
+memory map resident as it is read (measured: RSS grew to the file size), a closed one does not.
+Writes go through ``SafetensorsWriter``, which writes the header first (the layout is known up
+front) and then appends tensor bytes as they are computed.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import hashlib
+import json
+import os
+import re
+import struct
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from capvector.fileio import atomic_directory
+
+# File names of an export folder; the writer is ``capvector.backbones.base`` (``VLABackbone.
+# save_pretrained``). Repeated here because ``vectors`` sits below ``backbones`` and imports nothing
+# from it.
+EXPORT_FORMAT = "capvector-export"
+EXPORT_CONFIG = "config.json"
+EXPORT_WEIGHTS = "model.safetensors"
+EXPORT_INDEX = "model.safetensors.index.json"
+
+VECTOR_FORMAT = "capvector-vector"
+VECTOR_META = "capability_vector.json"
+VECTOR_WEIGHTS = "capability_vector.safetensors"
+VECTOR_INDEX = "capability_vector.safetensors.index.json"
+ADAPTER_CONFIG = "adapter_config.json"
+ADAPTER_WEIGHTS = "adapter_model.safetensors"
+
+DEFAULT_MAX_SHARD_SIZE = 2 * 1024**3
+CHUNK_BYTES = 64 * 1024**2
+"""Row chunks are sized so that one chunk in float32 takes about this many bytes."""
+
+# Names of the checkpoint's top-level modules (``VLAModule``): the model and the auxiliary losses.
+CHECKPOINT_MODEL_PREFIX = "backbone."
+CHECKPOINT_OBJECTIVES_PREFIX = "objectives."
+
+
+class CapVectorError(ValueError):
+    """A bad input to a vector tool; the message names the tensors or files and what to do."""
+
+
+def examples(items: Sequence[str], n: int = 3) -> str:
+    """A few items for an error message: "`a`, `b`, `c` ..."."""
+    shown = ", ".join(f"`{x}`" for x in items[:n])
+    return shown + (" ..." if len(items) > n else "")
+
+
+# -- dtypes ---------------------------------------------------------------------------------
+
+_SAFETENSORS_DTYPES: dict[str, torch.dtype] = {
+    "F64": torch.float64,
+    "F32": torch.float32,
+    "F16": torch.float16,
+    "BF16": torch.bfloat16,
+    "F8_E4M3": torch.float8_e4m3fn,
+    "F8_E5M2": torch.float8_e5m2,
+    "I64": torch.int64,
+    "I32": torch.int32,
+    "I16": torch.int16,
+    "I8": torch.int8,
+    "U64": torch.uint64,
+    "U32": torch.uint32,
+    "U16": torch.uint16,
+    "U8": torch.uint8,
+    "BOOL": torch.bool,
+}
+_SAFETENSORS_CODES = {dtype: code for code, dtype in _SAFETENSORS_DTYPES.items()}
+
+
+def dtype_name(dtype: torch.dtype) -> str:
+    """``torch.bfloat16`` -> ``"bfloat16"`` (the spelling used in JSON metadata and on the CLI)."""
+    return str(dtype).removeprefix("torch.")
+
+
+def parse_dtype(name: str) -> torch.dtype:
+    dtype = getattr(torch, name, None)
+    if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
+        raise CapVectorError(f"unknown floating dtype {name!r}; use float32, bfloat16 or float16")
+    return dtype
+
+
+def compute_dtype(*dtypes: torch.dtype) -> torch.dtype:
+    """Arithmetic runs in float32, or float64 when an input is float64."""
+    return torch.float64 if torch.float64 in dtypes else torch.float32
+
+
+@dataclass(frozen=True)
+class TensorInfo:
+    dtype: torch.dtype
+    shape: tuple[int, ...]
+
+    @property
+    def numel(self) -> int:
+        n = 1
+        for s in self.shape:
+            n *= s
+        return n
+
+    @property
+    def nbytes(self) -> int:
+        return self.numel * self.dtype.itemsize
+
+
+def row_chunks(info: TensorInfo, chunk_bytes: int = CHUNK_BYTES) -> Iterator[slice | None]:
+    """Slices along dim 0 covering the tensor; ``None`` means "the whole tensor" (0-d tensors)."""
+    if not info.shape:
+        yield None
+        return
+    if info.shape[0] == 0:
+        yield slice(0, 0)  # empty tensors still get one (empty) write so writers see them
+        return
+    row_bytes = max(1, info.numel // max(1, info.shape[0])) * 4
+    step = max(1, chunk_bytes // row_bytes)
+    for start in range(0, info.shape[0], step):
+        yield slice(start, min(start + step, info.shape[0]))
+
+
+def select_keys(
+    keys: Sequence[str], include: Sequence[str] | None, exclude: Sequence[str] | None
+) -> list[str]:
+    """Keys matching any ``include`` glob (all when None) and no ``exclude`` glob (fnmatch, case-sensitive)."""
+    chosen = [k for k in keys if include is None or any(fnmatch.fnmatchcase(k, g) for g in include)]
+    return [k for k in chosen if not any(fnmatch.fnmatchcase(k, g) for g in exclude or ())]
+
+
+# -- fingerprints ---------------------------------------------------------------------------
+
+_SAMPLE_BYTES = 64 * 1024
+
+
+def file_fingerprint(path: Path, hasher: Any, header_bytes: int = 0) -> None:
+    """Feed a cheap identity of ``path`` into ``hasher``: size, header, and three 64 KiB samples.
+
+    An identity check for provenance (which files a vector came from), not an integrity check:
+    hashing gigabytes would cost as much as the extraction itself.
+    """
+    size = path.stat().st_size
+    hasher.update(f"{path.name}:{size}:".encode())
+    with open(path, "rb") as f:
+        if header_bytes:
+            hasher.update(f.read(header_bytes))
+        for offset in (header_bytes, (header_bytes + size) // 2, max(header_bytes, size - _SAMPLE_BYTES)):
+            f.seek(offset)
+            hasher.update(f.read(_SAMPLE_BYTES))
+
+
+def _safetensors_header_size(path: Path) -> int:
+    with open(path, "rb") as f:
+        raw = f.read(8)
+    return 8 + struct.unpack("<Q", raw)[0] if len(raw) == 8 else 0
+
+
+# -- reading --------------------------------------------------------------------------------
+
+
+class WeightSource:
+    """Read-only access to named tensors, by key and row range, without loading everything."""
+
+    path: Path
+    kind: str
+    config: dict[str, Any]
+
+    def keys(self) -> list[str]:
+        raise NotImplementedError
+
+    def info(self, key: str) -> TensorInfo:
+        raise NotImplementedError
+
+    def read(self, key: str, rows: slice | None = None) -> Tensor:
+        """Rows ``rows`` (all when None) of tensor ``key``; the caller owns the returned tensor."""
+        raise NotImplementedError
+
+    def fingerprint(self) -> str:
+        raise NotImplementedError
+
+    @property
+    def capability_parameters(self) -> list[str] | None:
+        globs = self.config.get("capability_parameters")
+        return list(globs) if globs is not None else None
+
+    @property
+    def objectives(self) -> list[str] | None:
+        names = self.config.get("objectives")
+        return list(names) if names is not None else None
+
+    def describe(self) -> dict[str, Any]:
+        """Provenance recorded in the metadata of what is written from this source."""
+        out: dict[str, Any] = {
+            "path": str(self.path.resolve()),
+            "kind": self.kind,
+            "fingerprint": self.fingerprint(),
+        }
+        for field in ("family", "preset"):
+            if field in self.config:
+                out[field] = self.config[field]
+        return out
+
+
+class SafetensorsFolder(WeightSource):
+    """A folder with ``<stem>.safetensors`` or HF-style shards + ``<stem>.safetensors.index.json``.
+
+    Every file's header is read (and so validated by safetensors: a truncated file fails here, before
+    anything is written) when the folder is opened; tensor data is read on demand.
+    """
+
+    def __init__(
+        self,
+        folder: str | Path,
+        weights_name: str = EXPORT_WEIGHTS,
+        index_name: str = EXPORT_INDEX,
+        config_name: str | None = EXPORT_CONFIG,
+        kind: str = "export",
+    ) -> None:
+        from safetensors import safe_open
+
+        self.path = Path(folder)
+        self.kind = kind
+        self.weights_name = weights_name
+        self.index_name = index_name
+        self.config = {}
+        if config_name and (self.path / config_name).is_file():
+            self.config = read_json(self.path / config_name)
+        single, index = self.path / weights_name, self.path / index_name
+        if single.is_file():
+            self.index_path: Path | None = None
+            files = [weights_name]
+            expected: dict[str, str] | None = None
+        elif index.is_file():
+            self.index_path = index
+            weight_map = read_json(index).get("weight_map")
+            if not isinstance(weight_map, dict) or not weight_map:
+                raise CapVectorError(f"{index} has no `weight_map`; it is not a safetensors index")
+            expected = {str(k): str(v) for k, v in weight_map.items()}
+            files = sorted(set(expected.values()))
+        else:
+            raise CapVectorError(f"{self.path} has neither {weights_name} nor {index_name}")
+
+        self.files: dict[str, list[str]] = {}
+        self.file_metadata: dict[str, dict[str, str]] = {}
+        self._infos: dict[str, TensorInfo] = {}
+        self._file_of: dict[str, Path] = {}
+        for name in files:
+            path = self.path / name
+            if not path.is_file():
+                raise CapVectorError(f"{index} lists shard {name}, which is missing from {self.path}")
+            try:
+                with safe_open(str(path), framework="pt") as f:
+                    keys = list(f.keys())
+                    self.file_metadata[name] = dict(f.metadata() or {})
+                    for key in keys:
+                        sl = f.get_slice(key)
+                        code = sl.get_dtype()
+                        if code not in _SAFETENSORS_DTYPES:
+                            raise CapVectorError(f"{path}: tensor `{key}` has unsupported dtype {code}")
+                        self._infos[key] = TensorInfo(_SAFETENSORS_DTYPES[code], tuple(sl.get_shape()))
+                        self._file_of[key] = path
+            except CapVectorError:
+                raise
+            except Exception as err:  # safetensors raises its own SafetensorError (an Exception)
+                raise CapVectorError(
+                    f"{path} is not a readable safetensors file ({err}); it is truncated or "
+                    "corrupted: write it again"
+                ) from err
+            self.files[name] = keys
+        if expected is not None:
+            found = {k: p.name for k, p in self._file_of.items()}
+            wrong = sorted(k for k, f in expected.items() if found.get(k) != f)
+            extra = sorted(set(found) - set(expected))
+            if wrong or extra:
+                raise CapVectorError(
+                    f"{index} does not match its shards: {len(wrong)} indexed tensor(s) missing from "
+                    f"the shard the index names ({examples(wrong)}), {len(extra)} unindexed "
+                    f"tensor(s) ({examples(extra)}); the folder is corrupted or mixes two exports"
+                )
+
+    def keys(self) -> list[str]:
+        return list(self._infos)
+
+    def __contains__(self, key: str) -> bool:
+        return key in self._infos
+
+    def info(self, key: str) -> TensorInfo:
+        return self._infos[key]
+
+    def read(self, key: str, rows: slice | None = None) -> Tensor:
+        from safetensors import safe_open
+
+        with safe_open(str(self._file_of[key]), framework="pt") as f:
+            if rows is None:
+                return f.get_tensor(key)
+            return f.get_slice(key)[rows]
+
+    def weight_files(self) -> list[str]:
+        return list(self.files) + ([self.index_path.name] if self.index_path else [])
+
+    def fingerprint(self) -> str:
+        hasher = hashlib.sha256()
+        if self.index_path is not None:
+            hasher.update(self.index_path.read_bytes())
+        for name in self.files:
+            path = self.path / name
+            file_fingerprint(path, hasher, _safetensors_header_size(path))
+        return "sha256:" + hasher.hexdigest()
+
+
+@dataclass
+class _LoraMerge:
+    """``weight = base + scaling * B @ A`` (transposed for peft's embedding LoRA)."""
+
+    base: Tensor
+    lora_a: Tensor
+    lora_b: Tensor
+    scaling: float
+    transposed: bool
+
+    def rows(self, rows: slice | None) -> Tensor:
+        base = self.base if rows is None else self.base[rows]
+        a, b = self.lora_a.float(), self.lora_b.float()
+        if self.transposed:
+            delta = (a if rows is None else a[:, rows]).T @ b.T
+        else:
+            delta = (b if rows is None else b[rows]) @ a
+        return (base.to(compute_dtype(base.dtype)) + self.scaling * delta).to(base.dtype)
+
+
+_LORA_KEY = re.compile(
+    r"^(?P<module>.+)\.(?P<part>lora_A|lora_B|lora_embedding_A|lora_embedding_B)\.(?P<adapter>[^.]+)"
+    r"(?P<param>\.weight|\.bias)?$"
+)
+
+
+class CheckpointSource(WeightSource):
+    """A Lightning ``.ckpt`` seen as plain backbone keys, with peft LoRA layers merged.
+
+    ``backbone.X.base_layer.weight`` + ``lora_A``/``lora_B`` become ``X.weight`` = base + scaling·B@A
+    (``checkpoint["capvector"]["lora"]["scaling"]``); ``objectives.*`` (auxiliary loss modules) are
+    never part of a vector and are dropped. The file is memory-mapped, so only what is read is loaded.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.kind = "checkpoint"
+        try:
+            checkpoint = torch.load(self.path, map_location="cpu", weights_only=False, mmap=True)
+        except Exception as err:
+            raise CapVectorError(
+                f"cannot read checkpoint {self.path} ({err}); it is truncated, corrupted or not a "
+                "torch checkpoint"
+            ) from err
+        state = checkpoint.get("state_dict") if isinstance(checkpoint, dict) else None
+        if not isinstance(state, Mapping):
+            raise CapVectorError(f"{self.path} has no `state_dict`: it is not a Lightning checkpoint")
+        meta = checkpoint.get("capvector") or {}
+        self.config = {k: v for k, v in meta.items() if k in ("capability_parameters", "family", "preset")}
+        objective_names = sorted(
+            {k.split(".")[1] for k in state if k.startswith(CHECKPOINT_OBJECTIVES_PREFIX)}
+        )
+        self.config["objectives"] = meta.get("objectives", objective_names) or None
+        model = {
+            k[len(CHECKPOINT_MODEL_PREFIX) :]: v
+            for k, v in state.items()
+            if k.startswith(CHECKPOINT_MODEL_PREFIX) and isinstance(v, Tensor)
+        }
+        if not model:
+            raise CapVectorError(
+                f"{self.path} has no `{CHECKPOINT_MODEL_PREFIX}*` tensors in its state_dict; "
+                "is it a capvector checkpoint?"
+            )
+        self._tensors: dict[str, Tensor | _LoraMerge] = {}
+        self._merge_lora(model, meta.get("lora"))
+
+    def _merge_lora(self, model: dict[str, Tensor], lora: Mapping[str, Any] | None) -> None:
+        parts: dict[str, dict[str, Tensor]] = {}
+        adapters: set[str] = set()
+        plain: dict[str, Tensor] = {}
+        for key, tensor in model.items():
+            if ".lora_magnitude_vector." in key:
+                raise CapVectorError(
+                    f"{self.path}: `{key}` is a DoRA magnitude; DoRA checkpoints are not supported, "
+                    "export the merged model and extract from the export folder"
+                )
+            match = _LORA_KEY.match(key)
+            if match:
+                adapters.add(match["adapter"])
+                parts.setdefault(match["module"], {})[match["part"] + (match["param"] or "")] = tensor
+            else:
+                plain[key.replace(".base_layer.", ".")] = tensor
+        if len(adapters) > 1:
+            raise CapVectorError(f"{self.path} has several LoRA adapters {sorted(adapters)}; expected one")
+        if parts and (not lora or lora.get("scaling") is None):
+            raise CapVectorError(
+                f"{self.path} has LoRA layers (e.g. `{next(iter(parts))}`) but no "
+                "checkpoint['capvector']['lora']['scaling'] to merge them with"
+            )
+        for module, p in parts.items():
+            weight = plain.get(f"{module}.weight")
+            embedding = "lora_embedding_A" in p
+            a = p.get("lora_embedding_A" if embedding else "lora_A.weight")
+            b = p.get("lora_embedding_B" if embedding else "lora_B.weight")
+            if weight is None or a is None or b is None:
+                raise CapVectorError(
+                    f"{self.path}: LoRA layer `{module}` is incomplete (needs base_layer.weight, "
+                    "lora_A and lora_B)"
+                )
+            scaling = float(lora["scaling"])  # type: ignore[index]
+            plain[f"{module}.weight"] = _LoraMerge(weight, a, b, scaling, transposed=embedding)  # type: ignore[assignment]
+            if "lora_B.bias" in p:
+                bias = plain.get(f"{module}.bias")
+                if bias is None:
+                    raise CapVectorError(f"{self.path}: `{module}` has a LoRA bias but no base bias")
+                plain[f"{module}.bias"] = (bias.float() + scaling * p["lora_B.bias"].float()).to(bias.dtype)
+        self._tensors = dict(plain)
+
+    def keys(self) -> list[str]:
+        return list(self._tensors)
+
+    def __contains__(self, key: str) -> bool:
+        return key in self._tensors
+
+    def info(self, key: str) -> TensorInfo:
+        t = self._tensors[key]
+        base = t.base if isinstance(t, _LoraMerge) else t
+        return TensorInfo(base.dtype, tuple(base.shape))
+
+    def read(self, key: str, rows: slice | None = None) -> Tensor:
+        t = self._tensors[key]
+        if isinstance(t, _LoraMerge):
+            return t.rows(rows)
+        return (t if rows is None else t[rows]).clone()
+
+    def fingerprint(self) -> str:
+        # A zip checkpoint ends with its central directory, which holds a CRC-32 of every record, so
+        # the sampled tail identifies the content cheaply.
+        hasher = hashlib.sha256()
+        file_fingerprint(self.path, hasher)
+        return "sha256:" + hasher.hexdigest()
+
+
+def open_weights(path: str | Path) -> WeightSource:
+    """An export folder, a bare ``.safetensors`` file's folder, or a Lightning ``.ckpt``."""
+    p = Path(path)
+    if p.is_dir():
+        if (p / VECTOR_META).is_file() or (p / ADAPTER_CONFIG).is_file():
+            raise CapVectorError(f"{p} is a vector folder, not model weights")
+        config = p / EXPORT_CONFIG
+        if config.is_file():
+            fmt = read_json(config).get("format")
+            if fmt not in (None, EXPORT_FORMAT):
+                raise CapVectorError(f"{config} has format {fmt!r}, expected {EXPORT_FORMAT!r}")
+        return SafetensorsFolder(p)
+    if p.is_file():
+        if p.suffix == ".safetensors":
+            return SafetensorsFolder(p.parent, weights_name=p.name, config_name=None, kind="safetensors")
+        return CheckpointSource(p)
+    raise CapVectorError(f"{p} does not exist")
+
+
+def read_json(path: Path) -> dict[str, Any]:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise CapVectorError(f"cannot read {path}: {err}") from err
+    if not isinstance(data, dict):
+        raise CapVectorError(f"{path} does not hold a JSON object")
+    return data
+
+
+# -- writing --------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ShardLayout:
+    """Which tensors go into which file, in write order."""
+
+    files: list[tuple[str, list[tuple[str, TensorInfo]]]]
+    index_name: str | None
+    """Written when not None (sharded folders)."""
+
+    @staticmethod
+    def plan(
+        tensors: Sequence[tuple[str, TensorInfo]], stem: str, max_shard_size: int
+    ) -> ShardLayout:
+        """Greedy HF-style sharding: ``<stem>.safetensors``, or numbered shards + an index."""
+        shards: list[list[tuple[str, TensorInfo]]] = [[]]
+        size = 0
+        for key, info in tensors:
+            if shards[-1] and size + info.nbytes > max_shard_size:
+                shards.append([])
+                size = 0
+            shards[-1].append((key, info))
+            size += info.nbytes
+        if len(shards) == 1:
+            return ShardLayout([(f"{stem}.safetensors", shards[0])], None)
+        n = len(shards)
+        names = [f"{stem}-{i + 1:05d}-of-{n:05d}.safetensors" for i in range(n)]
+        return ShardLayout(list(zip(names, shards, strict=True)), f"{stem}.safetensors.index.json")
+
+
+class SafetensorsWriter:
+    """Writes a ``ShardLayout`` tensor by tensor, chunk by chunk, in layout order.
+
+    The header (names, dtypes, shapes, offsets) is known before any data, so it is written first and
+    tensor bytes are appended as they are computed; nothing larger than a chunk is held. The writer
+    refuses bytes out of order or of the wrong size, so a bug cannot produce a malformed file.
+    """
+
+    def __init__(
+        self, folder: Path, layout: ShardLayout, metadata: Mapping[str, str] | None = None
+    ) -> None:
+        self.folder = folder
+        self.layout = layout
+        self.metadata = {"format": "pt", **dict(metadata or {})}
+        self._queue = [(name, key, info) for name, items in layout.files for key, info in items]
+        self._pos = 0
+        self._written = 0
+        self._file: Any = None
+        self._file_name: str | None = None
+
+    @property
+    def current_key(self) -> str | None:
+        return self._queue[self._pos][1] if self._pos < len(self._queue) else None
+
+    def write(self, key: str, chunk: Tensor) -> None:
+        """Append ``chunk`` (rows of ``key``, cast to the planned dtype) to the output."""
+        if self._pos >= len(self._queue) or self._queue[self._pos][1] != key:
+            raise RuntimeError(f"write order: got `{key}`, expected `{self.current_key}`")
+        name, _, info = self._queue[self._pos]
+        if self._file_name != name:
+            self._open(name)
+        data = chunk.detach().to(device="cpu", dtype=info.dtype).contiguous()
+        raw = data.reshape(-1).view(torch.uint8).numpy()
+        self._file.write(memoryview(raw))
+        self._written += raw.nbytes
+        if self._written > info.nbytes:
+            raise RuntimeError(f"`{key}`: {self._written} bytes written, {info.nbytes} planned")
+        if self._written == info.nbytes:
+            self._pos += 1
+            self._written = 0
+            if self._pos == len(self._queue) or self._queue[self._pos][0] != name:
+                self._close_file()
+
+    def _open(self, name: str) -> None:
+        items = dict(self.layout.files)[name]
+        header: dict[str, Any] = {"__metadata__": self.metadata}
+        offset = 0
+        for key, info in items:
+            header[key] = {
+                "dtype": _SAFETENSORS_CODES[info.dtype],
+                "shape": list(info.shape),
+                "data_offsets": [offset, offset + info.nbytes],
+            }
+            offset += info.nbytes
+        raw = json.dumps(header, separators=(",", ":")).encode()
+        raw += b" " * (-len(raw) % 8)  # safetensors pads the header to 8-byte alignment
+        self._file = open(self.folder / name, "wb")  # noqa: SIM115 - closed in _close_file
+        self._file_name = name
+        self._file.write(struct.pack("<Q", len(raw)) + raw)
+
+    def _close_file(self) -> None:
+        self._file.flush()
+        os.fsync(self._file.fileno())
+        self._file.close()
+        self._file = None
+
+    def finish(self) -> None:
+        """Check everything was written; write the index of a sharded layout."""
+        if not self._queue:  # a layout without tensors is one empty (header-only) file
+            self._open(self.layout.files[0][0])
+            self._close_file()
+        if self._pos != len(self._queue):
+            raise RuntimeError(f"output incomplete: `{self.current_key}` was not written")
+        if self.layout.index_name is not None:
+            total = sum(info.nbytes for _, items in self.layout.files for _, info in items)
+            weight_map = {key: name for name, items in self.layout.files for key, _ in items}
+            write_json(
+                self.folder / self.layout.index_name,
+                {"metadata": {"total_size": total}, "weight_map": weight_map},
+            )
+
+    def abort(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+
+def write_json(path: Path, content: Any) -> None:
+    with open(path, "w") as f:
+        json.dump(content, f, indent=2)
+        f.write("\n")
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def check_output(out: str | Path, overwrite: bool, inputs: Sequence[str | Path] = ()) -> Path:
+    """Fail before any work when ``out`` exists (without overwrite) or is one of the inputs."""
+    target = Path(out)
+    if target.exists() and not overwrite:
+        raise CapVectorError(f"{target} exists; choose another --out or pass --overwrite")
+    for path in inputs:
+        if Path(path).resolve() == target.resolve():
+            raise CapVectorError(f"--out {target} is also an input; write to another folder")
+    return target
+
+
+@contextmanager
+def atomic_output(out: str | Path, overwrite: bool = False) -> Iterator[Path]:
+    """A temporary sibling folder that becomes ``out`` (fsynced, renamed) only if the block succeeds.
+
+    On any exception, including KeyboardInterrupt, the temporary folder is removed and ``out`` is
+    left as it was.
+    """
+    target = check_output(out, overwrite)
+    with atomic_directory(target, overwrite=overwrite) as tmp:
+        yield tmp
+        for root, _dirs, files in os.walk(tmp):
+            for name in files:
+                fd = os.open(Path(root) / name, os.O_RDONLY)
+                try:
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
+            _fsync_dir(Path(root))
+    _fsync_dir(target.resolve().parent)
+
+
+def capvector_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("capvector")
+    except PackageNotFoundError:
+        return "unknown"

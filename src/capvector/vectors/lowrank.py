@@ -1,0 +1,227 @@
+"""Low-rank capability vectors: truncated SVD of each 2-D delta, stored as a PEFT LoRA adapter.
+
+Follows ``mergekit-extract-lora`` (research A2.5): the SVD runs in float32, the singular values are
+split evenly between the factors (B = U·√σ, A = √σ·Vᵀ), and every layer gets ``lora_alpha == r`` so
+peft's scaling is 1 and ``B @ A`` is the delta itself. Ranks may differ per layer (``rank_pattern``
+/ ``alpha_pattern``). Unlike mergekit, the rank can also be chosen per layer by an energy fraction
+(the smallest k with Σ_{i≤k} σ_i² ≥ E·Σσ², the rule of peft's ``convert_to_lora``).
+
+Every 2-D ``*.weight`` stored here is treated as an ``nn.Linear`` weight (out, in). peft loads an
+``nn.Embedding``'s adapter under other names (``lora_embedding_A/B``), so embeddings should be kept
+at full rank (``extract(..., full_rank=["*embed_tokens*"])``) when the adapter is meant for
+``PeftModel.from_pretrained``; our own ``merge`` handles either.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from capvector.vectors.io import (
+    ADAPTER_CONFIG,
+    ADAPTER_WEIGHTS,
+    CapVectorError,
+    examples,
+    read_json,
+)
+
+PEFT_PREFIX = "base_model.model."
+
+
+@dataclass
+class LoraFactors:
+    """A low-rank delta ``c = scale · B @ A`` with B: (out, k) and A: (k, in)."""
+
+    lora_b: Tensor
+    lora_a: Tensor
+    scale: float = 1.0
+
+    @property
+    def rank(self) -> int:
+        return int(self.lora_a.shape[0])
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return int(self.lora_b.shape[0]), int(self.lora_a.shape[1])
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.lora_b.dtype
+
+    def rows(self, rows: slice | None = None) -> Tensor:
+        """Rows of the dense delta in float32 (all rows when None)."""
+        b = self.lora_b if rows is None else self.lora_b[rows]
+        return self.scale * (b.float() @ self.lora_a.float())
+
+    def scaled(self) -> tuple[Tensor, Tensor]:
+        """(B·scale, A) in float32: ``B @ A`` is the delta."""
+        return self.lora_b.float() * self.scale, self.lora_a.float()
+
+    def norm_sq(self) -> float:
+        """‖scale·BA‖_F² from the two r×r Gram matrices, without forming BA."""
+        b, a = self.scaled()
+        return float(((b.T @ b) * (a @ a.T)).sum())
+
+    def is_finite(self) -> bool:
+        return bool(torch.isfinite(self.lora_a).all() and torch.isfinite(self.lora_b).all())
+
+
+def svd_factors(
+    delta: Tensor, rank: int | None = None, energy: float | None = None
+) -> tuple[LoraFactors, float]:
+    """Truncated SVD ``delta ≈ B @ A`` by a fixed ``rank`` or a retained ``energy`` fraction.
+
+    Returns the factors (float32) and the retained fraction of ‖delta‖_F² (1.0 for a zero delta,
+    which is stored at rank 1 with zero factors because peft has no rank-0 layers).
+    """
+    if (rank is None) == (energy is None):
+        raise ValueError("pass exactly one of rank and energy")
+    u, s, vh = torch.linalg.svd(delta.float(), full_matrices=False)
+    power = s.double() ** 2
+    total = float(power.sum())
+    if total == 0.0:
+        k, retained = 1, 1.0
+    else:
+        cumulative = power.cumsum(0) / total
+        if rank is not None:
+            k = min(rank, s.numel())
+        else:
+            k = min(int((cumulative < energy).sum()) + 1, s.numel())
+        retained = float(cumulative[k - 1])
+    root = s[:k].sqrt()
+    return LoraFactors(u[:, :k] * root, root[:, None] * vh[:k]), retained
+
+
+def module_path(key: str) -> str:
+    return key.removesuffix(".weight")
+
+
+def lowrank_candidate(key: str, ndim: int) -> bool:
+    """Tensors peft can represent as a LoRA layer: the 2-D ``weight`` of a module."""
+    return ndim == 2 and key.endswith(".weight")
+
+
+def _pattern(path: str) -> str:
+    # peft matches pattern keys with re.match(rf"(.*\.)?({key})$", module_name); escaping the dots
+    # and anchoring with ^ makes each pattern match exactly one module, not every module whose
+    # name ends the same way.
+    return "^" + re.escape(path)
+
+
+def write_adapter(folder: Path, factors: Mapping[str, LoraFactors]) -> dict[str, Any]:
+    """Write ``adapter_config.json`` + ``adapter_model.safetensors`` that ``PeftModel.from_pretrained``
+    loads as-is onto a model whose module names are the vector keys without ``.weight``."""
+    from safetensors.torch import save_file
+
+    from capvector.vectors.io import write_json
+
+    if not factors:
+        raise ValueError("no low-rank tensors to write")
+    ranks = {module_path(key): f.rank for key, f in factors.items()}
+    r = max(ranks.values())
+    smaller = {_pattern(path): k for path, k in ranks.items() if k != r}
+    config = {
+        "peft_type": "LORA",
+        "task_type": None,
+        "base_model_name_or_path": None,
+        "r": r,
+        "lora_alpha": r,
+        "rank_pattern": smaller,
+        "alpha_pattern": dict(smaller),
+        "target_modules": sorted(ranks),
+        "lora_dropout": 0.0,
+        "bias": "none",
+        "fan_in_fan_out": False,
+        "use_rslora": False,
+        "use_dora": False,
+        "init_lora_weights": True,
+        "inference_mode": True,
+        "modules_to_save": None,
+    }
+    tensors: dict[str, Tensor] = {}
+    for key, f in factors.items():
+        b, a = f.scaled()
+        prefix = PEFT_PREFIX + module_path(key)
+        tensors[f"{prefix}.lora_A.weight"] = a.to(f.dtype).contiguous()
+        tensors[f"{prefix}.lora_B.weight"] = b.to(f.dtype).contiguous()
+    save_file(tensors, str(folder / ADAPTER_WEIGHTS), metadata={"format": "pt"})
+    write_json(folder / ADAPTER_CONFIG, config)
+    return config
+
+
+_ADAPTER_KEY = re.compile(
+    r"^(?P<module>.+)\.(?P<part>lora_A\.weight|lora_B\.weight|lora_B\.bias|lora_embedding_A|lora_embedding_B)$"
+)
+
+
+def read_adapter(folder: Path) -> tuple[dict[str, LoraFactors], dict[str, Tensor]]:
+    """A PEFT LoRA adapter folder as deltas: {``X.weight``: factors} and {``X.bias``: dense delta}.
+
+    Handles per-layer ranks and alphas, rsLoRA scaling, ``fan_in_fan_out`` and embedding LoRA
+    (both transposed). Adapters that replace weights rather than add to them (DoRA,
+    ``modules_to_save``) cannot be a vector and are refused.
+    """
+    from safetensors.torch import load_file
+
+    config = read_json(folder / ADAPTER_CONFIG)
+    if config.get("peft_type") != "LORA":
+        raise CapVectorError(f"{folder}: peft_type {config.get('peft_type')!r}; only LORA adapters are vectors")
+    if config.get("use_dora"):
+        raise CapVectorError(f"{folder}: DoRA adapters rescale weights and cannot be used as a vector")
+    if config.get("modules_to_save"):
+        raise CapVectorError(
+            f"{folder}: the adapter replaces whole modules ({config['modules_to_save']}), which is "
+            "not a delta; merge it with peft and extract a vector from the result"
+        )
+    weights = folder / ADAPTER_WEIGHTS
+    if not weights.is_file():
+        raise CapVectorError(f"{folder} has {ADAPTER_CONFIG} but no {ADAPTER_WEIGHTS}")
+    try:
+        state = load_file(str(weights))
+    except Exception as err:
+        raise CapVectorError(f"{weights} is not a readable safetensors file ({err})") from err
+
+    parts: dict[str, dict[str, Tensor]] = {}
+    unknown = []
+    for key, tensor in state.items():
+        match = _ADAPTER_KEY.match(key.removeprefix(PEFT_PREFIX))
+        if not match or not key.startswith(PEFT_PREFIX):
+            unknown.append(key)
+            continue
+        parts.setdefault(match["module"], {})[match["part"]] = tensor
+    if unknown:
+        raise CapVectorError(
+            f"{weights} has {len(unknown)} tensor(s) that are not LoRA factors, e.g. "
+            f"{examples(sorted(unknown))}"
+        )
+
+    lora_alpha = float(config.get("lora_alpha", config.get("r", 8)))
+    alpha_pattern = config.get("alpha_pattern") or {}
+    factors: dict[str, LoraFactors] = {}
+    biases: dict[str, Tensor] = {}
+    for module, p in parts.items():
+        embedding = "lora_embedding_A" in p
+        a = p.get("lora_embedding_A" if embedding else "lora_A.weight")
+        b = p.get("lora_embedding_B" if embedding else "lora_B.weight")
+        if a is None or b is None:
+            raise CapVectorError(f"{weights}: LoRA layer `{module}` lacks its A or B factor")
+        rank = int(a.shape[0])
+        alpha = next(
+            (float(v) for pat, v in alpha_pattern.items() if re.match(rf"(.*\.)?({pat})$", module)),
+            lora_alpha,
+        )
+        scale = alpha / math.sqrt(rank) if config.get("use_rslora") else alpha / rank
+        if embedding or config.get("fan_in_fan_out"):
+            # peft's delta is (B @ A)ᵀ = Aᵀ @ Bᵀ here; store it in the plain B @ A form.
+            a, b = b.T.contiguous(), a.T.contiguous()
+        factors[f"{module}.weight"] = LoraFactors(b, a, scale)
+        if "lora_B.bias" in p:
+            biases[f"{module}.bias"] = p["lora_B.bias"].float() * scale
+    return factors, biases

@@ -1,0 +1,311 @@
+"""θ_meta = θ_pre + Σ λ_i c_i: streamed into an export folder (``merge``) or applied in memory
+(``apply_vector_``, what the ``MergeCapabilityVector`` callback calls). Both use ``add_scaled``,
+so the CLI and the callback produce the same weights.
+"""
+
+from __future__ import annotations
+
+import datetime
+import math
+import shutil
+from collections.abc import Mapping, MutableMapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+from tqdm.auto import tqdm
+
+from capvector.vectors.io import (
+    CapVectorError,
+    SafetensorsFolder,
+    SafetensorsWriter,
+    ShardLayout,
+    TensorInfo,
+    atomic_output,
+    capvector_version,
+    check_output,
+    compute_dtype,
+    dtype_name,
+    examples,
+    open_weights,
+    read_json,
+    row_chunks,
+    write_json,
+)
+from capvector.vectors.vector import CapabilityVector, VectorFolder, load_vector
+
+MERGE_RECORD = "capvector_merge.json"
+
+# Module names that wrappers insert between a model's own names: peft's LoRA layers
+# (`X.base_layer.weight`), torch.compile, activation checkpointing and FSDP1.
+_WRAPPER_NAMES = frozenset({"base_layer", "_orig_mod", "_checkpoint_wrapped_module", "_fsdp_wrapped_module"})
+
+
+def add_scaled(base: Tensor, deltas: Sequence[tuple[Tensor, float]]) -> Tensor:
+    """``base + Σ λ·delta`` computed in float32 (float64 for float64 inputs), cast to base's dtype."""
+    work = compute_dtype(base.dtype, *(d.dtype for d, _ in deltas))
+    out = base.to(work, copy=True)
+    for delta, scale in deltas:
+        out.add_(delta.to(device=out.device, dtype=work), alpha=scale)
+    return out.to(base.dtype)
+
+
+def check_compatible(
+    target: Mapping[str, TensorInfo], vector: Mapping[str, TensorInfo], target_name: str, vector_name: str
+) -> None:
+    """Raise ``CapVectorError`` unless every vector tensor has a floating target of the same shape."""
+    missing = [k for k in vector if k not in target]
+    if missing:
+        raise CapVectorError(
+            f"{vector_name} has {len(missing)} tensor(s) {target_name} lacks, e.g. "
+            f"{examples(missing)}; pass --exclude '{missing[0].split('.')[0]}.*' when extracting "
+            "or use the matching base"
+        )
+    shapes = [
+        f"{k}: vector {tuple(v.shape)} vs {tuple(target[k].shape)}"
+        for k, v in vector.items()
+        if tuple(v.shape) != tuple(target[k].shape)
+    ]
+    if shapes:
+        raise CapVectorError(
+            f"{vector_name} does not fit {target_name}: {len(shapes)} shape mismatch(es), e.g. "
+            f"{examples(shapes)}; it was extracted from another architecture or preset"
+        )
+    dtypes = [
+        f"{k}: vector {dtype_name(v.dtype)}, target {dtype_name(target[k].dtype)}"
+        for k, v in vector.items()
+        if not (v.dtype.is_floating_point and target[k].dtype.is_floating_point)
+    ]
+    if dtypes:
+        raise CapVectorError(
+            f"{vector_name} and {target_name} disagree on dtype for {len(dtypes)} tensor(s), e.g. "
+            f"{examples(dtypes)}; only floating tensors can be merged"
+        )
+
+
+# -- streaming merge into an export folder ---------------------------------------------------
+
+
+def merge(
+    base: str | Path,
+    vectors: Sequence[tuple[str | Path, float]],
+    out: str | Path,
+    *,
+    overwrite: bool = False,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """Write the export folder ``out`` = base + Σ λ_i·vector_i, sharded like the base.
+
+    Vectors may be full, low-rank or plain PEFT LoRA folders. Every non-weight file of the base
+    (config, tokenizer, dataset statistics) is copied unchanged; ``capvector_merge.json`` records
+    what was merged. All vectors are checked against the base before anything is written, and a
+    NaN/Inf found while streaming leaves no output.
+
+    Returns:
+        The record written to ``capvector_merge.json``.
+    """
+    if not vectors:
+        raise CapVectorError("no vectors to merge: pass --vector DIR[:λ] at least once")
+    check_output(out, overwrite, [base, *(v for v, _ in vectors)])
+    source = open_weights(base)
+    if not isinstance(source, SafetensorsFolder) or source.kind != "export":
+        raise CapVectorError(
+            f"merge writes an export folder and needs one as --base; {base} is a "
+            f"{source.kind}: export it first"
+        )
+    folders = []
+    for path, scale in vectors:
+        if not math.isfinite(scale):
+            raise CapVectorError(f"λ for {path} is {scale}; it must be a finite number")
+        folder = VectorFolder(path)
+        infos = {k: folder.info(k) for k in folder.keys()}
+        check_compatible({k: source.info(k) for k in source.keys()}, infos, f"the base {base}", f"vector {path}")
+        folders.append((folder, float(scale)))
+
+    layout = ShardLayout(
+        [(name, [(k, source.info(k)) for k in keys]) for name, keys in source.files.items()],
+        source.index_path.name if source.index_path else None,
+    )
+    first_meta = next(iter(source.file_metadata.values()), {})
+    record: dict[str, Any] = {
+        "base": source.describe(),
+        "vectors": [{**f.describe(), "scale": s} for f, s in folders],
+        "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "capvector_version": capvector_version(),
+    }
+    if (source.path / MERGE_RECORD).is_file():
+        record["previous"] = read_json(source.path / MERGE_RECORD)
+
+    with atomic_output(out, overwrite) as tmp:
+        skip = set(source.weight_files()) | {MERGE_RECORD}
+        for item in source.path.iterdir():
+            if item.name in skip:
+                continue
+            if item.is_dir():
+                shutil.copytree(item, tmp / item.name)
+            else:
+                shutil.copy2(item, tmp / item.name)
+        writer = SafetensorsWriter(tmp, layout, metadata=first_meta)
+        total = sum(info.nbytes for _, items in layout.files for _, info in items)
+        try:
+            with tqdm(total=total, unit="B", unit_scale=True, desc="merge", disable=not progress) as bar:
+                for _, items in layout.files:
+                    for key, info in items:
+                        _merge_tensor(source, folders, writer, key, info)
+                        bar.update(info.nbytes)
+            writer.finish()
+        except BaseException:
+            writer.abort()
+            raise
+        write_json(tmp / MERGE_RECORD, record)
+    return record
+
+
+def _merge_tensor(
+    source: SafetensorsFolder,
+    folders: Sequence[tuple[VectorFolder, float]],
+    writer: SafetensorsWriter,
+    key: str,
+    info: TensorInfo,
+) -> None:
+    touching = [(f, s) for f, s in folders if key in f]
+    for rows in row_chunks(info):
+        chunk = source.read(key, rows)
+        if touching:
+            deltas = [(f.read(key, rows), s) for f, s in touching]
+            merged = add_scaled(chunk, deltas)
+            if not torch.isfinite(merged).all():
+                culprits = [str(f.path) for (f, _), (d, _) in zip(touching, deltas, strict=True) if not torch.isfinite(d).all()]
+                where = f"vector {culprits[0]} has NaN/Inf there" if culprits else (
+                    "the base has NaN/Inf there" if not torch.isfinite(chunk).all()
+                    else f"the sum overflows {dtype_name(info.dtype)}"
+                )
+                raise CapVectorError(f"merging `{key}` gives NaN/Inf: {where}. Nothing was written")
+            chunk = merged
+        writer.write(key, chunk)
+
+
+# -- in memory -------------------------------------------------------------------------------
+
+
+def canonical_name(name: str) -> str:
+    """A parameter name without wrapper modules: ``X.base_layer.weight`` -> ``X.weight``."""
+    return ".".join(part for part in name.split(".") if part not in _WRAPPER_NAMES)
+
+
+def match_tensors(
+    target: nn.Module | Mapping[str, Tensor], keys: Sequence[str]
+) -> dict[str, tuple[str, Tensor]]:
+    """Vector key -> (target name, tensor) for a module's parameters and buffers or a state dict.
+
+    Names are compared without wrapper modules, so ``X.weight`` finds peft's ``X.base_layer.weight``.
+    Raises ``CapVectorError`` naming keys with no match, several matches, or a shared (tied) match.
+    """
+    if isinstance(target, nn.Module):
+        items = [
+            *target.named_parameters(remove_duplicate=False),
+            *target.named_buffers(remove_duplicate=False),
+        ]
+    else:
+        items = list(target.items())
+    by_name: dict[str, list[tuple[str, Tensor]]] = {}
+    for name, tensor in items:
+        entries = by_name.setdefault(canonical_name(name), [])
+        if all(t is not tensor for _, t in entries):
+            entries.append((name, tensor))
+    missing = [k for k in keys if k not in by_name]
+    if missing:
+        raise CapVectorError(
+            f"vector has {len(missing)} tensor(s) the model lacks, e.g. {examples(missing)}; "
+            f"pass --exclude '{missing[0].split('.')[0]}.*' when extracting or use the matching base"
+        )
+    ambiguous = [f"{k} ({', '.join(n for n, _ in by_name[k])})" for k in keys if len(by_name[k]) > 1]
+    if ambiguous:
+        raise CapVectorError(f"vector keys match several tensors of the model, e.g. {examples(ambiguous)}")
+    resolved = {k: by_name[k][0] for k in keys}
+    owner: dict[int, str] = {}
+    for key, (_, tensor) in resolved.items():
+        other = owner.setdefault(id(tensor), key)
+        if other != key:
+            raise CapVectorError(
+                f"vector keys `{other}` and `{key}` are the same (tied) tensor of the model; "
+                "exclude one of them"
+            )
+    return resolved
+
+
+def _resolve(
+    target: nn.Module | MutableMapping[str, Tensor], vec: CapabilityVector
+) -> dict[str, tuple[str, Tensor]]:
+    """``match_tensors`` plus shape/dtype checks and finite vector values."""
+    resolved = match_tensors(target, vec.keys())
+    target_infos = {k: _info(t) for k, (_, t) in resolved.items()}
+    vector_infos = {k: TensorInfo(_vector_dtype(vec, k), vec.shape(k)) for k in vec.keys()}
+    check_compatible(target_infos, vector_infos, "the model", "the vector")
+    vec.check()
+    return resolved
+
+
+def _info(t: Tensor) -> TensorInfo:
+    return TensorInfo(t.dtype, tuple(t.shape))
+
+
+def _vector_dtype(vec: CapabilityVector, key: str) -> torch.dtype:
+    return vec.lowrank[key].dtype if key in vec.lowrank else vec.dense[key].dtype
+
+
+def validate_vector(
+    target: nn.Module | MutableMapping[str, Tensor],
+    vector: str | Path | Mapping[str, Tensor] | CapabilityVector,
+    scale: float = 1.0,
+) -> None:
+    """Raise ``CapVectorError`` unless ``apply_vector_(target, vector, scale)`` would succeed.
+
+    Checks that every vector tensor has a matching target tensor (``X.weight`` also matches peft's
+    ``X.base_layer.weight``), with the same shape, both floating, and that the vector and ``scale``
+    are finite.
+    """
+    if not math.isfinite(scale):
+        raise CapVectorError(f"scale λ is {scale}; it must be a finite number")
+    _resolve(target, load_vector(vector))
+
+
+def apply_vector_(
+    target: nn.Module | MutableMapping[str, Tensor],
+    vector: str | Path | Mapping[str, Tensor] | CapabilityVector,
+    scale: float = 1.0,
+) -> list[str]:
+    """In place: θ ← θ + scale·c for every tensor of the vector; validates everything first.
+
+    ``target`` is a module (parameters and buffers) or a state dict whose tensors are updated in
+    place. Nothing changes when validation fails. DTensor parameters (FSDP2) are updated shard by
+    shard with no communication: every rank reads the same vector and keeps its own slice.
+
+    Returns:
+        The target names that were changed.
+    """
+    if not math.isfinite(scale):
+        raise CapVectorError(f"scale λ is {scale}; it must be a finite number")
+    vec = load_vector(vector)
+    resolved = _resolve(target, vec)
+    changed = []
+    with torch.no_grad():
+        for key, (name, tensor) in resolved.items():
+            _add_in_place(tensor, vec.delta(key), scale)
+            changed.append(name)
+    return changed
+
+
+def _add_in_place(tensor: Tensor, delta: Tensor, scale: float) -> None:
+    from torch.distributed.tensor import DTensor, distribute_tensor
+
+    if isinstance(tensor, DTensor):
+        # src_data_rank=None: each rank slices its shard from its own copy, no scatter.
+        local_delta = distribute_tensor(
+            delta.to(tensor.to_local().device), tensor.device_mesh, tensor.placements, src_data_rank=None
+        ).to_local()
+        local = tensor.to_local()
+        local.copy_(add_scaled(local, [(local_delta, scale)]))
+    else:
+        tensor.copy_(add_scaled(tensor, [(delta, scale)]))

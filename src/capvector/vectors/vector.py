@@ -1,0 +1,293 @@
+"""Vector folders: reading them (streaming or whole), writing them, and the in-memory vector.
+
+A vector folder holds ``capability_vector.json`` (metadata) and the tensors in one or both of:
+
+- ``capability_vector.safetensors`` (or numbered shards + ``capability_vector.safetensors.index.json``):
+  tensors stored in full;
+- ``adapter_config.json`` + ``adapter_model.safetensors``: a PEFT LoRA adapter holding the 2-D
+  tensors stored in low-rank form.
+
+A plain PEFT LoRA adapter folder (no metadata) is read as a vector too.
+"""
+
+from __future__ import annotations
+
+import datetime
+import hashlib
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from capvector.vectors.io import (
+    ADAPTER_CONFIG,
+    ADAPTER_WEIGHTS,
+    EXPORT_CONFIG,
+    VECTOR_FORMAT,
+    VECTOR_INDEX,
+    VECTOR_META,
+    VECTOR_WEIGHTS,
+    CapVectorError,
+    SafetensorsFolder,
+    SafetensorsWriter,
+    ShardLayout,
+    TensorInfo,
+    capvector_version,
+    dtype_name,
+    examples,
+    file_fingerprint,
+    read_json,
+    write_json,
+)
+from capvector.vectors.lowrank import LoraFactors, read_adapter, write_adapter
+
+
+class VectorFolder:
+    """Streaming access to a vector folder: ``read(key, rows)`` gives rows of the dense delta."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        if not self.path.is_dir():
+            raise CapVectorError(f"vector folder {self.path} does not exist")
+        self.metadata: dict[str, Any] = {}
+        if (self.path / VECTOR_META).is_file():
+            self.metadata = read_json(self.path / VECTOR_META)
+            if self.metadata.get("format") != VECTOR_FORMAT:
+                raise CapVectorError(
+                    f"{self.path / VECTOR_META} has format {self.metadata.get('format')!r}, "
+                    f"expected {VECTOR_FORMAT!r}"
+                )
+        has_full = (self.path / VECTOR_WEIGHTS).is_file() or (self.path / VECTOR_INDEX).is_file()
+        has_adapter = (self.path / ADAPTER_CONFIG).is_file()
+        if not (has_full or has_adapter):
+            hint = (
+                " It is a model export: extract a vector from it with `capvector extract`."
+                if (self.path / EXPORT_CONFIG).is_file()
+                else ""
+            )
+            raise CapVectorError(
+                f"{self.path} is not a vector folder: it has neither {VECTOR_WEIGHTS} nor "
+                f"{ADAPTER_CONFIG}.{hint}"
+            )
+        self._full = (
+            SafetensorsFolder(self.path, VECTOR_WEIGHTS, VECTOR_INDEX, config_name=None, kind="vector")
+            if has_full
+            else None
+        )
+        self._lowrank: dict[str, LoraFactors] = {}
+        self._extra: dict[str, Tensor] = {}
+        if has_adapter:
+            self._lowrank, self._extra = read_adapter(self.path)
+        full_keys = set(self._full.keys()) if self._full else set()
+        both = sorted((full_keys | set(self._extra)) & set(self._lowrank))
+        if both or full_keys & set(self._extra):
+            raise CapVectorError(f"{self.path} stores some tensors twice, e.g. {examples(both)}")
+        listed = self.metadata.get("tensors")
+        if isinstance(listed, dict):
+            missing = sorted(set(listed) - set(self.keys()))
+            if missing:
+                raise CapVectorError(
+                    f"{self.path}: {len(missing)} tensor(s) listed in {VECTOR_META} are missing "
+                    f"from its weight files, e.g. {examples(missing)}; the folder is incomplete"
+                )
+
+    def keys(self) -> list[str]:
+        full = self._full.keys() if self._full else []
+        return [*full, *self._extra, *self._lowrank]
+
+    def __contains__(self, key: str) -> bool:
+        return (self._full is not None and key in self._full) or key in self._extra or key in self._lowrank
+
+    def __len__(self) -> int:
+        return len(self.keys())
+
+    def storage(self, key: str) -> str:
+        return "lora" if key in self._lowrank else "full"
+
+    def info(self, key: str) -> TensorInfo:
+        if key in self._lowrank:
+            f = self._lowrank[key]
+            return TensorInfo(f.dtype, f.shape)
+        if key in self._extra:
+            t = self._extra[key]
+            return TensorInfo(t.dtype, tuple(t.shape))
+        assert self._full is not None
+        return self._full.info(key)
+
+    def factors(self, key: str) -> LoraFactors | None:
+        return self._lowrank.get(key)
+
+    def read(self, key: str, rows: slice | None = None) -> Tensor:
+        """Rows of the dense delta: stored dtype for full tensors, float32 for low-rank ones."""
+        if key in self._lowrank:
+            return self._lowrank[key].rows(rows)
+        if key in self._extra:
+            t = self._extra[key]
+            return (t if rows is None else t[rows]).clone()
+        assert self._full is not None
+        return self._full.read(key, rows)
+
+    def fingerprint(self) -> str:
+        hasher = hashlib.sha256()
+        for name in (VECTOR_META, ADAPTER_CONFIG, ADAPTER_WEIGHTS):
+            if (self.path / name).is_file():
+                file_fingerprint(self.path / name, hasher)
+        if self._full is not None:
+            hasher.update(self._full.fingerprint().encode())
+        return "sha256:" + hasher.hexdigest()
+
+    def describe(self) -> dict[str, Any]:
+        out = {"path": str(self.path.resolve()), "kind": "vector", "fingerprint": self.fingerprint()}
+        if "sources" in self.metadata:
+            out["sources"] = self.metadata["sources"]
+        return out
+
+    def load(self) -> CapabilityVector:
+        dense = {key: self.read(key) for key in self.keys() if key not in self._lowrank}
+        return CapabilityVector(dense, dict(self._lowrank), dict(self.metadata))
+
+
+@dataclass
+class CapabilityVector:
+    """A vector in memory: dense tensors and low-rank factors, by parameter name."""
+
+    dense: dict[str, Tensor] = field(default_factory=dict)
+    lowrank: dict[str, LoraFactors] = field(default_factory=dict)
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+    def keys(self) -> list[str]:
+        return [*self.dense, *self.lowrank]
+
+    def __contains__(self, key: str) -> bool:
+        return key in self.dense or key in self.lowrank
+
+    def __len__(self) -> int:
+        return len(self.dense) + len(self.lowrank)
+
+    def shape(self, key: str) -> tuple[int, ...]:
+        return self.lowrank[key].shape if key in self.lowrank else tuple(self.dense[key].shape)
+
+    def delta(self, key: str) -> Tensor:
+        """The dense delta (float32 for low-rank entries)."""
+        return self.lowrank[key].rows() if key in self.lowrank else self.dense[key]
+
+    def norm_sq(self, key: str) -> float:
+        if key in self.lowrank:
+            return self.lowrank[key].norm_sq()
+        return float(torch.linalg.vector_norm(self.dense[key].double()) ** 2)
+
+    def check(self) -> None:
+        """Raise ``CapVectorError`` naming every non-floating or non-finite tensor."""
+        bad_dtype = sorted(k for k, t in self.dense.items() if not t.dtype.is_floating_point)
+        if bad_dtype:
+            raise CapVectorError(
+                f"vector has {len(bad_dtype)} non-floating tensor(s), e.g. {examples(bad_dtype)}"
+            )
+        not_finite = sorted(
+            [k for k, t in self.dense.items() if not bool(torch.isfinite(t).all())]
+            + [k for k, f in self.lowrank.items() if not f.is_finite()]
+        )
+        if not_finite:
+            raise CapVectorError(
+                f"vector has NaN/Inf values in {len(not_finite)} tensor(s), e.g. "
+                f"{examples(not_finite)}; it is corrupted: extract it again"
+            )
+
+
+def load_vector(source: str | Path | Mapping[str, Tensor] | CapabilityVector) -> CapabilityVector:
+    """A ``CapabilityVector`` from a vector folder, a plain ``{name: delta}`` mapping, or itself."""
+    if isinstance(source, CapabilityVector):
+        return source
+    if isinstance(source, (str, Path)):
+        return VectorFolder(source).load()
+    if isinstance(source, Mapping):
+        not_tensors = [k for k, v in source.items() if not isinstance(v, Tensor)]
+        if not_tensors:
+            raise CapVectorError(f"vector values must be tensors; not for {examples(not_tensors)}")
+        return CapabilityVector(dense=dict(source))
+    raise TypeError(f"cannot read a vector from {type(source).__name__}")
+
+
+class VectorFolderWriter:
+    """Writes a vector folder into ``folder`` (a temporary folder inside ``atomic_output``).
+
+    Full tensors stream through ``SafetensorsWriter`` chunk by chunk (their layout is planned up
+    front); low-rank factors are small and collected for the adapter, written in ``finish``.
+    """
+
+    def __init__(
+        self,
+        folder: Path,
+        full: Sequence[tuple[str, TensorInfo]],
+        max_shard_size: int,
+    ) -> None:
+        folder.mkdir(parents=True, exist_ok=True)
+        self.folder = folder
+        stem = VECTOR_WEIGHTS.removesuffix(".safetensors")
+        self._writer = (
+            SafetensorsWriter(folder, ShardLayout.plan(full, stem, max_shard_size)) if full else None
+        )
+        self._infos = dict(full)
+        self._norm_sq: dict[str, float] = {}
+        self.tensors: dict[str, dict[str, Any]] = {}
+        self._lowrank: dict[str, LoraFactors] = {}
+
+    def write(self, key: str, chunk: Tensor, norm: Tensor | None = None) -> None:
+        """Append rows of a full tensor; ``norm`` is the chunk's L2 norm when already computed."""
+        assert self._writer is not None
+        if norm is None:
+            norm = torch.linalg.vector_norm(chunk.float())
+        self._norm_sq[key] = self._norm_sq.get(key, 0.0) + float(norm) ** 2
+        self._writer.write(key, chunk)
+        info = self._infos[key]
+        if self._writer.current_key != key:
+            self.tensors[key] = {
+                "shape": list(info.shape),
+                "dtype": dtype_name(info.dtype),
+                "storage": "full",
+                "norm": math.sqrt(self._norm_sq.pop(key)),
+            }
+
+    def add_lowrank(
+        self, key: str, factors: LoraFactors, norm: float, retained: float, dtype: torch.dtype
+    ) -> None:
+        """Keep ``factors`` (stored as ``dtype``) for the adapter; ``norm`` is the untruncated one."""
+        b, a = factors.scaled()
+        factors = LoraFactors(b.to(dtype), a.to(dtype))
+        self._lowrank[key] = factors
+        self.tensors[key] = {
+            "shape": list(factors.shape),
+            "dtype": dtype_name(dtype),
+            "storage": "lora",
+            "rank": factors.rank,
+            "retained_energy": retained,
+            "norm": norm,
+        }
+
+    def finish(self, metadata: Mapping[str, Any]) -> dict[str, Any]:
+        if self._writer is not None:
+            self._writer.finish()
+        if self._lowrank:
+            write_adapter(self.folder, self._lowrank)
+        total_sq = sum(t["norm"] ** 2 for t in self.tensors.values())
+        meta = {
+            "format": VECTOR_FORMAT,
+            **metadata,
+            "norm": math.sqrt(total_sq),
+            "num_tensors": len(self.tensors),
+            "num_parameters": sum(math.prod(t["shape"]) for t in self.tensors.values()),
+            "storage": "lowrank" if self._lowrank else "full",
+            "tensors": self.tensors,
+            "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "capvector_version": capvector_version(),
+        }
+        write_json(self.folder / VECTOR_META, meta)
+        return meta
+
+    def abort(self) -> None:
+        if self._writer is not None:
+            self._writer.abort()

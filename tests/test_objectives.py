@@ -1,0 +1,237 @@
+"""Auxiliary objectives: spatial alignment (frozen teachers), reasoning co-training, the callback."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import lightning as L
+import pytest
+import torch
+import yaml
+from safetensors.torch import save_file
+
+from capvector.backbones import OutputRequest, build_backbone
+from capvector.callbacks import AuxiliaryObjective
+from capvector.cli import main
+from capvector.data import keys
+from capvector.data.datamodule import RobotDataModule
+from capvector.module import OptimizerSettings, VLAModule
+from capvector.objectives import (
+    GeometricTeacher,
+    ReasoningCoTraining,
+    SpatialAlignment,
+    TimmTeacher,
+)
+from conftest import write_demo_file
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def datamodule(path: Path, **kwargs) -> RobotDataModule:
+    return RobotDataModule(
+        train_files=[str(path)], batch_size=4, load_depth=True, load_annotations=True, **kwargs
+    )
+
+
+def fit(
+    module: VLAModule, dm: RobotDataModule, root: Path, callbacks: list, steps: int = 4
+) -> L.Trainer:
+    L.seed_everything(0)
+    trainer = L.Trainer(
+        max_steps=steps, accelerator="cpu", logger=False, enable_progress_bar=False,
+        enable_model_summary=False, default_root_dir=root, limit_val_batches=0,
+        enable_checkpointing=False, callbacks=callbacks,
+    )  # fmt: skip
+    trainer.fit(module, dm)
+    return trainer
+
+
+def first_batch(dm: RobotDataModule, size: int = 4) -> dict:
+    return next(iter(torch.utils.data.DataLoader(dm.train_dataset, batch_size=size)))
+
+
+@pytest.fixture
+def tiny_timm_weights(tmp_path: Path) -> Path:
+    import timm
+
+    model = timm.create_model(
+        "vit_tiny_patch16_224", pretrained=False, num_classes=0, img_size=32, depth=2
+    )
+    path = tmp_path / "teacher.safetensors"
+    save_file({k: v.contiguous() for k, v in model.state_dict().items()}, str(path))
+    return path
+
+
+def test_teacher_is_frozen_outside_optimizer_and_checkpoint(
+    demo_file: Path, tmp_path: Path, tiny_timm_weights: Path
+) -> None:
+    dm = datamodule(demo_file)
+    teacher = TimmTeacher(
+        "vit_tiny_patch16_224", str(tiny_timm_weights), image_size=32, model_kwargs={"depth": 2}
+    )
+    before = {k: v.clone() for k, v in teacher.state_dict().items()}
+    objective = SpatialAlignment(teacher=teacher, layer=2)
+    module = VLAModule(data_spec=dm.spec)
+    trainer = fit(module, dm, tmp_path, [AuxiliaryObjective(objective)])
+    assert all(torch.equal(v, teacher.state_dict()[k]) for k, v in before.items())
+    assert not any(p.requires_grad for p in teacher.parameters())
+    optimized = {id(p) for group in trainer.optimizers[0].param_groups for p in group["params"]}
+    assert not optimized & {id(p) for p in teacher.parameters()}
+    assert {id(p) for p in objective.projector.parameters()} <= optimized  # the projector trains
+    state = module.state_dict()
+    assert any(k.startswith("objectives.spatial_alignment.projector.") for k in state)
+    assert not any("teacher" in k for k in state)
+
+
+def test_only_the_alignment_layer_is_kept(demo_file: Path) -> None:
+    dm = datamodule(demo_file)
+    module = VLAModule(data_spec=dm.spec)
+    objective = SpatialAlignment()
+    objective.bind(module.backbone)
+    module.add_objective(objective)
+    assert (
+        objective.layer == 3
+    )  # round(0.75 * 4 layers) of the tiny preset, as 24 of 32 at full size
+    assert module.output_request() == OutputRequest(hidden_layers=(3,))
+
+
+def test_alignment_loss_falls_when_only_the_projector_trains(demo_file: Path) -> None:
+    dm = datamodule(demo_file, augment=False)
+    backbone = build_backbone("openvla-oft-tiny", **dm.spec.backbone_overrides()).eval()
+    batch = first_batch(dm)
+    objective = SpatialAlignment(layer=2)
+    objective.bind(backbone)
+    with torch.no_grad():
+        output = backbone(batch, objective.request)  # fixed student features
+    optimizer = torch.optim.Adam(objective.projector.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(60):
+        loss = objective(batch, output, backbone)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        losses.append(loss.item())
+    assert losses[-1] < 0.5 * losses[0]
+
+
+def test_geometric_teacher_reflects_geometry() -> None:
+    teacher = GeometricTeacher(feature_dim=32, position_embedding=False)
+    K = torch.tensor([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]]).expand(1, 1, 3, 3)
+    flat = torch.full((1, 1, 32, 32), 1.0)
+    tilted = flat + torch.linspace(0, 0.5, 32).view(1, 1, 1, 32)
+    a = teacher({keys.DEPTH: flat, keys.INTRINSICS: K}, (4, 4))
+    b = teacher({keys.DEPTH: tilted, keys.INTRINSICS: K}, (4, 4))
+    assert a.shape == (1, 16, 32)
+    assert (
+        torch.nn.functional.cosine_similarity(a, b, dim=-1).mean() < 0.99
+    )  # geometry changes targets
+    with pytest.raises(ValueError, match="load_depth=true"):
+        teacher({keys.IMAGES: torch.zeros(1, 1, 3, 32, 32)}, (4, 4))
+
+
+def test_reasoning_loss_scores_only_answer_tokens(demo_file: Path) -> None:
+    dm = datamodule(demo_file)
+    backbone = build_backbone("openvla-oft-tiny", **dm.spec.backbone_overrides()).eval()
+    batch = first_batch(dm, size=2)
+    prompts = [
+        "Question: short?\nAnswer: ",
+        "Question: a much longer question about the scene?\nAnswer: ",
+    ]
+    answers = ["the cube is left", "ok"]
+    logits, labels = backbone.language_model_logits(batch, prompts, answers)
+    tok = backbone.tokenizer
+    for row, answer in enumerate(answers):
+        expected = [*tok(answer, add_special_tokens=False)["input_ids"], tok.eos_token_id]
+        assert labels[row][labels[row] != -100].tolist() == expected
+    # Padding is ignored: the short row's loss is the same alone and in the padded batch.
+    objective = ReasoningCoTraining()
+    alone_batch = {k: v[1:] for k, v in batch.items()}
+    alone_logits, alone_labels = backbone.language_model_logits(
+        alone_batch, prompts[1:], answers[1:]
+    )
+    n = alone_labels.shape[1]
+    torch.testing.assert_close(logits[1, :n], alone_logits[0], atol=1e-4, rtol=1e-4)
+    assert (labels[1, n:] == -100).all()
+    loss = objective(
+        {**batch, keys.ANNOTATION: answers, keys.INSTRUCTION: ["lift", "lift"]}, None, backbone
+    )
+    assert torch.isfinite(loss)
+
+
+def test_reasoning_pass_is_causal_and_leaves_actions_alone(demo_file: Path) -> None:
+    dm = datamodule(demo_file)
+    backbone = build_backbone("openvla-oft-tiny", **dm.spec.backbone_overrides()).eval()
+    batch = first_batch(dm, size=1)
+    first, labels = backbone.language_model_logits(
+        batch, ["Q: where?\nA: "], ["left of the gripper"]
+    )
+    second, _ = backbone.language_model_logits(batch, ["Q: where?\nA: "], ["rear of the gripper"])
+    answer_start = int((labels[0] != -100).nonzero()[0])
+    torch.testing.assert_close(
+        first[0, :answer_start], second[0, :answer_start]
+    )  # no peeking ahead
+    assert not torch.allclose(first[0, answer_start:], second[0, answer_start:])
+    with torch.no_grad():
+        actions = backbone(batch).actions
+    module = VLAModule(data_spec=dm.spec)
+    module.backbone.load_state_dict(backbone.state_dict())
+    module.add_objective(ReasoningCoTraining())
+    module.eval()
+    with torch.no_grad():
+        torch.testing.assert_close(module(batch), actions)
+
+
+def test_weight_zero_objectives_leave_plain_sft_bit_identical(
+    demo_file: Path, tmp_path: Path
+) -> None:
+    dm = datamodule(demo_file)  # augmentation on: the random stream must not be disturbed either
+    # No weight decay: with it, AdamW would shrink weights that only a weight-0 objective reaches
+    # (the LM head gets an all-zero gradient instead of none), which is decay, not the objective.
+    settings = OptimizerSettings(weight_decay=0.0)
+    plain = VLAModule(data_spec=dm.spec, optimizer=settings)
+    start = {k: v.clone() for k, v in plain.state_dict().items()}
+    fit(plain, dm, tmp_path / "plain", [])
+    aux = VLAModule(data_spec=dm.spec, optimizer=settings)
+    aux.load_state_dict(start)
+    callbacks = [
+        AuxiliaryObjective(SpatialAlignment(weight=0.0)),
+        AuxiliaryObjective(ReasoningCoTraining(weight=0.0)),
+    ]
+    fit(aux, dm, tmp_path / "aux", callbacks)
+    for name, value in plain.backbone.state_dict().items():
+        assert torch.equal(value, aux.backbone.state_dict()[name]), name
+
+
+def test_weight_schedule() -> None:
+    callback = AuxiliaryObjective(ReasoningCoTraining(weight=0.2), warmup_steps=10, start_step=5)
+    assert callback.weight_at(0) == 0.0
+    assert callback.weight_at(5) == pytest.approx(0.02)
+    assert callback.weight_at(100) == pytest.approx(0.2)
+
+
+def test_recipe_configs_differ_only_in_auxiliary_callbacks() -> None:
+    sft = yaml.safe_load((REPO / "configs/recipes/sft.yaml").read_text())
+    aux = yaml.safe_load((REPO / "configs/recipes/aux_sft.yaml").read_text())
+    aux_callbacks = aux["trainer"].pop("callbacks")
+    sft_callbacks = sft["trainer"].pop("callbacks")
+    assert sft == aux
+    extra = [c for c in aux_callbacks if c not in sft_callbacks]
+    assert {c["class_path"] for c in extra} == {"capvector.callbacks.AuxiliaryObjective"}
+    assert len(extra) == 2
+
+
+def test_aux_sft_config_trains_through_the_cli(tmp_path: Path) -> None:
+    data = write_demo_file(tmp_path / "demos.hdf5", lengths=(16, 16))
+    main([
+        "fit", "--config", str(REPO / "configs/recipes/aux_sft.yaml"), f"--data.train_files=[{data}]",
+        "--data.batch_size=4", "--trainer.max_steps=3", "--trainer.log_every_n_steps=1",
+        f"--trainer.default_root_dir={tmp_path}",
+        f"--trainer.logger.init_args.save_dir={tmp_path}", "--trainer.enable_progress_bar=false",
+    ])  # fmt: skip
+    metrics = (tmp_path / "fit" / "version_0" / "metrics.csv").read_text().splitlines()[0]
+    for column in (
+        "train/loss_spatial_alignment",
+        "train/loss_reasoning",
+        "aux/spatial_alignment_weight",
+    ):
+        assert column in metrics
