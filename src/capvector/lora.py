@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import fnmatch
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 from torch import Tensor
@@ -44,21 +45,22 @@ def inject_lora(backbone: VLABackbone, settings: LoraSettings) -> None:
         param.requires_grad_(is_lora or is_head)
 
 
-def has_lora(backbone: VLABackbone) -> bool:
-    return any(".lora_A." in name for name, _ in backbone.named_parameters())
+def merge_lora_state_dict(state: Mapping[str, Tensor], scaling: float) -> dict[str, Tensor]:
+    """A state dict with LoRA merged in and peft's key changes undone.
 
-
-def merged_state_dict(backbone: VLABackbone) -> dict[str, Tensor]:
-    """The backbone's state dict with LoRA merged in and peft's key changes undone.
-
-    ``X.base_layer.weight`` + scaling * B @ A becomes ``X.weight``, so exports of LoRA and of full
-    fine-tuning have the same keys and capability vectors subtract them directly.
+    ``X.base_layer.weight`` + scaling * B @ A becomes ``X.weight`` (computed in fp32, stored in the
+    base dtype), so exports of LoRA and of full fine-tuning have the same keys and capability
+    vectors subtract them directly. Works on plain state dicts, so the same code serves a single
+    process and a state dict gathered from FSDP2 shards.
     """
-    from peft.tuners.lora import LoraLayer
-
-    state = {k: v.detach() for k, v in backbone.state_dict().items() if ".lora_" not in k}
-    for name, module in backbone.named_modules():
-        if isinstance(module, LoraLayer) and ADAPTER in module.lora_A:
-            key = f"{name}.base_layer.weight"
-            state[key] = state[key] + module.get_delta_weight(ADAPTER).detach().to(state[key].dtype)
-    return {k.replace(".base_layer.", "."): v for k, v in state.items()}
+    merged = {k: v for k, v in state.items() if ".lora_" not in k}
+    suffix = f".lora_A.{ADAPTER}.weight"
+    for key in state:
+        if not key.endswith(suffix):
+            continue
+        prefix = key[: -len(suffix)]
+        base_key = f"{prefix}.base_layer.weight"
+        lora_b = state[f"{prefix}.lora_B.{ADAPTER}.weight"].float()
+        base = merged[base_key]
+        merged[base_key] = (base.float() + scaling * (lora_b @ state[key].float())).to(base.dtype)
+    return {k.replace(".base_layer.", "."): v for k, v in merged.items()}

@@ -24,7 +24,8 @@ from capvector.backbones.base import (
     load_export_config,
 )
 from capvector.data.spec import DataSpec
-from capvector.lora import LoraSettings, has_lora, inject_lora, merged_state_dict
+from capvector.distributed import full_state_dict, is_rank_zero, parallelize
+from capvector.lora import LoraSettings, inject_lora, merge_lora_state_dict
 from capvector.objectives.base import Objective
 
 STATISTICS_FILE = "dataset_statistics.json"
@@ -57,6 +58,7 @@ class VLAModule(L.LightningModule):
         data_spec: DataSpec | None = None,
         lora: LoraSettings | None = None,
         optimizer: OptimizerSettings | None = None,
+        activation_checkpointing: bool = False,
     ) -> None:
         """
         Args:
@@ -67,6 +69,8 @@ class VLAModule(L.LightningModule):
             data_spec: cameras, shapes and statistics; the CLI links it from the datamodule.
             lora: fine-tune with LoRA (only LoRA and the heads train) instead of all weights.
             optimizer: AdamW and learning-rate schedule.
+            activation_checkpointing: recompute the backbone's blocks (``shard_units``) in the
+                backward pass instead of storing their activations.
         """
         super().__init__()
         self.save_hyperparameters()
@@ -79,7 +83,15 @@ class VLAModule(L.LightningModule):
         self.backbone: VLABackbone = self._build_backbone(backbone, pretrained, overrides)
         if lora is not None:
             inject_lora(self.backbone, lora)
+        frozen = set(self.backbone.unused_parameter_names()) | set(
+            self.backbone.language_head_parameter_names()
+        )
+        for name, param in self.backbone.named_parameters():
+            if name.replace(".base_layer.", ".") in frozen:
+                param.requires_grad_(False)
         self.objectives = nn.ModuleDict()
+        self.activation_checkpointing = activation_checkpointing
+        self._parallelized = False
 
     @staticmethod
     def _build_backbone(
@@ -99,6 +111,20 @@ class VLAModule(L.LightningModule):
                 )
             )
         return from_pretrained(pretrained)
+
+    def configure_model(self) -> None:
+        """FSDP2 under ``ModelParallelStrategy`` (units from the backbone's ``shard_units``) and
+        activation checkpointing. Runs after callbacks attached their objectives in ``setup``."""
+        if self._parallelized:
+            return
+        parallelize(
+            self.backbone,
+            self.backbone.shard_units(),
+            list(self.objectives.values()),
+            self.device_mesh,
+            self.activation_checkpointing,
+        )
+        self._parallelized = True
 
     # -- objectives ----------------------------------------------------------------------------
 
@@ -186,12 +212,15 @@ class VLAModule(L.LightningModule):
         checkpoint["capvector"] = self.checkpoint_metadata()
 
     def export(self, folder: str | Path, overwrite: bool = False) -> Path:
-        """An export folder: ``model.safetensors`` (LoRA merged) + config + statistics + tokenizer."""
-        state = (
-            merged_state_dict(self.backbone)
-            if has_lora(self.backbone)
-            else self.backbone.state_dict()
-        )
+        """An export folder: ``model.safetensors`` (LoRA merged) + config + statistics + tokenizer.
+
+        Collective under FSDP2: every rank calls it, rank 0 gathers the full weights and writes.
+        """
+        state = full_state_dict(self.backbone)
+        if not is_rank_zero():
+            return Path(folder)
+        if self.lora_settings is not None:
+            state = merge_lora_state_dict(state, self.lora_settings.scaling)
         extra = {
             "capvector_data_spec.json": dataclasses.asdict(self.data_spec),
             STATISTICS_FILE: self.data_spec.statistics,

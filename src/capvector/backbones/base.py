@@ -133,6 +133,20 @@ class VLABackbone(nn.Module, ABC):
     def hidden_size(self) -> int:
         """Width of the hidden states returned in ``VLAOutput.hidden_states``."""
 
+    def unused_parameter_names(self) -> list[str]:
+        """Parameters no output depends on (kept for checkpoint compatibility); VLAModule freezes
+        them so DDP needs no ``find_unused_parameters``."""
+        return []
+
+    def language_head_parameter_names(self) -> list[str]:
+        """The LM head, used only by text objectives: frozen until one is attached."""
+        return []
+
+    def shard_units(self) -> list[nn.Module]:
+        """The blocks FSDP2 shards one by one and activation checkpointing recomputes (vision
+        blocks, decoder layers, expert layers). The backbone itself is the root unit."""
+        return []
+
     @property
     def alignment_layer(self) -> int:
         """Default hidden-state layer for spatial alignment: deep but not deepest (Spatial Forcing
@@ -211,7 +225,11 @@ class VLABackbone(nn.Module, ABC):
 # -- registry --------------------------------------------------------------------------------
 
 # Family modules are imported on first lookup so `import capvector` stays light.
-_FAMILY_MODULES = ("capvector.backbones.openvla_oft", "capvector.backbones.pi05")
+_FAMILY_MODULES = (
+    "capvector.backbones.openvla_oft",
+    "capvector.backbones.pi05",
+    "capvector.backbones.starvla",
+)
 _FAMILIES: dict[str, type[VLABackbone]] = {}
 _PRESETS: dict[str, Callable[[], BackboneConfig]] = {}
 

@@ -269,14 +269,24 @@ class L1RegressionActionHead(nn.Module):
 @register_family
 class OpenVLAOFT(VLABackbone):
     config_class = OpenVLAOFTConfig
+
     # peft full-match regex: OFT uses "all-linear" (every Linear of the LLM, both ViTs and the
     # projector). We leave out SigLIP's attention-pool head: its output is never used, so its LoRA
     # would get no gradient (the reason OFT needs DDP's find_unused_parameters=True).
-    lora_target_modules = (
-        r".*(language_model\.model\.layers\.\d+\.(self_attn\.[qkvo]_proj|mlp\.(gate|up|down)_proj)"
-        r"|vision_backbone\.(featurizer|fused_featurizer)\.blocks\.\d+\.(attn\.(qkv|proj)|mlp\.fc[12])"
-        r"|projector\.fc[123])"
-    )
+    @property
+    def lora_target_modules(self) -> str:  # type: ignore[override]
+        # The last block of each ViT never runs (features come from the one before), so it gets
+        # no LoRA either.
+        def blocks(spec: ViTConfig) -> str:
+            return "|".join(str(i) for i in range(spec.depth - 1))
+
+        return (
+            r".*(language_model\.model\.layers\.\d+\.(self_attn\.[qkvo]_proj|mlp\.(gate|up|down)_proj)"
+            rf"|vision_backbone\.featurizer\.blocks\.({blocks(self.config.featurizer)})\.(attn\.(qkv|proj)|mlp\.fc[12])"
+            rf"|vision_backbone\.fused_featurizer\.blocks\.({blocks(self.config.fused_featurizer)})\.(attn\.(qkv|proj)|mlp\.fc[12])"
+            r"|projector\.fc[123])"
+        )
+
     lora_trainable_modules = ("action_head.*", "proprio_projector.*")
     capability_parameters = ("vision_backbone.*", "projector.*", "language_model.*")
 
@@ -337,6 +347,34 @@ class OpenVLAOFT(VLABackbone):
         if (Path(folder) / "tokenizer_config.json").is_file():
             self._tokenizer = _make_tokenizer(str(folder))
 
+    def unused_parameter_names(self) -> list[str]:
+        # Features come from the second-to-last ViT block without the final norm, and SigLIP's
+        # attention-pool head is never called: these exist only so released checkpoints load.
+        unused = []
+        for name in ("featurizer", "fused_featurizer"):
+            vit = getattr(self.vision_backbone, name)
+            last = len(vit.blocks) - 1
+            prefix = f"vision_backbone.{name}."
+            for param_name, _ in vit.named_parameters():
+                if param_name.startswith(
+                    (f"blocks.{last}.", "norm.", "attn_pool.", "fc_norm.", "head.")
+                ):
+                    unused.append(prefix + param_name)
+        return unused
+
+    def language_head_parameter_names(self) -> list[str]:
+        return [
+            f"language_model.lm_head.{n}" for n, _ in self.language_model.lm_head.named_parameters()
+        ]
+
+    def shard_units(self) -> list[nn.Module]:
+        vision = self.vision_backbone
+        return [
+            *vision.featurizer.blocks,
+            *vision.fused_featurizer.blocks,
+            *self.language_model.model.layers,
+        ]
+
     @property
     def num_visual_tokens(self) -> int:
         return self.config.num_images * self.vision_backbone.grid**2
@@ -359,7 +397,7 @@ class OpenVLAOFT(VLABackbone):
         decoder = self.language_model.model
         with keep_hidden_states(decoder.layers, request.hidden_layers, hidden):
             last = decoder(
-                inputs_embeds=embeds, attention_mask=mask, position_ids=positions
+                inputs_embeds=embeds, attention_mask=mask, position_ids=positions, use_cache=False
             ).last_hidden_state
         # Readout one position before each action slot: the next-token shift OFT keeps even with
         # bidirectional attention (finetune.py slices hidden states with labels[:, 1:]).
@@ -453,7 +491,7 @@ class OpenVLAOFT(VLABackbone):
         mask.masked_fill_(~allowed, torch.finfo(embeds.dtype).min)
         positions = torch.arange(seq, device=valid.device).expand(valid.shape[0], -1)
         hidden = self.language_model.model(
-            inputs_embeds=embeds, attention_mask=mask, position_ids=positions
+            inputs_embeds=embeds, attention_mask=mask, position_ids=positions, use_cache=False
         )
         return self.language_model.lm_head(hidden.last_hidden_state), labels
 

@@ -56,8 +56,7 @@ IMAGE_MASK = "image_mask"
 Absent means every camera is present. (openpi ``Observation.image_masks``.)"""
 
 MASK_VALUE = -2.3819763e38
-"""The finite large negative openpi/LeRobot put into masked attention logits: fully masked rows
-(padding queries) get a uniform softmax instead of NaN."""
+"""The finite large negative openpi/LeRobot put into masked attention logits (no NaN rows)."""
 
 
 @nested_config
@@ -202,7 +201,9 @@ def build_prompt(task: str, state_bins: Sequence[int] | None) -> list[str]:
     return [f"Task: {cleaned}, State: {state};\nAction: "]
 
 
-def sinusoidal_time_embedding(time: Tensor, dim: int, min_period: float, max_period: float) -> Tensor:
+def sinusoidal_time_embedding(
+    time: Tensor, dim: int, min_period: float, max_period: float
+) -> Tensor:
     """(B,) times -> (B, dim) [sin ; cos] features with log-spaced periods (openpi
     ``posemb_sincos``), computed in float64 as LeRobot's ``create_sinusoidal_pos_embedding``."""
     if dim % 2:
@@ -271,7 +272,12 @@ def joint_attention(q: Tensor, k: Tensor, v: Tensor, mask: Tensor, scaling: floa
     k, v = repeat_kv(k, groups), repeat_kv(v, groups)
     scores = torch.matmul(q.to(torch.float32), k.to(torch.float32).transpose(-1, -2)) * scaling
     scores = scores.masked_fill(~mask[:, None], MASK_VALUE)
-    probs = torch.softmax(scores, dim=-1).to(v.dtype)
+    # Queries that may see nothing (padding) get a uniform softmax upstream, i.e. they read every
+    # key, action tokens included. Zeroing those rows keeps every prefix position, padding too,
+    # independent of the actions, and the same in the joint and the cached pass; no real token
+    # ever reads a padding position, so the outputs are unchanged.
+    probs = torch.softmax(scores, dim=-1) * mask.any(dim=-1)[:, None, :, None]
+    probs = probs.to(v.dtype)
     out = torch.matmul(probs, v)
     return out.transpose(1, 2).reshape(q.shape[0], q.shape[2], -1)
 
@@ -307,7 +313,7 @@ class GemmaStreamLayer(nn.Module):
     """One stream's half of a joint layer, made of transformers' Gemma modules.
 
     Only the projections of ``GemmaAttention`` are used: the attention itself runs over both
-    streams in ``Pi05._joint_layers``. ``cond_dim`` set = adaptive norms (the action expert).
+    streams in ``JointDecoderLayer``. ``cond_dim`` set = adaptive norms (the action expert).
     """
 
     def __init__(self, gemma_config: Any, layer_idx: int, cond_dim: int | None, eps: float) -> None:
@@ -325,12 +331,16 @@ class GemmaStreamLayer(nn.Module):
             self.input_layernorm = AdaRMSNorm(width, cond_dim, eps)
             self.post_attention_layernorm = AdaRMSNorm(width, cond_dim, eps)
 
-    def _norm(self, norm: nn.Module, x: Tensor, cond: Tensor | None) -> tuple[Tensor, Tensor | None]:
+    def _norm(
+        self, norm: nn.Module, x: Tensor, cond: Tensor | None
+    ) -> tuple[Tensor, Tensor | None]:
         if self.adaptive:
             return norm(x, cond)
         return norm(x), None
 
-    def project_qkv(self, x: Tensor, cond: Tensor | None) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
+    def project_qkv(
+        self, x: Tensor, cond: Tensor | None
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
         """x (B, L, W) -> q (B, H, L, D), k, v (B, H_kv, L, D) and the attention-branch gate."""
         h, gate = self._norm(self.input_layernorm, x, cond)
         attn = self.self_attn
@@ -340,13 +350,70 @@ class GemmaStreamLayer(nn.Module):
         v = attn.v_proj(h).view(shape).transpose(1, 2)
         return q, k, v, gate
 
-    def finish(self, x: Tensor, attn_out: Tensor, gate: Tensor | None, cond: Tensor | None) -> Tensor:
+    def finish(
+        self, x: Tensor, attn_out: Tensor, gate: Tensor | None, cond: Tensor | None
+    ) -> Tensor:
         """Own o_proj, (gated) residual, post-attention norm, GeGLU MLP, (gated) residual."""
         out = self.self_attn.o_proj(attn_out.to(self.self_attn.o_proj.weight.dtype))
         x = x + (out if gate is None else gate * out)
         h, gate = self._norm(self.post_attention_layernorm, x, cond)
         out = self.mlp(h)
         return x + (out if gate is None else gate * out)
+
+
+class JointDecoderLayer(GemmaStreamLayer):
+    """The VLM's layer L, whose ``forward`` runs the whole joint layer L with the expert's layer.
+
+    Driving the joint layer from one module's ``forward`` makes it a unit for FSDP2 and activation
+    checkpointing (``shard_units``) while every parameter keeps its checkpoint name; the expert's
+    layers are passed in and stay with the root FSDP unit.
+    """
+
+    def forward(
+        self,
+        prefix: Tensor | None,
+        suffix: Tensor | None,
+        cond: Tensor | None,
+        expert: GemmaStreamLayer,
+        mask: Tensor,
+        cos: Tensor,
+        sin: Tensor,
+        cached: tuple[Tensor, Tensor] | None = None,
+    ) -> tuple[Tensor | None, Tensor | None, Tensor, Tensor]:
+        """One layer over the streams present: prefix (B, S, W_vlm), suffix (B, T, W_exp).
+
+        openpi ``gemma.py`` Block / ``compute_layer_complete``: each stream norms and projects its
+        own Q/K/V; they are concatenated along the sequence, rotated with one position vector
+        (cos, sin of the query tokens) and attend once under ``mask`` (B, L_q, L_k); the output
+        is split back and each stream applies its own o_proj and MLP. ``cached`` (K, V) of the
+        prefix are prepended to the keys (read, never extended). Returns both streams and this
+        call's K, V (RoPE applied).
+        """
+        streams = [(self, prefix, None), (expert, suffix, cond)]
+        qs, ks, vs, gates = [], [], [], []
+        for layer, x, c in streams:
+            if x is None:
+                gates.append(None)
+                continue
+            q, k, v, gate = layer.project_qkv(x, c)
+            qs.append(q)
+            ks.append(k.to(q.dtype))
+            vs.append(v.to(q.dtype))
+            gates.append(gate)
+        q = apply_rope(torch.cat(qs, dim=2), cos, sin)
+        k = apply_rope(torch.cat(ks, dim=2), cos, sin)
+        v = torch.cat(vs, dim=2)
+        keys_all, values_all = k, v
+        if cached is not None:
+            keys_all = torch.cat([cached[0].to(k.dtype), k], dim=2)
+            values_all = torch.cat([cached[1].to(v.dtype), v], dim=2)
+        out = joint_attention(q, keys_all, values_all, mask, self.self_attn.scaling)
+        parts = iter(out.split([x.shape[1] for _, x, _ in streams if x is not None], dim=1))
+        updated = [
+            None if x is None else layer.finish(x, next(parts), gate, c)
+            for (layer, x, c), gate in zip(streams, gates, strict=True)
+        ]
+        return updated[0], updated[1], k, v
 
 
 class GemmaStream(nn.Module):
@@ -356,7 +423,9 @@ class GemmaStream(nn.Module):
     ``Pi05.embed_prefix`` itself, whatever the installed transformers' Gemma embedding does.
     """
 
-    def __init__(self, spec: GemmaSpec, eps: float, vocab_size: int | None, cond_dim: int | None) -> None:
+    def __init__(
+        self, spec: GemmaSpec, eps: float, vocab_size: int | None, cond_dim: int | None
+    ) -> None:
         from transformers import GemmaConfig
         from transformers.models.gemma.modeling_gemma import GemmaRMSNorm
 
@@ -380,8 +449,9 @@ class GemmaStream(nn.Module):
             self.embed_tokens = nn.Embedding(vocab_size, spec.hidden_size)
             # Unit-RMS token vectors after the √width scaling (Gemma's scaling assumes this size).
             nn.init.normal_(self.embed_tokens.weight, std=spec.hidden_size**-0.5)
+        layer_class = GemmaStreamLayer if cond_dim is not None else JointDecoderLayer
         self.layers = nn.ModuleList(
-            GemmaStreamLayer(gemma_config, i, cond_dim, eps) for i in range(spec.num_layers)
+            layer_class(gemma_config, i, cond_dim, eps) for i in range(spec.num_layers)
         )
         self.norm: nn.Module = (
             GemmaRMSNorm(spec.hidden_size, eps=eps)
@@ -473,13 +543,24 @@ class Pi05(VLABackbone):
         r"(language_model|action_expert)\.layers\.\d+\."
         r"(self_attn\.(q|k|v|o)_proj|mlp\.(gate|up|down)_proj)"
     )
-    lora_trainable_modules = ("action_in_proj.*", "action_out_proj.*", "time_mlp_in.*", "time_mlp_out.*")
+    lora_trainable_modules = (
+        "action_in_proj.*",
+        "action_out_proj.*",
+        "time_mlp_in.*",
+        "time_mlp_out.*",
+    )
     # A capability vector covers PaliGemma (SigLIP, projector, Gemma-2B with its tied embedding)
-    # and the Gemma-300M expert: the pretrained transformer the paper merges vectors into. The
-    # action/time projections are left out: they are the small input/output heads whose meaning is
-    # tied to one embodiment's action layout (the 32 padded dims), i.e. what plain SFT re-fits per
-    # task, and they stay trainable under LoRA for the same reason.
-    capability_parameters = ("vision_tower.*", "multi_modal_projector.*", "language_model.*", "action_expert.*")
+    # and the Gemma-300M expert with its adaRMS layers: the pretrained transformer the paper merges
+    # vectors into. Left out are the four small projections outside the transformer (2.2 M of
+    # 3.35 B): action_in/out_proj read and write one embodiment's (padded) action layout and
+    # time_mlp_in/out feed the flow time in; they are the task heads plain SFT re-fits per task,
+    # which is also why they stay trainable under LoRA.
+    capability_parameters = (
+        "vision_tower.*",
+        "multi_modal_projector.*",
+        "language_model.*",
+        "action_expert.*",
+    )
 
     def __init__(self, config: Pi05Config) -> None:
         super().__init__(config)
@@ -494,8 +575,12 @@ class Pi05(VLABackbone):
         eps = config.rms_norm_eps
         expert_width = config.expert.hidden_size
         self.vision_tower = SiglipTower(config.vision, config.image_size)
-        self.multi_modal_projector = MultiModalProjector(config.vision.hidden_size, config.vlm.hidden_size)
-        self.language_model = GemmaStream(config.vlm, eps, vocab_size=config.vocab_size, cond_dim=None)
+        self.multi_modal_projector = MultiModalProjector(
+            config.vision.hidden_size, config.vlm.hidden_size
+        )
+        self.language_model = GemmaStream(
+            config.vlm, eps, vocab_size=config.vocab_size, cond_dim=None
+        )
         self.action_expert = GemmaStream(config.expert, eps, vocab_size=None, cond_dim=expert_width)
         # Pi0.5 projections (openpi pi0.py with pi05=True): no state_proj, the time enters through
         # adaRMS only; these keep LeRobot's names.
@@ -508,7 +593,11 @@ class Pi05(VLABackbone):
     def _validate(config: Pi05Config) -> None:
         vlm, expert = config.vlm, config.expert
         shared = ("num_layers", "num_heads", "num_kv_heads", "head_dim")
-        differ = [f"{n} ({getattr(vlm, n)} vs {getattr(expert, n)})" for n in shared if getattr(vlm, n) != getattr(expert, n)]
+        differ = [
+            f"{n} ({getattr(vlm, n)} vs {getattr(expert, n)})"
+            for n in shared
+            if getattr(vlm, n) != getattr(expert, n)
+        ]
         if differ:
             raise BackboneError(
                 "the VLM and the action expert share one attention per layer, so they need equal "
@@ -523,7 +612,9 @@ class Pi05(VLABackbone):
                 f"action_dim {config.action_dim} exceeds max_action_dim {config.max_action_dim}; raise max_action_dim"
             )
         if config.num_inference_steps < 1:
-            raise BackboneError(f"num_inference_steps must be >= 1, got {config.num_inference_steps}")
+            raise BackboneError(
+                f"num_inference_steps must be >= 1, got {config.num_inference_steps}"
+            )
 
     # -- contract ----------------------------------------------------------------------------
 
@@ -542,6 +633,11 @@ class Pi05(VLABackbone):
     def load_tokenizer(self, folder: str | Path) -> None:
         if (Path(folder) / "tokenizer_config.json").is_file():
             self._tokenizer = _load_tokenizer(str(folder))
+
+    def shard_units(self) -> list[nn.Module]:
+        """SigLIP's encoder layers and the joint decoder layers (each VLM layer runs its joint
+        layer with the expert, so checkpointing one recomputes both streams)."""
+        return [*self.vision_tower.vision_model.encoder.layers, *self.language_model.layers]
 
     @property
     def grid(self) -> int:
@@ -572,10 +668,11 @@ class Pi05(VLABackbone):
             velocity, prefix_out = self.velocity(prefix, x_t, time, hidden, request.hidden_layers)
             loss = self.flow_loss(velocity, velocity_target)
             denoised = x_t - time.to(x_t.dtype)[:, None, None] * velocity
-            actions = denoised[..., : self.config.action_dim]
+            actions = denoised[..., : self.config.action_dim].contiguous()
         else:
             cache, prefix_out = self.prefix_cache(prefix, hidden, request.hidden_layers)
             actions = self.integrate(cache, self._noise(prefix))[..., : self.config.action_dim]
+            actions = actions.contiguous()
         logits = None
         if request.lm_logits:  # tied embedding, as PaliGemma's lm_head
             logits = F.linear(prefix_out, self.language_model.embed_tokens.weight)
@@ -601,7 +698,7 @@ class Pi05(VLABackbone):
         prefix = self.embed_prefix(batch)
         cache, _ = self.prefix_cache(prefix)
         start = self._noise(prefix) if noise is None else noise.to(prefix.embeds)
-        return self.integrate(cache, start, num_steps)[..., : self.config.action_dim]
+        return self.integrate(cache, start, num_steps)[..., : self.config.action_dim].contiguous()
 
     # -- flow matching -----------------------------------------------------------------------
 
@@ -611,7 +708,9 @@ class Pi05(VLABackbone):
         beta = torch.distributions.Beta(
             torch.tensor(c.time_sampling_beta_alpha), torch.tensor(c.time_sampling_beta_beta)
         )
-        return (beta.sample((batch_size,)) * c.time_sampling_scale + c.time_sampling_offset).to(device)
+        return (beta.sample((batch_size,)) * c.time_sampling_scale + c.time_sampling_offset).to(
+            device
+        )
 
     def flow_loss(self, velocity: Tensor, target: Tensor) -> Tensor:
         """Unweighted MSE between predicted and target velocities (B, T, max_action_dim).
@@ -686,7 +785,10 @@ class Pi05(VLABackbone):
         return self._velocity_head(suffix, cond), self.language_model.norm(prefix_out)
 
     def prefix_cache(
-        self, prefix: Prefix, hidden: dict[int, Tensor] | None = None, hidden_layers: Sequence[int] = ()
+        self,
+        prefix: Prefix,
+        hidden: dict[int, Tensor] | None = None,
+        hidden_layers: Sequence[int] = (),
     ) -> tuple[PrefixCache, Tensor]:
         """The VLM stack alone over the prefix: its per-layer K/V and final-normed output (B, S, W)."""
         horizon = self.config.chunk_size
@@ -712,7 +814,9 @@ class Pi05(VLABackbone):
         """
         b, s = prefix_valid.shape
         device = prefix_valid.device
-        valid = torch.cat([prefix_valid, torch.ones(b, horizon, dtype=torch.bool, device=device)], dim=1)
+        valid = torch.cat(
+            [prefix_valid, torch.ones(b, horizon, dtype=torch.bool, device=device)], dim=1
+        )
         ar = torch.zeros(b, s + horizon, dtype=torch.long, device=device)
         ar[:, s] = 1
         return make_attention_mask(valid, ar), positions_from_valid(valid)
@@ -722,7 +826,9 @@ class Pi05(VLABackbone):
     def embed_prefix(self, batch: Mapping[str, Any]) -> Prefix:
         """Image tokens then the prompt (with the discretised state): the VLM stream's input."""
         visual, visual_valid = self.embed_images(batch)
-        ids, text_valid = self.tokenize(batch[keys.INSTRUCTION], batch.get(keys.PROPRIO), visual.device)
+        ids, text_valid = self.tokenize(
+            batch[keys.INSTRUCTION], batch.get(keys.PROPRIO), visual.device
+        )
         embeds = torch.cat([visual, self.embed_text(ids).to(visual.dtype)], dim=1)
         valid = torch.cat([visual_valid, text_valid], dim=1)
         is_visual = torch.zeros_like(valid)
@@ -759,12 +865,15 @@ class Pi05(VLABackbone):
         swish(time_mlp_out(swish(time_mlp_in(sincos(t))))), openpi pi0.py ``embed_suffix``."""
         dtype = self.action_in_proj.weight.dtype
         width = self.config.expert.hidden_size
-        features = sinusoidal_time_embedding(time, width, self.config.min_period, self.config.max_period)
+        features = sinusoidal_time_embedding(
+            time, width, self.config.min_period, self.config.max_period
+        )
         cond = F.silu(self.time_mlp_out(F.silu(self.time_mlp_in(features.to(dtype)))))
         return self.action_in_proj(x_t.to(dtype)), cond
 
     def _velocity_head(self, suffix: Tensor, cond: Tensor) -> Tensor:
-        out, _ = self.action_expert.norm(suffix, cond)  # the final norm is adaptive; its gate unused
+        # The expert's final norm is adaptive too; its gate has nothing to gate.
+        out, _ = self.action_expert.norm(suffix, cond)
         horizon = self.config.chunk_size
         return self.action_out_proj(out[:, -horizon:].to(self.action_out_proj.weight.dtype))
 
@@ -853,7 +962,9 @@ class Pi05(VLABackbone):
             embeds, None, None, make_attention_mask(valid, ar), positions_from_valid(valid)
         )
         logits = F.linear(self.language_model.norm(out), self.language_model.embed_tokens.weight)
-        labels = torch.cat([torch.full_like(visual_valid, -100, dtype=torch.long), text_labels], dim=1)
+        labels = torch.cat(
+            [torch.full_like(visual_valid, -100, dtype=torch.long), text_labels], dim=1
+        )
         return logits, labels
 
     # -- the joint transformer -----------------------------------------------------------------
@@ -869,51 +980,22 @@ class Pi05(VLABackbone):
         hidden: dict[int, Tensor] | None = None,
         hidden_layers: Sequence[int] = (),
     ) -> tuple[Tensor | None, Tensor | None, list[tuple[Tensor, Tensor]]]:
-        """Run the layers over the streams present (prefix (B, S, W_vlm), suffix (B, T, W_exp)).
+        """All joint layers over the streams present (see ``JointDecoderLayer``).
 
-        Per layer (openpi ``gemma.py`` Block / ``compute_layer_complete``): each stream norms and
-        projects its own Q/K/V; they are concatenated along the sequence, rotated with one
-        position vector, and attend once under ``mask`` (B, L_q, L_k); the output is split back
-        and each stream applies its own o_proj and MLP. With ``cache`` the cached prefix K/V are
-        prepended to the keys (read, never extended). Returns both streams before their final
-        norms and this call's per-layer K/V. VLM layer outputs listed in ``hidden_layers`` are
-        stored in ``hidden`` (1-based, before the final norm).
+        Returns both streams before their final norms and this call's per-layer K/V. VLM layer
+        outputs listed in ``hidden_layers`` are stored in ``hidden`` (1-based, before the final
+        norm), as ``keep_hidden_states`` does for single-stream families.
         """
-        streams: list[tuple[GemmaStream, Tensor | None, Tensor | None]] = [
-            (self.language_model, prefix, None),
-            (self.action_expert, suffix, cond),
-        ]
-        lengths = [0 if x is None else x.shape[1] for _, x, _ in streams]
-        head_dim = self.config.vlm.head_dim
-        cos, sin = rope_cos_sin(positions, head_dim, self.config.rope_theta)
+        cos, sin = rope_cos_sin(positions, self.config.vlm.head_dim, self.config.rope_theta)
         kv: list[tuple[Tensor, Tensor]] = []
-        for i in range(self.num_layers):
-            qs, ks, vs, gates = [], [], [], []
-            for stream, x, c in streams:
-                if x is None:
-                    gates.append(None)
-                    continue
-                q, k, v, gate = stream.layers[i].project_qkv(x, c)
-                qs.append(q)
-                ks.append(k.to(q.dtype))
-                vs.append(v.to(q.dtype))
-                gates.append(gate)
-            q = apply_rope(torch.cat(qs, dim=2), cos, sin)
-            k = apply_rope(torch.cat(ks, dim=2), cos, sin)
-            v = torch.cat(vs, dim=2)
+        for i, layer in enumerate(self.language_model.layers):
+            cached = None if cache is None else (cache.keys[i], cache.values[i])
+            expert = self.action_expert.layers[i]
+            prefix, suffix, k, v = layer(prefix, suffix, cond, expert, mask, cos, sin, cached)
             kv.append((k, v))
-            if cache is not None:
-                k = torch.cat([cache.keys[i].to(k.dtype), k], dim=2)
-                v = torch.cat([cache.values[i].to(v.dtype), v], dim=2)
-            out = joint_attention(q, k, v, mask, head_dim**-0.5)
-            parts = iter(out.split([n for n in lengths if n], dim=1))
-            updated = []
-            for (stream, x, c), gate in zip(streams, gates, strict=True):
-                updated.append(None if x is None else stream.layers[i].finish(x, next(parts), gate, c))
-            streams = [(s, x, c) for (s, _, c), x in zip(streams, updated, strict=True)]
             if hidden is not None and prefix is not None and (i + 1) in hidden_layers:
-                hidden[i + 1] = streams[0][1]
-        return streams[0][1], streams[1][1], kv
+                hidden[i + 1] = prefix
+        return prefix, suffix, kv
 
     # -- LeRobot / openpi checkpoints --------------------------------------------------------
 
@@ -926,7 +1008,9 @@ class Pi05(VLABackbone):
         The folder holds ``model.safetensors`` (openpi PyTorch key names, optionally under
         ``model.`` as LeRobot saves them) and ``config.json`` (LeRobot ``PI05Config``). Its flow and
         size fields (``chunk_size``, ``max_action_dim``, ``num_inference_steps``, time sampling,
-        periods, ``tokenizer_max_length``) are applied unless given in ``overrides``. The
+        periods, ``tokenizer_max_length``, ``image_resolution``) are applied unless given in
+        ``overrides``; pass the data's ``chunk_size`` there to fine-tune with another horizon (the
+        weights do not depend on it). The
         PaliGemma tokenizer is not part of these folders: pass ``tokenizer=<folder>`` (a
         ``google/paligemma-3b-pt-224`` download), or keep tokenizer files beside the weights.
         """
@@ -948,7 +1032,15 @@ class Pi05(VLABackbone):
                     f"{root}/config.json is a {original['type']!r} policy, not pi05 (Pi0 has a state "
                     "token and other projections; it does not load into this backbone)"
                 )
-        values = {ours: original[theirs] for theirs, ours in _ORIGINAL_CONFIG_FIELDS if theirs in original}
+        values = {name: original[name] for name in _ORIGINAL_CONFIG_FIELDS if name in original}
+        if "image_resolution" in original:
+            height, width = original["image_resolution"]
+            if height != width:
+                raise BackboneError(
+                    f"{root}/config.json has image_resolution {height}x{width}; this backbone takes "
+                    "square images (image_size)"
+                )
+            values["image_size"] = height
         if (root / "tokenizer_config.json").is_file():
             values["tokenizer"] = str(root)
         values.update(overrides)
@@ -971,18 +1063,18 @@ class Pi05(VLABackbone):
         return model, original
 
 
-# LeRobot PI05Config field -> our field (same meaning).
+# LeRobot PI05Config fields our config shares, with the same names and meaning.
 _ORIGINAL_CONFIG_FIELDS = (
-    ("chunk_size", "chunk_size"),
-    ("max_action_dim", "max_action_dim"),
-    ("num_inference_steps", "num_inference_steps"),
-    ("time_sampling_beta_alpha", "time_sampling_beta_alpha"),
-    ("time_sampling_beta_beta", "time_sampling_beta_beta"),
-    ("time_sampling_scale", "time_sampling_scale"),
-    ("time_sampling_offset", "time_sampling_offset"),
-    ("min_period", "min_period"),
-    ("max_period", "max_period"),
-    ("tokenizer_max_length", "tokenizer_max_length"),
+    "chunk_size",
+    "max_action_dim",
+    "num_inference_steps",
+    "time_sampling_beta_alpha",
+    "time_sampling_beta_beta",
+    "time_sampling_scale",
+    "time_sampling_offset",
+    "min_period",
+    "max_period",
+    "tokenizer_max_length",
 )
 
 # openpi / LeRobot key prefix -> ours. Everything below a prefix keeps its name (layers.L.self_attn.
@@ -1044,7 +1136,9 @@ def capvector_to_original(key: str) -> str:
     return key
 
 
-def _right_pad(rows: Sequence[Sequence[int]], value: int, device: torch.device) -> tuple[Tensor, Tensor]:
+def _right_pad(
+    rows: Sequence[Sequence[int]], value: int, device: torch.device
+) -> tuple[Tensor, Tensor]:
     """Ragged rows -> (B, L) right-padded with ``value`` and the (B, L) bool mask of real entries."""
     length = max(len(r) for r in rows)
     out = torch.full((len(rows), length), value, dtype=torch.long)

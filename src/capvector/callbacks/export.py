@@ -16,7 +16,7 @@ class ExportOnFitEnd(L.Callback):
 
     def on_fit_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         target = Path(self.dirpath or Path(trainer.log_dir or trainer.default_root_dir) / "export")
-        if trainer.is_global_zero:
-            pl_module.export(target, overwrite=True)
-            rank_zero_info(f"exported the model to {target}")
+        target = Path(trainer.strategy.broadcast(str(target)))  # log_dir is only known on rank 0
+        pl_module.export(target, overwrite=True)  # collective under FSDP2; rank 0 writes
+        rank_zero_info(f"exported the model to {target}")
         trainer.strategy.barrier("capvector-export")

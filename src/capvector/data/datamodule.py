@@ -7,7 +7,7 @@ from pathlib import Path
 
 import lightning as L
 import torch
-from torch.utils.data import DataLoader
+from torch.utils.data import DataLoader, DistributedSampler
 
 from capvector.data.hdf5 import DatasetError, HDF5RobotDataset
 from capvector.data.lerobot import LeRobotV3Dataset
@@ -37,6 +37,7 @@ class RobotDataModule(L.LightningDataModule):
         load_depth: bool = False,
         load_annotations: bool = False,
         seed: int = 0,
+        shuffle: bool = True,
         lerobot_root: str | None = None,
         train_episodes: list[int] | None = None,
         val_episodes: list[int] | None = None,
@@ -53,6 +54,9 @@ class RobotDataModule(L.LightningDataModule):
             dataset_name: the key of the statistics in ``dataset_statistics.json``.
             load_depth: also load ``obs/<camera>_depth`` (geometric teachers need it).
             load_annotations: also load per-step text (the reasoning objective needs it).
+            seed: the shuffling seed.
+            shuffle: shuffle training samples (off gives the same global batches on any number of
+                devices, which parity tests use).
             lerobot_root: a LeRobotDataset v3.0 folder, read instead of ``train_files``. Then
                 ``cameras`` are video feature keys (``observation.images.image``),
                 ``proprio_keys`` is ``[<state feature>]`` or ``[]``, the instruction is the task.
@@ -132,15 +136,28 @@ class RobotDataModule(L.LightningDataModule):
         )
 
     def train_dataloader(self) -> DataLoader:
-        generator = torch.Generator().manual_seed(self.hparams.seed)
+        hp = self.hparams
+        dataset = self.train_dataset
+        drop_last = len(dataset) >= hp.batch_size
+        trainer = self.trainer
+        if trainer is not None and trainer.world_size > 1:
+            # Our own sampler: Lightning's replacement always shuffles training data, which would
+            # make `shuffle=false` mean nothing on several devices.
+            sampler = DistributedSampler(
+                dataset, num_replicas=trainer.world_size, rank=trainer.global_rank,
+                shuffle=hp.shuffle, seed=hp.seed, drop_last=drop_last,
+            )  # fmt: skip
+            return DataLoader(dataset, batch_size=hp.batch_size, sampler=sampler,
+                              num_workers=hp.num_workers, persistent_workers=hp.num_workers > 0,
+                              drop_last=drop_last)  # fmt: skip
         return DataLoader(
-            self.train_dataset,
-            batch_size=self.hparams.batch_size,
-            shuffle=True,
-            num_workers=self.hparams.num_workers,
-            persistent_workers=self.hparams.num_workers > 0,
-            generator=generator,
-            drop_last=len(self.train_dataset) >= self.hparams.batch_size,
+            dataset,
+            batch_size=hp.batch_size,
+            shuffle=hp.shuffle,
+            num_workers=hp.num_workers,
+            persistent_workers=hp.num_workers > 0,
+            generator=torch.Generator().manual_seed(hp.seed),
+            drop_last=drop_last,
         )
 
     def val_dataloader(self) -> DataLoader | list:

@@ -35,6 +35,16 @@ class ReasoningCoTraining(Objective):
         self.question = question
         self.prompt_template = prompt_template
 
+    def bind(self, backbone: VLABackbone) -> None:
+        # The LM head trains with the text objective, unless the run is LoRA (then only adapters
+        # and action heads train, as everywhere else).
+        if any(".lora_" in name for name, _ in backbone.named_parameters()):
+            return
+        head = set(backbone.language_head_parameter_names())
+        for name, param in backbone.named_parameters():
+            if name in head:
+                param.requires_grad_(True)
+
     def forward(self, batch: Mapping[str, Any], output: VLAOutput, backbone: VLABackbone) -> Tensor:
         if keys.ANNOTATION not in batch:
             raise CapVectorError(

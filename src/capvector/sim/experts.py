@@ -171,6 +171,8 @@ class _PlaceExpert(ScriptedExpert):
 
     carry_clearance = 0.12
     place_tolerance = 0.008
+    place_with_reset_yaw = False
+    """Turn the gripper back to its reset yaw once the object is lifted (before carrying)."""
 
     def _goal(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
         """Where the held object's position should be when it is released."""
@@ -192,6 +194,8 @@ class _PlaceExpert(ScriptedExpert):
             target = np.array([eef[0], eef[1], self._carry_z(obs) + grip_offset[2]])
             if obj[2] > self._carry_z(obs) - 0.03:
                 self._enter("carry")
+                if self.place_with_reset_yaw:
+                    self._ref_rot = self._rot0
             return self._act(obs, target, GRIPPER_CLOSED, self.obj)
         if self.phase == "carry":
             target = np.array([goal[0], goal[1], self._carry_z(obs)]) + grip_offset
@@ -237,14 +241,20 @@ class StackExpert(_PlaceExpert):
 class PickPlaceCanExpert(_PlaceExpert):
     """Carry the can into its compartment of the goal bin and let go a few cm above the floor.
 
-    The compartment centre is near the edge of the Panda's reach, so the expert aims 3-6 cm from
-    the centre towards the robot (the success test only needs the can inside the compartment).
+    The compartment centre is at the edge of the Panda's reach (~0.79 m from the base in xy with
+    the hand pointing down), so the expert aims 5-6 cm from the centre towards the robot (the
+    success test only needs the can inside the compartment).
     """
 
     obj = "Can_pos"
     approach_height = 0.10
-    grasp_offset = 0.0
+    # The can is 10 cm tall with its origin 4 cm below the top; the Panda's palm meets the top
+    # when the fingertips are ~3 cm below it, so grasp 2.5 cm below the top.
+    grasp_offset = 0.015
     carry_clearance = 0.15
+    # Fingers along y again for the place: the goal compartment's dividers are 2 cm from the
+    # fingers that way, and the arm's reach there is tight with the wrist turned.
+    place_with_reset_yaw = True
 
     def _finger_direction(self, obs: Mapping[str, np.ndarray]) -> float | None:
         # The can may stand 2.5 cm from the bin's side walls (y) but 7.5 cm from its front and
@@ -254,7 +264,7 @@ class PickPlaceCanExpert(_PlaceExpert):
     def _goal(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
         centre = obs["Can_target_pos"]
         # Compartment = centre ± (0.0975, 0.1225); the can's body origin rests 6 cm above the floor.
-        return np.array([centre[0] - 0.03, centre[1] - 0.06, centre[2] + 0.08])
+        return np.array([centre[0] - 0.05, centre[1] - 0.06, centre[2] + 0.08])
 
 
 EXPERTS: dict[str, type[ScriptedExpert]] = {

@@ -25,6 +25,7 @@ from capvector.vectors.io import (
     check_output,
     compute_dtype,
     dtype_name,
+    dtype_summary,
     examples,
     open_weights,
     parse_dtype,
@@ -103,7 +104,9 @@ def extract(
     infos = {}
     for key in keys:
         stored = [sources[name].info(key).dtype for name in ("aux", "sft")]
-        infos[key] = TensorInfo(out_dtype or torch.promote_types(*stored), sources["aux"].info(key).shape)
+        infos[key] = TensorInfo(
+            out_dtype or torch.promote_types(*stored), sources["aux"].info(key).shape
+        )
     lowrank = (rank is not None or energy is not None) and bool(keys)
     lowrank_keys = {
         k
@@ -125,7 +128,7 @@ def extract(
         "include_origin": include_origin,
         "exclude": list(exclude or []),
         "objectives": list(objectives) if objectives is not None else sources["aux"].objectives,
-        "dtype": _dtype_summary(infos.values()),
+        "dtype": dtype_summary(i.dtype for i in infos.values()),
         "lowrank": (
             {"rank": rank, "energy": energy, "full_rank": list(full_rank)} if lowrank else None
         ),
@@ -134,9 +137,7 @@ def extract(
     described = {name: src.describe() for name, src in sources.items()}
 
     with atomic_output(out, overwrite) as tmp:
-        writers = [
-            VectorFolderWriter(tmp / o.subdir, full, max_shard_size) for o in outputs
-        ]
+        writers = [VectorFolderWriter(tmp / o.subdir, full, max_shard_size) for o in outputs]
         try:
             bar = tqdm(
                 total=sum(i.nbytes for i in infos.values()),
@@ -163,7 +164,10 @@ def extract(
                 meta = {
                     "kind": o.kind,
                     "definition": f"{o.minuend} - {o.subtrahend}",
-                    "sources": {o.minuend: described[o.minuend], o.subtrahend: described[o.subtrahend]},
+                    "sources": {
+                        o.minuend: described[o.minuend],
+                        o.subtrahend: described[o.subtrahend],
+                    },
                     **common,
                 }
                 if o.kind == "capability_vector":
@@ -276,7 +280,9 @@ def _stream_full(
         advance(chunks["aux"].numel() * info.dtype.itemsize)
 
 
-def _whole_delta(sources: dict[str, WeightSource], o: _Output, key: str, info: TensorInfo) -> Tensor:
+def _whole_delta(
+    sources: dict[str, WeightSource], o: _Output, key: str, info: TensorInfo
+) -> Tensor:
     """The full delta in float32, assembled chunk by chunk (no whole copies of the inputs)."""
     delta = torch.empty(info.shape, dtype=torch.float32)
     for rows in row_chunks(info):
@@ -284,13 +290,20 @@ def _whole_delta(sources: dict[str, WeightSource], o: _Output, key: str, info: T
         b = sources[o.subtrahend].read(key, rows).float()
         delta[rows] = a - b
     if not torch.isfinite(delta).all():
-        chunks = {o.minuend: sources[o.minuend].read(key), o.subtrahend: sources[o.subtrahend].read(key)}
+        chunks = {
+            o.minuend: sources[o.minuend].read(key),
+            o.subtrahend: sources[o.subtrahend].read(key),
+        }
         raise _not_finite(sources, chunks, key, o, info)
     return delta
 
 
 def _not_finite(
-    sources: dict[str, WeightSource], chunks: dict[str, Tensor], key: str, o: _Output, info: TensorInfo
+    sources: dict[str, WeightSource],
+    chunks: dict[str, Tensor],
+    key: str,
+    o: _Output,
+    info: TensorInfo,
 ) -> CapVectorError:
     for name in (o.minuend, o.subtrahend):
         if not torch.isfinite(chunks[name]).all():
@@ -302,8 +315,3 @@ def _not_finite(
         f"`{key}`: {o.minuend} − {o.subtrahend} overflows {dtype_name(info.dtype)}; pass "
         "--dtype float32. Nothing was written"
     )
-
-
-def _dtype_summary(infos: Any) -> str:
-    names = {dtype_name(i.dtype) for i in infos}
-    return names.pop() if len(names) == 1 else "mixed"

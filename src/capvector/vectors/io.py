@@ -16,7 +16,8 @@ import json
 import os
 import re
 import struct
-from collections.abc import Iterator, Mapping, Sequence
+import tempfile
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -155,7 +156,11 @@ def file_fingerprint(path: Path, hasher: Any, header_bytes: int = 0) -> None:
     with open(path, "rb") as f:
         if header_bytes:
             hasher.update(f.read(header_bytes))
-        for offset in (header_bytes, (header_bytes + size) // 2, max(header_bytes, size - _SAMPLE_BYTES)):
+        for offset in (
+            header_bytes,
+            (header_bytes + size) // 2,
+            max(header_bytes, size - _SAMPLE_BYTES),
+        ):
             f.seek(offset)
             hasher.update(f.read(_SAMPLE_BYTES))
 
@@ -178,6 +183,12 @@ class WeightSource:
 
     def keys(self) -> list[str]:
         raise NotImplementedError
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.keys())
+
+    def __contains__(self, key: object) -> bool:
+        return key in self.keys()
 
     def info(self, key: str) -> TensorInfo:
         raise NotImplementedError
@@ -258,7 +269,9 @@ class SafetensorsFolder(WeightSource):
         for name in files:
             path = self.path / name
             if not path.is_file():
-                raise CapVectorError(f"{index} lists shard {name}, which is missing from {self.path}")
+                raise CapVectorError(
+                    f"{index} lists shard {name}, which is missing from {self.path}"
+                )
             try:
                 with safe_open(str(path), framework="pt") as f:
                     keys = list(f.keys())
@@ -267,8 +280,12 @@ class SafetensorsFolder(WeightSource):
                         sl = f.get_slice(key)
                         code = sl.get_dtype()
                         if code not in _SAFETENSORS_DTYPES:
-                            raise CapVectorError(f"{path}: tensor `{key}` has unsupported dtype {code}")
-                        self._infos[key] = TensorInfo(_SAFETENSORS_DTYPES[code], tuple(sl.get_shape()))
+                            raise CapVectorError(
+                                f"{path}: tensor `{key}` has unsupported dtype {code}"
+                            )
+                        self._infos[key] = TensorInfo(
+                            _SAFETENSORS_DTYPES[code], tuple(sl.get_shape())
+                        )
                         self._file_of[key] = path
             except CapVectorError:
                 raise
@@ -292,7 +309,7 @@ class SafetensorsFolder(WeightSource):
     def keys(self) -> list[str]:
         return list(self._infos)
 
-    def __contains__(self, key: str) -> bool:
+    def __contains__(self, key: object) -> bool:
         return key in self._infos
 
     def info(self, key: str) -> TensorInfo:
@@ -365,9 +382,13 @@ class CheckpointSource(WeightSource):
             ) from err
         state = checkpoint.get("state_dict") if isinstance(checkpoint, dict) else None
         if not isinstance(state, Mapping):
-            raise CapVectorError(f"{self.path} has no `state_dict`: it is not a Lightning checkpoint")
+            raise CapVectorError(
+                f"{self.path} has no `state_dict`: it is not a Lightning checkpoint"
+            )
         meta = checkpoint.get("capvector") or {}
-        self.config = {k: v for k, v in meta.items() if k in ("capability_parameters", "family", "preset")}
+        self.config = {
+            k: v for k, v in meta.items() if k in ("capability_parameters", "family", "preset")
+        }
         objective_names = sorted(
             {k.split(".")[1] for k in state if k.startswith(CHECKPOINT_OBJECTIVES_PREFIX)}
         )
@@ -398,11 +419,15 @@ class CheckpointSource(WeightSource):
             match = _LORA_KEY.match(key)
             if match:
                 adapters.add(match["adapter"])
-                parts.setdefault(match["module"], {})[match["part"] + (match["param"] or "")] = tensor
+                parts.setdefault(match["module"], {})[match["part"] + (match["param"] or "")] = (
+                    tensor
+                )
             else:
                 plain[key.replace(".base_layer.", ".")] = tensor
         if len(adapters) > 1:
-            raise CapVectorError(f"{self.path} has several LoRA adapters {sorted(adapters)}; expected one")
+            raise CapVectorError(
+                f"{self.path} has several LoRA adapters {sorted(adapters)}; expected one"
+            )
         if parts and (not lora or lora.get("scaling") is None):
             raise CapVectorError(
                 f"{self.path} has LoRA layers (e.g. `{next(iter(parts))}`) but no "
@@ -423,14 +448,18 @@ class CheckpointSource(WeightSource):
             if "lora_B.bias" in p:
                 bias = plain.get(f"{module}.bias")
                 if bias is None:
-                    raise CapVectorError(f"{self.path}: `{module}` has a LoRA bias but no base bias")
-                plain[f"{module}.bias"] = (bias.float() + scaling * p["lora_B.bias"].float()).to(bias.dtype)
+                    raise CapVectorError(
+                        f"{self.path}: `{module}` has a LoRA bias but no base bias"
+                    )
+                plain[f"{module}.bias"] = (bias.float() + scaling * p["lora_B.bias"].float()).to(
+                    bias.dtype
+                )
         self._tensors = dict(plain)
 
     def keys(self) -> list[str]:
         return list(self._tensors)
 
-    def __contains__(self, key: str) -> bool:
+    def __contains__(self, key: object) -> bool:
         return key in self._tensors
 
     def info(self, key: str) -> TensorInfo:
@@ -466,7 +495,9 @@ def open_weights(path: str | Path) -> WeightSource:
         return SafetensorsFolder(p)
     if p.is_file():
         if p.suffix == ".safetensors":
-            return SafetensorsFolder(p.parent, weights_name=p.name, config_name=None, kind="safetensors")
+            return SafetensorsFolder(
+                p.parent, weights_name=p.name, config_name=None, kind="safetensors"
+            )
         return CheckpointSource(p)
     raise CapVectorError(f"{p} does not exist")
 
@@ -645,6 +676,33 @@ def atomic_output(out: str | Path, overwrite: bool = False) -> Iterator[Path]:
                     os.close(fd)
             _fsync_dir(Path(root))
     _fsync_dir(target.resolve().parent)
+
+
+@contextmanager
+def atomic_write_file(path: str | Path) -> Iterator[Path]:
+    """A temporary sibling file path that replaces ``path`` (fsynced, renamed) if the block succeeds."""
+    target = Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, name = tempfile.mkstemp(prefix=f".{target.name}.tmp-", dir=target.parent)
+    os.close(fd)
+    tmp = Path(name)
+    try:
+        yield tmp
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, target)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def dtype_summary(dtypes: Iterable[torch.dtype]) -> str:
+    """The one dtype name of a set of tensors, or ``"mixed"``."""
+    names = {dtype_name(d) for d in dtypes}
+    return names.pop() if len(names) == 1 else "mixed"
 
 
 def capvector_version() -> str:

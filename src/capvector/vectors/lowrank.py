@@ -172,9 +172,13 @@ def read_adapter(folder: Path) -> tuple[dict[str, LoraFactors], dict[str, Tensor
 
     config = read_json(folder / ADAPTER_CONFIG)
     if config.get("peft_type") != "LORA":
-        raise CapVectorError(f"{folder}: peft_type {config.get('peft_type')!r}; only LORA adapters are vectors")
+        raise CapVectorError(
+            f"{folder}: peft_type {config.get('peft_type')!r}; only LORA adapters are vectors"
+        )
     if config.get("use_dora"):
-        raise CapVectorError(f"{folder}: DoRA adapters rescale weights and cannot be used as a vector")
+        raise CapVectorError(
+            f"{folder}: DoRA adapters rescale weights and cannot be used as a vector"
+        )
     if config.get("modules_to_save"):
         raise CapVectorError(
             f"{folder}: the adapter replaces whole modules ({config['modules_to_save']}), which is "

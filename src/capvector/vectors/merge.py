@@ -39,7 +39,9 @@ MERGE_RECORD = "capvector_merge.json"
 
 # Module names that wrappers insert between a model's own names: peft's LoRA layers
 # (`X.base_layer.weight`), torch.compile, activation checkpointing and FSDP1.
-_WRAPPER_NAMES = frozenset({"base_layer", "_orig_mod", "_checkpoint_wrapped_module", "_fsdp_wrapped_module"})
+_WRAPPER_NAMES = frozenset(
+    {"base_layer", "_orig_mod", "_checkpoint_wrapped_module", "_fsdp_wrapped_module"}
+)
 
 
 def add_scaled(base: Tensor, deltas: Sequence[tuple[Tensor, float]]) -> Tensor:
@@ -52,7 +54,10 @@ def add_scaled(base: Tensor, deltas: Sequence[tuple[Tensor, float]]) -> Tensor:
 
 
 def check_compatible(
-    target: Mapping[str, TensorInfo], vector: Mapping[str, TensorInfo], target_name: str, vector_name: str
+    target: Mapping[str, TensorInfo],
+    vector: Mapping[str, TensorInfo],
+    target_name: str,
+    vector_name: str,
 ) -> None:
     """Raise ``CapVectorError`` unless every vector tensor has a floating target of the same shape."""
     missing = [k for k in vector if k not in target]
@@ -119,8 +124,10 @@ def merge(
         if not math.isfinite(scale):
             raise CapVectorError(f"λ for {path} is {scale}; it must be a finite number")
         folder = VectorFolder(path)
-        infos = {k: folder.info(k) for k in folder.keys()}
-        check_compatible({k: source.info(k) for k in source.keys()}, infos, f"the base {base}", f"vector {path}")
+        infos = {k: folder.info(k) for k in folder}
+        check_compatible(
+            {k: source.info(k) for k in source}, infos, f"the base {base}", f"vector {path}"
+        )
         folders.append((folder, float(scale)))
 
     layout = ShardLayout(
@@ -149,7 +156,9 @@ def merge(
         writer = SafetensorsWriter(tmp, layout, metadata=first_meta)
         total = sum(info.nbytes for _, items in layout.files for _, info in items)
         try:
-            with tqdm(total=total, unit="B", unit_scale=True, desc="merge", disable=not progress) as bar:
+            with tqdm(
+                total=total, unit="B", unit_scale=True, desc="merge", disable=not progress
+            ) as bar:
                 for _, items in layout.files:
                     for key, info in items:
                         _merge_tensor(source, folders, writer, key, info)
@@ -176,10 +185,19 @@ def _merge_tensor(
             deltas = [(f.read(key, rows), s) for f, s in touching]
             merged = add_scaled(chunk, deltas)
             if not torch.isfinite(merged).all():
-                culprits = [str(f.path) for (f, _), (d, _) in zip(touching, deltas, strict=True) if not torch.isfinite(d).all()]
-                where = f"vector {culprits[0]} has NaN/Inf there" if culprits else (
-                    "the base has NaN/Inf there" if not torch.isfinite(chunk).all()
-                    else f"the sum overflows {dtype_name(info.dtype)}"
+                culprits = [
+                    str(f.path)
+                    for (f, _), (d, _) in zip(touching, deltas, strict=True)
+                    if not torch.isfinite(d).all()
+                ]
+                where = (
+                    f"vector {culprits[0]} has NaN/Inf there"
+                    if culprits
+                    else (
+                        "the base has NaN/Inf there"
+                        if not torch.isfinite(chunk).all()
+                        else f"the sum overflows {dtype_name(info.dtype)}"
+                    )
                 )
                 raise CapVectorError(f"merging `{key}` gives NaN/Inf: {where}. Nothing was written")
             chunk = merged
@@ -220,9 +238,13 @@ def match_tensors(
             f"vector has {len(missing)} tensor(s) the model lacks, e.g. {examples(missing)}; "
             f"pass --exclude '{missing[0].split('.')[0]}.*' when extracting or use the matching base"
         )
-    ambiguous = [f"{k} ({', '.join(n for n, _ in by_name[k])})" for k in keys if len(by_name[k]) > 1]
+    ambiguous = [
+        f"{k} ({', '.join(n for n, _ in by_name[k])})" for k in keys if len(by_name[k]) > 1
+    ]
     if ambiguous:
-        raise CapVectorError(f"vector keys match several tensors of the model, e.g. {examples(ambiguous)}")
+        raise CapVectorError(
+            f"vector keys match several tensors of the model, e.g. {examples(ambiguous)}"
+        )
     resolved = {k: by_name[k][0] for k in keys}
     owner: dict[int, str] = {}
     for key, (_, tensor) in resolved.items():
@@ -241,7 +263,7 @@ def _resolve(
     """``match_tensors`` plus shape/dtype checks and finite vector values."""
     resolved = match_tensors(target, vec.keys())
     target_infos = {k: _info(t) for k, (_, t) in resolved.items()}
-    vector_infos = {k: TensorInfo(_vector_dtype(vec, k), vec.shape(k)) for k in vec.keys()}
+    vector_infos = {k: TensorInfo(_vector_dtype(vec, k), vec.shape(k)) for k in vec}
     check_compatible(target_infos, vector_infos, "the model", "the vector")
     vec.check()
     return resolved
@@ -303,7 +325,10 @@ def _add_in_place(tensor: Tensor, delta: Tensor, scale: float) -> None:
     if isinstance(tensor, DTensor):
         # src_data_rank=None: each rank slices its shard from its own copy, no scatter.
         local_delta = distribute_tensor(
-            delta.to(tensor.to_local().device), tensor.device_mesh, tensor.placements, src_data_rank=None
+            delta.to(tensor.to_local().device),
+            tensor.device_mesh,
+            tensor.placements,
+            src_data_rank=None,
         ).to_local()
         local = tensor.to_local()
         local.copy_(add_scaled(local, [(local_delta, scale)]))

@@ -15,7 +15,7 @@ from __future__ import annotations
 import datetime
 import hashlib
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -74,7 +74,9 @@ class VectorFolder:
                 f"{ADAPTER_CONFIG}.{hint}"
             )
         self._full = (
-            SafetensorsFolder(self.path, VECTOR_WEIGHTS, VECTOR_INDEX, config_name=None, kind="vector")
+            SafetensorsFolder(
+                self.path, VECTOR_WEIGHTS, VECTOR_INDEX, config_name=None, kind="vector"
+            )
             if has_full
             else None
         )
@@ -99,8 +101,15 @@ class VectorFolder:
         full = self._full.keys() if self._full else []
         return [*full, *self._extra, *self._lowrank]
 
-    def __contains__(self, key: str) -> bool:
-        return (self._full is not None and key in self._full) or key in self._extra or key in self._lowrank
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.keys())
+
+    def __contains__(self, key: object) -> bool:
+        return (
+            (self._full is not None and key in self._full)
+            or key in self._extra
+            or key in self._lowrank
+        )
 
     def __len__(self) -> int:
         return len(self.keys())
@@ -141,7 +150,11 @@ class VectorFolder:
         return "sha256:" + hasher.hexdigest()
 
     def describe(self) -> dict[str, Any]:
-        out = {"path": str(self.path.resolve()), "kind": "vector", "fingerprint": self.fingerprint()}
+        out = {
+            "path": str(self.path.resolve()),
+            "kind": "vector",
+            "fingerprint": self.fingerprint(),
+        }
         if "sources" in self.metadata:
             out["sources"] = self.metadata["sources"]
         return out
@@ -162,7 +175,10 @@ class CapabilityVector:
     def keys(self) -> list[str]:
         return [*self.dense, *self.lowrank]
 
-    def __contains__(self, key: str) -> bool:
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.keys())
+
+    def __contains__(self, key: object) -> bool:
         return key in self.dense or key in self.lowrank
 
     def __len__(self) -> int:
@@ -229,7 +245,9 @@ class VectorFolderWriter:
         self.folder = folder
         stem = VECTOR_WEIGHTS.removesuffix(".safetensors")
         self._writer = (
-            SafetensorsWriter(folder, ShardLayout.plan(full, stem, max_shard_size)) if full else None
+            SafetensorsWriter(folder, ShardLayout.plan(full, stem, max_shard_size))
+            if full
+            else None
         )
         self._infos = dict(full)
         self._norm_sq: dict[str, float] = {}

@@ -1,0 +1,231 @@
+"""Wall time and peak memory of ``capvector extract`` and ``capvector merge`` on multi-GB models.
+
+Builds three synthetic sharded export folders (θ_pre, θ_aux, θ_sft) of ``--size-gb`` each, with
+Llama-7B-shaped tensors (embed 32000×4096, q/k/v/o 4096×4096, gate/up 11008×4096, down 4096×11008),
+then runs each stage in a fresh subprocess and reads that process's peak RSS from ``wait4``:
+
+- ``import torch``: the floor every stage pays (the interpreter and torch's libraries);
+- ``baseline``: read both inputs' tensors and write one output's worth with safetensors;
+- ``extract``: c = θ_aux − θ_sft;
+- ``merge``: θ_pre + c.
+
+Targets: peak RSS ≤ 1 GB and wall time ≤ 2× the baseline. Inputs are freshly written, so every stage
+reads from the page cache; outputs are fsynced in every stage (the baseline too).
+
+    python benchmarks/bench_vectors.py [--size-gb 2] [--dtype float32] [--workdir /work/tmp]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HIDDEN, FFN, VOCAB = 4096, 11008, 32000
+SHARD_BYTES = 1_000_000_000
+NAMES = ("pre", "aux", "sft")
+
+
+def layout(size_bytes: int, itemsize: int) -> list[tuple[str, tuple[int, ...]]]:
+    """Tensor names and shapes of a Llama-like model of at least ``size_bytes``."""
+    tensors: list[tuple[str, tuple[int, ...]]] = [
+        ("language_model.model.embed_tokens.weight", (VOCAB, HIDDEN))
+    ]
+    total, layer = VOCAB * HIDDEN * itemsize, 0
+    while total < size_bytes:
+        prefix = f"language_model.model.layers.{layer}"
+        block = [
+            (f"{prefix}.self_attn.{p}.weight", (HIDDEN, HIDDEN))
+            for p in ("q_proj", "k_proj", "v_proj", "o_proj")
+        ]
+        block += [
+            (f"{prefix}.mlp.gate_proj.weight", (FFN, HIDDEN)),
+            (f"{prefix}.mlp.up_proj.weight", (FFN, HIDDEN)),
+            (f"{prefix}.mlp.down_proj.weight", (HIDDEN, FFN)),
+            (f"{prefix}.input_layernorm.weight", (HIDDEN,)),
+            (f"{prefix}.post_attention_layernorm.weight", (HIDDEN,)),
+        ]
+        for _, shape in block:
+            n = 1
+            for s in shape:
+                n *= s
+            total += n * itemsize
+        tensors += block
+        layer += 1
+    tensors += [("language_model.model.norm.weight", (HIDDEN,)), ("action_head.fc1.weight", (256, HIDDEN))]
+    return tensors
+
+
+def make_exports(root: Path, size_gb: float, dtype_name: str) -> None:
+    """θ_pre random; θ_aux and θ_sft = θ_pre + small independent noise, as HF-style sharded exports."""
+    import torch
+    from safetensors.torch import save_file
+
+    dtype = getattr(torch, dtype_name)
+    tensors = layout(int(size_gb * 1e9), dtype.itemsize)
+    for model_index, name in enumerate(NAMES):
+        folder = root / name
+        folder.mkdir()
+        shards: list[list[str]] = [[]]
+        size = 0
+        for key, shape in tensors:
+            nbytes = dtype.itemsize
+            for s in shape:
+                nbytes *= s
+            if shards[-1] and size + nbytes > SHARD_BYTES:
+                shards.append([])
+                size = 0
+            shards[-1].append(key)
+            size += nbytes
+        shapes = dict(tensors)
+        weight_map = {}
+        for i, keys in enumerate(shards):
+            file = f"model-{i + 1:05d}-of-{len(shards):05d}.safetensors"
+            data = {}
+            for k_index, key in enumerate(keys):
+                seed = hash((i, k_index)) % (2**31)
+                g = torch.Generator().manual_seed(seed)
+                value = 0.02 * torch.randn(shapes[key], generator=g)
+                if model_index:
+                    g.manual_seed(seed + model_index)
+                    value += 1e-3 * torch.randn(shapes[key], generator=g)
+                data[key] = value.to(dtype)
+            save_file(data, str(folder / file), metadata={"format": "pt"})
+            weight_map.update(dict.fromkeys(keys, file))
+            del data
+        total = sum(os.path.getsize(folder / f) for f in set(weight_map.values()))
+        index = {"metadata": {"total_size": total}, "weight_map": weight_map}
+        (folder / "model.safetensors.index.json").write_text(json.dumps(index))
+        config = {"format": "capvector-export", "family": "bench", "capability_parameters": ["language_model.*"]}
+        (folder / "config.json").write_text(json.dumps(config))
+        (folder / "dataset_statistics.json").write_text("{}")
+
+
+def run_stage(stage: str, root: Path) -> float:
+    """Run one stage in this process; returns its wall time (imports excluded)."""
+    if stage == "import":
+        import torch  # noqa: F401
+
+        return 0.0
+    if stage == "baseline":
+        from safetensors import safe_open
+        from safetensors.torch import save_file
+
+        start = time.perf_counter()
+        out = root / "baseline"
+        out.mkdir()
+        index = json.loads((root / "aux" / "model.safetensors.index.json").read_text())["weight_map"]
+        for file in sorted(set(index.values())):
+            keys = [k for k, f in index.items() if f == file]
+            written = {}
+            for key in keys:
+                for name in ("aux", "sft"):
+                    with safe_open(str(root / name / file), "pt") as f:
+                        tensor = f.get_tensor(key)
+                    if name == "aux":
+                        written[key] = tensor
+            save_file(written, str(out / file))
+            del written
+            fd = os.open(out / file, os.O_RDONLY)
+            os.fsync(fd)
+            os.close(fd)
+        return time.perf_counter() - start
+    if stage == "extract":
+        from capvector.vectors import extract
+
+        start = time.perf_counter()
+        extract(root / "aux", root / "sft", root / "vector")
+        return time.perf_counter() - start
+    if stage == "merge":
+        from capvector.vectors import merge
+
+        start = time.perf_counter()
+        merge(root / "pre", [(root / "vector", 1.0)], root / "merged")
+        return time.perf_counter() - start
+    raise ValueError(stage)
+
+
+def measure(stage: str, root: Path) -> tuple[float, float]:
+    """(seconds, peak RSS in MiB) of ``stage`` run in a fresh Python process."""
+    cmd = [sys.executable, __file__, "--stage", stage, "--workdir", str(root)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE)
+    _, status, usage = os.wait4(proc.pid, 0)
+    output = proc.stdout.read().decode() if proc.stdout else ""
+    if os.waitstatus_to_exitcode(status) != 0:
+        raise RuntimeError(f"stage {stage} failed:\n{output}")
+    seconds = json.loads(output.strip().splitlines()[-1])["seconds"]
+    return seconds, usage.ru_maxrss / 1024  # ru_maxrss is in KiB on Linux
+
+
+def spot_check(root: Path) -> None:
+    """θ_merged == θ_pre + (θ_aux − θ_sft) on a few tensors (rows of the big ones)."""
+    import torch
+    from safetensors import safe_open
+
+    index = json.loads((root / "pre" / "model.safetensors.index.json").read_text())["weight_map"]
+    for key in ("language_model.model.layers.0.mlp.down_proj.weight", "language_model.model.norm.weight"):
+        rows = slice(0, 64)
+        values = {}
+        for name in ("pre", "aux", "sft", "merged"):
+            with safe_open(str(root / name / index[key]), "pt") as f:
+                values[name] = f.get_slice(key)[rows].float()
+        expected = values["pre"] + (values["aux"] - values["sft"])
+        if not torch.allclose(values["merged"], expected, rtol=1e-5, atol=1e-6):
+            raise AssertionError(f"merged `{key}` differs from pre + (aux - sft)")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--size-gb", type=float, default=2.0, help="size of each input model")
+    parser.add_argument("--dtype", choices=("float32", "bfloat16"), default="float32")
+    parser.add_argument("--workdir", default="/work/tmp" if Path("/work/tmp").is_dir() else tempfile.gettempdir())
+    parser.add_argument("--keep", action="store_true", help="keep the generated folders")
+    parser.add_argument("--stage", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+
+    if args.stage:
+        print(json.dumps({"seconds": run_stage(args.stage, Path(args.workdir))}))
+        return
+
+    need = 6.5 * args.size_gb * 1e9  # three inputs, baseline, vector, merged
+    free = shutil.disk_usage(args.workdir).free
+    if free < need:
+        sys.exit(f"{args.workdir} has {free / 1e9:.1f} GB free; this run needs {need / 1e9:.1f} GB")
+    root = Path(tempfile.mkdtemp(prefix="bench_vectors-", dir=args.workdir))
+    try:
+        start = time.perf_counter()
+        make_exports(root, args.size_gb, args.dtype)
+        model_bytes = sum(f.stat().st_size for f in (root / "aux").glob("*.safetensors"))
+        print(f"built 3 exports of {model_bytes / 1e9:.2f} GB ({args.dtype}) in {time.perf_counter() - start:.0f} s")
+        results = {stage: measure(stage, root) for stage in ("import", "baseline", "extract", "merge")}
+        spot_check(root)
+        vector_bytes = sum(f.stat().st_size for f in (root / "vector").glob("*.safetensors"))
+    finally:
+        if not args.keep:
+            shutil.rmtree(root, ignore_errors=True)
+
+    baseline = results["baseline"][0]
+    print(
+        f"\nInputs: 2 × {model_bytes / 1e9:.2f} GB sharded exports, vector {vector_bytes / 1e9:.2f} GB, "
+        f"{os.cpu_count()} CPUs, torch threads default.\n"
+    )
+    print("| stage | wall time (s) | × baseline | peak RSS (MiB) | target |")
+    print("|---|---|---|---|---|")
+    for stage, (seconds, rss) in results.items():
+        ratio = "–" if stage in ("import", "baseline") else f"{seconds / baseline:.2f}"
+        ok = ""
+        if stage in ("extract", "merge"):
+            ok = "met" if rss <= 1024 and seconds <= 2 * baseline else "MISSED"
+        label = {"import": "python + import torch"}.get(stage, stage)
+        shown = "–" if stage == "import" else f"{seconds:.1f}"
+        print(f"| {label} | {shown} | {ratio} | {rss:.0f} | {ok} |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1026 @@
+"""StarVLA-style backbone: a Qwen-VL (transformers' own Qwen2.5-VL or Qwen3-VL classes) plus a
+pluggable action head from ``action_heads.py``.
+
+Follows starVLA/starVLA: the wrappers ``starVLA/model/modules/vlm/QWen2_5.py`` / ``QWen3.py`` (one
+user turn per sample with every camera image, then the text; the chat template with the generation
+prompt; left padding) and the frameworks ``starVLA/model/framework/VLM4A/QwenOFT.py``,
+``QwenGR00T.py``, ``QwenPI_v3.py``. Deviations, each marked where it happens:
+
+- the Qwen class is chosen by ``qwen_version``, not by substring-matching the checkpoint path;
+- OFT's action queries are a real added special token, always one token, with its id taken from the
+  tokenizer (StarVLA uses an emoji that Qwen3.5's tokenizer splits into 3 tokens);
+- every id (image pad, vision start/end, queries) comes from the tokenizer, none is hard-coded;
+- the configured attention implementation is honoured (StarVLA's ``QWen3.py`` overrides it with sdpa);
+- the flow heads mask the VLM padding (StarVLA passes no encoder mask);
+- images are normalised and patchified in the model, on the batch's device, exactly as transformers'
+  ``Qwen2VLImageProcessor`` does (tested), instead of a PIL round trip per sample.
+
+Sequence layout (one row, left padded)::
+
+    [pad] <|im_start|>system ... <|im_end|> <|im_start|>user
+    (<|vision_start|> [visual tokens] <|vision_end|>) x N_cam  prompt  [STATE] bins [ACTION]
+    head suffix (OFT: "... <action>" + T x <|action_query|> + "<action>.")  <|im_end|>
+    <|im_start|>assistant
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from capvector.backbones.action_heads import HeadDims, HeadInput, build_head, head_class
+from capvector.backbones.base import (
+    BackboneConfig,
+    BackboneError,
+    OutputRequest,
+    VLABackbone,
+    VLAOutput,
+    keep_hidden_states,
+    load_state_dict_strictly,
+    preset_config,
+    register_family,
+    register_preset,
+)
+from capvector.data import keys
+
+OPENAI_CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)
+OPENAI_CLIP_STD = (0.26862954, 0.26130258, 0.27577711)
+HALF = (0.5, 0.5, 0.5)
+
+# Qwen-VL's chat-format special tokens (the same strings in Qwen2-VL, Qwen2.5-VL and Qwen3-VL).
+IMAGE_PAD = "<|image_pad|>"
+VIDEO_PAD = "<|video_pad|>"
+VISION_START = "<|vision_start|>"
+VISION_END = "<|vision_end|>"
+QWEN_SPECIAL_TOKENS = (
+    "<|endoftext|>",
+    "<|im_start|>",
+    "<|im_end|>",
+    VISION_START,
+    VISION_END,
+    IMAGE_PAD,
+    VIDEO_PAD,
+)
+STATE_MODES = ("none", "prompt", "head")
+HEAD_WEIGHTS_PREFIX = "action_head."
+
+
+@dataclass(frozen=True)
+class QwenVersion:
+    model_type: str
+    """``model_type`` in a transformers ``config.json`` of this version (checked, never sniffed)."""
+    config_class: str
+    model_class: str
+
+    def classes(self) -> tuple[Any, Any]:
+        import transformers
+
+        return getattr(transformers, self.config_class), getattr(transformers, self.model_class)
+
+
+QWEN_VERSIONS = {
+    "qwen2.5-vl": QwenVersion(
+        "qwen2_5_vl", "Qwen2_5_VLConfig", "Qwen2_5_VLForConditionalGeneration"
+    ),
+    "qwen3-vl": QwenVersion("qwen3_vl", "Qwen3VLConfig", "Qwen3VLForConditionalGeneration"),
+}
+
+
+@dataclass
+class StarVLAConfig(BackboneConfig):
+    family = "starvla"
+
+    qwen_version: str = "qwen2.5-vl"
+    """'qwen2.5-vl' or 'qwen3-vl': which transformers classes build the VLM. StarVLA picks the
+    wrapper by substring-matching the checkpoint path, which breaks on renamed folders."""
+    qwen: dict[str, Any] = field(default_factory=dict)
+    """The VLM architecture in transformers' vocabulary (``text_config``, ``vision_config``,
+    ``tie_word_embeddings``). ``from_qwen`` fills it from the checkpoint's ``config.json``."""
+    head: str = "oft"
+    """A registered action head: 'oft', 'gr00t' or 'layerwise' (``action_heads.head_names()``)."""
+    head_args: dict[str, Any] = field(default_factory=dict)
+    """Fields of the head's config dataclass; the built model writes back every resolved field."""
+    state_mode: str = "none"
+    """'none' (StarVLA's default), 'prompt' (state as bin indices in the text, pi0.5 style, as
+    StarVLA's QwenOFT / QwenPI_v3) or 'head' (a state token in the flow heads' DiT, as QwenGR00T)."""
+    state_bins: int = 256
+    """Uniform bins over [-1, 1] for ``state_mode='prompt'``."""
+    prompt_template: str = "{instruction}"
+    """The user text; ``{instruction}`` becomes the instruction (+ state + head suffix). StarVLA's
+    ``datasets.vla_data.CoT_prompt`` plays this role in its LIBERO configs."""
+    image_mean: tuple[float, float, float] = OPENAI_CLIP_MEAN
+    image_std: tuple[float, float, float] = OPENAI_CLIP_STD
+    """Per-channel normalisation of the Qwen image processor (CLIP statistics for Qwen2.5-VL, 0.5
+    for Qwen3-VL); ``from_qwen`` reads them from ``preprocessor_config.json``."""
+    tokenizer: str = "tiny"
+    """'tiny' builds a local Qwen-style byte tokenizer; a folder loads a saved tokenizer when first
+    needed; '' means it comes with the checkpoint (``from_qwen`` / ``from_pretrained``)."""
+    attn_implementation: str = "sdpa"
+
+
+# -- presets -------------------------------------------------------------------------------------
+
+# Qwen/Qwen2.5-VL-3B-Instruct config.json: 3,754,622,976 parameters (checked in the tests).
+QWEN2_5_VL_3B: dict[str, Any] = {
+    "text_config": {
+        "vocab_size": 151936, "hidden_size": 2048, "intermediate_size": 11008,
+        "num_hidden_layers": 36, "num_attention_heads": 16, "num_key_value_heads": 2,
+        "max_position_embeddings": 128000, "rms_norm_eps": 1e-6, "sliding_window": 32768,
+        "max_window_layers": 70, "use_sliding_window": False,
+        "rope_parameters": {"rope_type": "default", "mrope_section": [16, 24, 24], "rope_theta": 1e6},
+    },
+    "vision_config": {
+        "depth": 32, "hidden_size": 1280, "intermediate_size": 3420, "num_heads": 16,
+        "out_hidden_size": 2048, "patch_size": 14, "spatial_merge_size": 2,
+        "temporal_patch_size": 2, "window_size": 112, "fullatt_block_indexes": [7, 15, 23, 31],
+        "tokens_per_second": 2, "hidden_act": "silu",
+    },
+    "tie_word_embeddings": True,
+}  # fmt: skip
+
+# Qwen/Qwen3-VL-4B-Instruct config.json: 4,437,815,808 parameters (StarVLA's QwenPI_v3 docstring).
+QWEN3_VL_4B: dict[str, Any] = {
+    "text_config": {
+        "vocab_size": 151936, "hidden_size": 2560, "intermediate_size": 9728,
+        "num_hidden_layers": 36, "num_attention_heads": 32, "num_key_value_heads": 8,
+        "head_dim": 128, "max_position_embeddings": 262144, "rms_norm_eps": 1e-6,
+        "rope_parameters": {
+            "rope_type": "default", "mrope_section": [24, 20, 20], "mrope_interleaved": True,
+            "rope_theta": 5e6,
+        },
+    },
+    "vision_config": {
+        "depth": 24, "hidden_size": 1024, "intermediate_size": 4096, "num_heads": 16,
+        "out_hidden_size": 2560, "patch_size": 16, "spatial_merge_size": 2,
+        "temporal_patch_size": 2, "num_position_embeddings": 2304,
+        "deepstack_visual_indexes": [5, 11, 17], "hidden_act": "gelu_pytorch_tanh",
+    },
+    "tie_word_embeddings": True,
+}  # fmt: skip
+
+_TINY_TEXT = {
+    "vocab_size": 320, "hidden_size": 64, "intermediate_size": 128, "num_hidden_layers": 4,
+    "num_attention_heads": 4, "num_key_value_heads": 2, "max_position_embeddings": 2048,
+    "rms_norm_eps": 1e-6, "bos_token_id": None, "eos_token_id": None,
+}  # fmt: skip
+_TINY_VISION = {
+    "depth": 2, "hidden_size": 32, "intermediate_size": 64, "num_heads": 2, "out_hidden_size": 64,
+    "patch_size": 8, "spatial_merge_size": 2, "temporal_patch_size": 2,
+}  # fmt: skip
+_TINY_QWEN: dict[str, dict[str, Any]] = {
+    "qwen2.5-vl": {
+        "text_config": {
+            **_TINY_TEXT,
+            "rope_parameters": {"rope_type": "default", "mrope_section": [2, 3, 3], "rope_theta": 1e6},
+        },
+        "vision_config": {
+            **_TINY_VISION, "window_size": 32, "fullatt_block_indexes": [1], "hidden_act": "silu",
+            "tokens_per_second": 2,
+        },
+        "tie_word_embeddings": True,
+    },
+    "qwen3-vl": {
+        "text_config": {
+            **_TINY_TEXT, "head_dim": 16,
+            "rope_parameters": {
+                "rope_type": "default", "mrope_section": [4, 2, 2], "mrope_interleaved": True,
+                "rope_theta": 5e6,
+            },
+        },
+        "vision_config": {
+            **_TINY_VISION, "num_position_embeddings": 64, "deepstack_visual_indexes": [0],
+            "hidden_act": "gelu_pytorch_tanh",
+        },
+        "tie_word_embeddings": True,
+    },
+}  # fmt: skip
+
+
+def tiny_qwen_architecture(qwen_version: str) -> dict[str, Any]:
+    """A toy Qwen-VL of either version (64 wide, 4 layers, 8-px patches): 16 tokens per 64-px image."""
+    if qwen_version not in _TINY_QWEN:
+        raise BackboneError(f"unknown qwen_version {qwen_version!r}; use {sorted(QWEN_VERSIONS)}")
+    return copy.deepcopy(_TINY_QWEN[qwen_version])
+
+
+# The tiny presets' head sizes: small enough to train in seconds on a 2-core CPU.
+_TINY_FLOW = {
+    "width": 32, "num_heads": 2, "hidden_size": 32, "dropout": 0.0, "num_future_tokens": 4,
+    "max_seq_len": 16,
+}  # fmt: skip
+_TINY_HEAD_ARGS: dict[str, dict[str, Any]] = {
+    "oft": {},
+    "gr00t": {**_TINY_FLOW, "num_layers": 2, "repeated_diffusion_steps": 4},
+    "layerwise": dict(_TINY_FLOW),
+}
+HEADS = ("oft", "gr00t", "layerwise")
+
+
+def _full_size(qwen_version: str, head: str) -> StarVLAConfig:
+    """LIBERO setup of StarVLA's tables: 2 cameras at 224 px, chunk 8 x 7, state off."""
+    qwen3 = qwen_version == "qwen3-vl"
+    return StarVLAConfig(
+        qwen_version=qwen_version,
+        qwen=copy.deepcopy(QWEN3_VL_4B if qwen3 else QWEN2_5_VL_3B),
+        head=head,
+        image_size=224,
+        image_mean=HALF if qwen3 else OPENAI_CLIP_MEAN,
+        image_std=HALF if qwen3 else OPENAI_CLIP_STD,
+        tokenizer="",  # Qwen's tokenizer comes with the checkpoint folder (from_qwen)
+    )
+
+
+def _tiny(head: str) -> StarVLAConfig:
+    return StarVLAConfig(
+        qwen_version="qwen2.5-vl",
+        qwen=tiny_qwen_architecture("qwen2.5-vl"),
+        head=head,
+        head_args=dict(_TINY_HEAD_ARGS[head]),
+        image_size=64,
+        tokenizer="tiny",
+    )
+
+
+def _register_presets() -> None:
+    for head in HEADS:
+        for name, version in (("qwen2.5-vl-3b", "qwen2.5-vl"), ("qwen3-vl-4b", "qwen3-vl")):
+            register_preset(f"starvla-{name}-{head}")(
+                lambda version=version, head=head: _full_size(version, head)
+            )
+        register_preset(f"starvla-tiny-{head}")(lambda head=head: _tiny(head))
+
+
+_register_presets()
+
+
+# -- tokenizer -----------------------------------------------------------------------------------
+
+# Qwen2.5-VL's chat template (tokenizer_config.json of Qwen/Qwen2.5-VL-*-Instruct), image and text
+# parts: what the tiny tokenizer renders, so prompts look like the real model's.
+QWEN_CHAT_TEMPLATE = (
+    "{% set image_count = namespace(value=0) %}{% for message in messages %}"
+    "{% if loop.first and message['role'] != 'system' %}<|im_start|>system\n"
+    "You are a helpful assistant.<|im_end|>\n{% endif %}<|im_start|>{{ message['role'] }}\n"
+    "{% if message['content'] is string %}{{ message['content'] }}<|im_end|>\n"
+    "{% else %}{% for content in message['content'] %}"
+    "{% if content['type'] == 'image' or 'image' in content or 'image_url' in content %}"
+    "{% set image_count.value = image_count.value + 1 %}"
+    "{% if add_vision_id %}Picture {{ image_count.value }}: {% endif %}"
+    "<|vision_start|><|image_pad|><|vision_end|>"
+    "{% elif 'text' in content %}{{ content['text'] }}{% endif %}{% endfor %}<|im_end|>\n"
+    "{% endif %}{% endfor %}{% if add_generation_prompt %}<|im_start|>assistant\n{% endif %}"
+)
+
+
+def tiny_qwen_tokenizer() -> Any:
+    """A real HF fast tokenizer with one token per byte, Qwen's special tokens and chat template."""
+    from capvector.backbones.tokenizers import byte_level_tokenizer
+
+    tok = byte_level_tokenizer()
+    tok.add_special_tokens({"additional_special_tokens": list(QWEN_SPECIAL_TOKENS)})
+    tok.pad_token = "<|endoftext|>"  # Qwen's pad token
+    tok.chat_template = QWEN_CHAT_TEMPLATE
+    return tok
+
+
+def _load_tokenizer(spec: str) -> Any:
+    if spec == "tiny":
+        return tiny_qwen_tokenizer()
+    if not Path(spec, "tokenizer_config.json").is_file():
+        raise BackboneError(
+            f"tokenizer folder {spec} has no tokenizer_config.json; point `tokenizer` at the Qwen "
+            "checkpoint folder or load the model with from_pretrained / from_qwen"
+        )
+    from transformers import AutoTokenizer
+
+    return AutoTokenizer.from_pretrained(spec)
+
+
+@dataclass(frozen=True)
+class TokenIds:
+    """Ids resolved from the tokenizer (StarVLA hard-codes 151655 and friends)."""
+
+    image_pad: int
+    vision_start: int
+    vision_end: int
+    query: int | None
+
+
+# -- the model -----------------------------------------------------------------------------------
+
+
+@register_family
+class StarVLA(VLABackbone):
+    """Qwen-VL (``vlm``, a transformers ``*ForConditionalGeneration``) + action head (``action_head``)."""
+
+    config_class = StarVLAConfig
+    # peft full-match regex: every Linear of the Qwen language model, the vision blocks and the
+    # patch mergers (Qwen2.5-VL: merger.mlp.0/2, gate/up/down MLPs; Qwen3-VL: linear_fc1/2 and the
+    # deepstack mergers). lm_head is left out: it is tied to the embeddings and unused by the heads.
+    lora_target_modules = (
+        r"vlm\.model\.(language_model\.layers\.\d+\.(self_attn\.[qkvo]_proj|mlp\.(gate|up|down)_proj)"
+        r"|visual\.blocks\.\d+\.(attn\.(qkv|proj)|mlp\.(gate_proj|up_proj|down_proj|linear_fc[12]))"
+        r"|visual\.(merger|deepstack_merger_list\.\d+)\.(mlp\.[02]|linear_fc[12]))"
+    )
+    lora_trainable_modules = ("action_head.*",)
+    capability_parameters = ("vlm.*",)
+
+    def __init__(
+        self, config: StarVLAConfig, *, vlm: nn.Module | None = None, tokenizer: Any = None
+    ) -> None:
+        """``vlm`` and ``tokenizer`` are passed by the loaders (already built from a checkpoint);
+        otherwise the VLM is built from ``config.qwen`` with random weights."""
+        super().__init__(config)
+        self.config: StarVLAConfig = config
+        version = _qwen_version(config.qwen_version)
+        if config.state_mode not in STATE_MODES:
+            raise BackboneError(f"state_mode {config.state_mode!r} is not one of {STATE_MODES}")
+        if config.state_mode != "none" and not config.proprio_dim:
+            raise BackboneError(f"state_mode={config.state_mode!r} needs proprio_dim > 0")
+        if vlm is None:
+            if not config.qwen:
+                raise BackboneError(
+                    "config.qwen is empty: use a starvla-* preset or StarVLA.from_qwen(folder, ...)"
+                )
+            config_class, model_class = version.classes()
+            vlm = model_class._from_config(
+                config_class(**config.qwen), attn_implementation=config.attn_implementation
+            )
+        self.vlm = vlm
+        text = vlm.config.text_config
+        vision = vlm.config.vision_config
+        self.patch_size: int = vision.patch_size
+        self.merge_size: int = vision.spatial_merge_size
+        self.temporal_patch_size: int = vision.temporal_patch_size
+        factor = self.patch_size * self.merge_size
+        if config.image_size % factor:
+            raise BackboneError(
+                f"image_size {config.image_size} is not a multiple of patch x merge = {factor} "
+                "(Qwen's smart_resize would change it); pick a multiple, e.g. 224 for Qwen2.5-VL"
+            )
+        dims = HeadDims(
+            vlm_width=text.hidden_size,
+            vlm_layers=text.num_hidden_layers,
+            action_dim=config.action_dim,
+            chunk_size=config.chunk_size,
+            state_dim=config.proprio_dim if config.state_mode == "head" else 0,
+        )
+        self.action_head = build_head(config.head, config.head_args, dims)
+        # Exports and checkpoints record every head field, not just the preset's overrides.
+        config.head_args = self.action_head.config_dict()
+        if self.action_head.bidirectional_queries and config.attn_implementation not in (
+            "sdpa",
+            "eager",
+        ):
+            raise BackboneError(
+                "bidirectional_queries needs a 4-D attention mask: use attn_implementation "
+                f"'sdpa' or 'eager', not {config.attn_implementation!r}"
+            )
+        self.register_buffer(
+            "pixel_mean", torch.tensor(config.image_mean).view(1, 3, 1, 1), persistent=False
+        )
+        self.register_buffer(
+            "pixel_std", torch.tensor(config.image_std).view(1, 3, 1, 1), persistent=False
+        )
+        self._tokenizer: Any = None
+        self._ids: TokenIds | None = None
+        if tokenizer is not None:
+            self._install_tokenizer(tokenizer, allow_resize=True)
+        # Tied embeddings (Qwen2.5-VL-3B, Qwen3-VL-4B) are one tensor under two names. As transformers'
+        # own checkpoints, our state dict holds it once, so exports load into safetensors (which
+        # refuses shared tensors) and capability vectors count it once.
+        self.register_state_dict_post_hook(_drop_tied_lm_head)
+        self.register_load_state_dict_pre_hook(_restore_tied_lm_head)
+
+    # -- contract ----------------------------------------------------------------------------
+
+    @property
+    def num_layers(self) -> int:
+        return self.vlm.config.text_config.num_hidden_layers
+
+    @property
+    def hidden_size(self) -> int:
+        return self.vlm.config.text_config.hidden_size
+
+    @property
+    def tokenizer(self) -> Any:
+        if self._tokenizer is None and self.config.tokenizer:
+            self._install_tokenizer(_load_tokenizer(self.config.tokenizer))
+        return self._tokenizer
+
+    def load_tokenizer(self, folder: str | Path) -> None:
+        if (Path(folder) / "tokenizer_config.json").is_file():
+            from transformers import AutoTokenizer
+
+            self._install_tokenizer(AutoTokenizer.from_pretrained(str(folder)))
+
+    @property
+    def visual_grid(self) -> tuple[int, int]:
+        """Visual tokens per camera after Qwen's 2x2 patch merge: (rows, cols)."""
+        side = self.config.image_size // (self.patch_size * self.merge_size)
+        return side, side
+
+    @property
+    def num_visual_tokens(self) -> int:
+        rows, cols = self.visual_grid
+        return self.config.num_images * rows * cols
+
+    def forward(self, batch: Mapping[str, Any], request: OutputRequest | None = None) -> VLAOutput:
+        request = request or OutputRequest()
+        head = self.action_head
+        encoding = self.encode(batch, request.hidden_layers, all_layers=head.uses_all_layers)
+        state = _state(batch) if self.config.state_mode == "head" else None
+        # The head runs in its own precision, outside autocast, as StarVLA's fp32 head region.
+        head_dtype = next(head.parameters()).dtype
+        cond = encoding.head_input.to(head_dtype)
+        state = None if state is None else state.to(head_dtype)
+        with torch.autocast(device_type=cond.mask.device.type, enabled=False):
+            if keys.ACTIONS in batch:
+                target = batch[keys.ACTIONS].to(head_dtype)
+                loss, actions = head.loss_and_actions(cond, target, state)
+            else:
+                loss, actions = None, head.sample(cond, state)
+        logits = self.vlm.lm_head(encoding.head_input.last_hidden) if request.lm_logits else None
+        return VLAOutput(
+            actions=actions,
+            loss=loss,
+            hidden_states=encoding.requested,
+            visual_token_mask=encoding.input_ids == self._token_ids.image_pad,
+            attention_mask=encoding.head_input.mask,
+            visual_grid=self.visual_grid,
+            lm_logits=logits,
+        )
+
+    # -- Qwen-VL encoding ---------------------------------------------------------------------
+
+    def encode(
+        self, batch: Mapping[str, Any], hidden_layers: Sequence[int] = (), all_layers: bool = False
+    ) -> VLMEncoding:
+        """Run the Qwen-VL on a batch: the head's conditioning and the requested hidden states.
+
+        ``hidden_layers`` follows the contract (0 = input embeddings, k = decoder layer k before the
+        final norm). ``all_layers`` also returns every layer for the head, as HF's
+        ``hidden_states[1:]`` (the last after the final norm), the layers StarVLA's heads read.
+        """
+        images: Tensor = batch[keys.IMAGES]
+        n_cam = images.shape[1]
+        if n_cam != self.config.num_images:
+            raise BackboneError(
+                f"batch has {n_cam} camera(s) but the backbone was built for "
+                f"num_images={self.config.num_images}; set it to the dataset's camera count"
+            )
+        instructions: list[str] = list(batch[keys.INSTRUCTION])
+        state = _state(batch) if self.config.state_mode == "prompt" else None
+        texts = [
+            self.prompt_text(text, None if state is None else state[i])
+            for i, text in enumerate(instructions)
+        ]
+        ids, mask = self.tokenize(texts, n_cam, images.device)
+        model = self.vlm.model
+        query_positions = self._query_positions(ids)
+        attention = mask
+        if self.action_head.bidirectional_queries:
+            attention = self._bidirectional_query_mask(mask, query_positions)
+        layer_indices = set(hidden_layers)
+        if all_layers:
+            layer_indices |= set(range(1, self.num_layers))  # the last comes from the final norm
+        store: dict[int, Tensor] = {}
+        hooks = []
+        if 0 in layer_indices:
+
+            def grab(_module: nn.Module, _args: Any, kwargs: dict[str, Any]) -> None:
+                store[0] = kwargs["inputs_embeds"]
+
+            hooks.append(model.language_model.register_forward_pre_hook(grab, with_kwargs=True))
+        try:
+            with keep_hidden_states(model.language_model.layers, sorted(layer_indices), store):
+                out = self._run_vlm(ids, mask, images, attention)
+        finally:
+            for hook in hooks:
+                hook.remove()
+        last = out.last_hidden_state
+        layers = (
+            tuple(store[i] for i in range(1, self.num_layers)) + (last,) if all_layers else ()
+        )
+        return VLMEncoding(
+            input_ids=ids,
+            head_input=HeadInput(
+                last_hidden=last, mask=mask, layers=layers, query_positions=query_positions
+            ),
+            requested={i: store[i] for i in hidden_layers},
+        )
+
+    def prompt_text(self, instruction: str, state: Tensor | None = None) -> str:
+        """The user text: template(instruction [+ STATE bins] [+ head suffix])."""
+        text = instruction
+        if state is not None:
+            text = f"{text} [STATE] {' '.join(map(str, self.state_bins(state).tolist()))} [ACTION]"
+        text += self.action_head.prompt_suffix()
+        return self.config.prompt_template.replace("{instruction}", text)
+
+    def state_bins(self, state: Tensor) -> Tensor:
+        """(P,) state in [-1, 1] -> bin indices, pi0.5's ``np.digitize(s, linspace(-1, 1, n + 1)[:-1]) - 1``.
+
+        Clipped to [0, n - 1]: StarVLA's helper yields -1 for values below -1.
+        """
+        n = self.config.state_bins
+        return ((state.float() + 1) * (n / 2)).floor().clamp(0, n - 1).long()
+
+    def tokenize(
+        self, texts: Sequence[str], n_images: int, device: torch.device
+    ) -> tuple[Tensor, Tensor]:
+        """Left-padded ids (B, S) and valid mask (B, S) of one user turn per text, ending with the
+        generation prompt (StarVLA's ``build_qwenvl_inputs``)."""
+        tok = self._require_tokenizer()
+        rendered = [self.render_chat(text, n_images) for text in texts]
+        encoded = tok(rendered, padding=True, add_special_tokens=False, return_tensors="pt")
+        return encoded["input_ids"].to(device), encoded["attention_mask"].to(device).bool()
+
+    def render_chat(self, text: str, n_images: int) -> str:
+        """The chat-template text of one user turn (images, then ``text``) + the generation prompt.
+
+        As Qwen's processor, the template's single ``<|image_pad|>`` per image is then repeated
+        once per visual token of that image.
+        """
+        content = [{"type": "image"}] * n_images + [{"type": "text", "text": text}]
+        chat = self._require_tokenizer().apply_chat_template(
+            [{"role": "user", "content": content}], tokenize=False, add_generation_prompt=True
+        )
+        if chat.count(IMAGE_PAD) != n_images:
+            raise BackboneError(
+                f"the tokenizer's chat template rendered {chat.count(IMAGE_PAD)} {IMAGE_PAD} for "
+                f"{n_images} images; it is not a Qwen-VL chat template"
+            )
+        rows, cols = self.visual_grid
+        return chat.replace(IMAGE_PAD, IMAGE_PAD * (rows * cols))
+
+    def _require_tokenizer(self) -> Any:
+        tok = self.tokenizer
+        if tok is None:
+            raise BackboneError(
+                "this backbone has no tokenizer: load a checkpoint folder that has one "
+                "(StarVLA.from_qwen / from_pretrained) or set tokenizer to a Qwen tokenizer folder"
+            )
+        return tok
+
+    def language_model_logits(
+        self, batch: Mapping[str, Any], prompts: list[str], answers: list[str]
+    ) -> tuple[Tensor, Tensor]:
+        """Qwen's own LM head over a user turn (cameras + prompt) and an assistant turn (answer),
+        as StarVLA's VLM co-training (``build_qwenvl_inputs(..., solutions=...)``).
+
+        Labels are -100 except on the answer tokens and the ``<|im_end|>`` closing the turn; rows
+        are left padded like the action pass. The prompt carries no action queries or state: this
+        is the VLM's plain next-token objective.
+        """
+        tok = self._require_tokenizer()
+        images: Tensor = batch[keys.IMAGES]
+        n_cam = images.shape[1]
+        rows, label_rows = [], []
+        for prompt, answer in zip(prompts, answers, strict=True):
+            prompt_ids = tok.encode(self.render_chat(prompt, n_cam), add_special_tokens=False)
+            answer_ids = tok.encode(answer + "<|im_end|>", add_special_tokens=False)
+            rows.append(prompt_ids + answer_ids)
+            label_rows.append([-100] * len(prompt_ids) + answer_ids)
+        length = max(len(r) for r in rows)
+        ids = torch.full((len(rows), length), tok.pad_token_id, dtype=torch.long)
+        labels = torch.full((len(rows), length), -100, dtype=torch.long)
+        for i, (row, label) in enumerate(zip(rows, label_rows, strict=True)):
+            ids[i, length - len(row) :] = torch.tensor(row)
+            labels[i, length - len(row) :] = torch.tensor(label)
+        ids, labels = ids.to(images.device), labels.to(images.device)
+        mask = ids.new_zeros(ids.shape, dtype=torch.bool)
+        for i, row in enumerate(rows):
+            mask[i, length - len(row) :] = True
+        out = self._run_vlm(ids, mask, images)
+        return self.vlm.lm_head(out.last_hidden_state), labels
+
+    def _run_vlm(
+        self, ids: Tensor, mask: Tensor, images: Tensor, attention: Tensor | None = None
+    ) -> Any:
+        """The Qwen-VL base model (no LM head) over ``ids`` with the batch's images.
+
+        ``mask`` (B, S) gives the multimodal RoPE positions; ``attention`` optionally replaces it
+        with a 4-D mask. Positions are computed here rather than inside transformers so that a 4-D
+        mask can be passed and no ``rope_deltas`` state is cached on the module between calls.
+        """
+        pixel_values, grid_thw = self.pixel_values(images)
+        image_tokens = (ids == self._token_ids.image_pad).int()
+        position_ids, _ = self.vlm.model.get_rope_index(
+            ids, mm_token_type_ids=image_tokens, image_grid_thw=grid_thw, attention_mask=mask
+        )
+        return self.vlm.model(
+            input_ids=ids,
+            attention_mask=mask if attention is None else attention,
+            position_ids=position_ids,
+            pixel_values=pixel_values.to(self.vlm.dtype),
+            image_grid_thw=grid_thw,
+            mm_token_type_ids=image_tokens,
+            use_cache=False,
+        )
+
+    def shard_units(self) -> list[nn.Module]:
+        model = self.vlm.model
+        blocks = getattr(getattr(self.action_head, "model", None), "transformer_blocks", [])
+        return [*model.visual.blocks, *model.language_model.layers, *blocks]
+
+    def pixel_values(self, images: Tensor) -> tuple[Tensor, Tensor]:
+        """(B, N_cam, 3, H, W) in [0, 1] -> Qwen's flat patches and ``image_grid_thw``.
+
+        Same layout as transformers' ``Qwen2VLImageProcessor.patchify``: per image, patches in
+        (row-block, col-block, 2x2 merge window) order, each repeated ``temporal_patch_size`` times.
+        """
+        flat = images.flatten(0, 1).float()
+        size = self.config.image_size
+        if flat.shape[-2:] != (size, size):
+            flat = F.interpolate(
+                flat, size=(size, size), mode="bicubic", align_corners=False, antialias=True
+            ).clamp(0, 1)
+        flat = (flat - self.pixel_mean) / self.pixel_std
+        n, channels = flat.shape[:2]
+        p, m, t = self.patch_size, self.merge_size, self.temporal_patch_size
+        grid = size // p
+        patches = flat.reshape(n, channels, grid // m, m, p, grid // m, m, p)
+        patches = patches.permute(0, 2, 5, 3, 6, 1, 4, 7).unsqueeze(6)
+        patches = patches.expand(-1, -1, -1, -1, -1, -1, t, -1, -1)
+        pixel_values = patches.reshape(n * grid * grid, channels * t * p * p)
+        grid_thw = torch.tensor([[1, grid, grid]] * n, device=images.device)
+        return pixel_values, grid_thw
+
+    def _query_positions(self, ids: Tensor) -> Tensor | None:
+        n = self.action_head.num_query_tokens
+        if not n:
+            return None
+        is_query = ids == self._token_ids.query
+        counts = is_query.sum(1)
+        if (counts != n).any():
+            raise BackboneError(
+                f"every prompt must hold exactly {n} action query tokens "
+                f"{self.action_head.query_token!r}; counts per sample: {counts.tolist()} (does an "
+                "instruction contain the token text?)"
+            )
+        return is_query.nonzero()[:, 1].view(ids.shape[0], n)
+
+    def _bidirectional_query_mask(self, mask: Tensor, query_positions: Tensor | None) -> Tensor:
+        """Additive (B, 1, S, S) mask: causal + padding, except that the query block attends to
+        itself in both directions, as OpenVLA-OFT's action slots (StarVLA keeps it causal)."""
+        batch, length = mask.shape
+        causal = torch.ones(length, length, dtype=torch.bool, device=mask.device).tril()
+        allowed = causal[None] & mask[:, None, :]
+        if query_positions is not None:
+            is_query = torch.zeros_like(mask).scatter_(1, query_positions, True)
+            allowed = allowed | (is_query[:, :, None] & is_query[:, None, :])
+        # Padded rows attend to themselves only: no row is empty, so no NaN from the softmax.
+        allowed = allowed | torch.eye(length, dtype=torch.bool, device=mask.device)[None]
+        dtype = self.vlm.dtype
+        additive = torch.zeros(batch, 1, length, length, dtype=dtype, device=mask.device)
+        return additive.masked_fill_(~allowed[:, None], torch.finfo(dtype).min)
+
+    # -- tokenizer installation ---------------------------------------------------------------
+
+    @property
+    def _token_ids(self) -> TokenIds:
+        self.tokenizer  # noqa: B018 (installs a configured tokenizer on first use)
+        if self._ids is None:
+            raise BackboneError("this backbone has no tokenizer (see `tokenizer` in its config)")
+        return self._ids
+
+    def _install_tokenizer(self, tok: Any, allow_resize: bool = False) -> None:
+        """Resolve every id from ``tok``; add the head's query token as a special token.
+
+        ``allow_resize`` (only while building from a Qwen checkpoint) grows the embeddings when the
+        tokenizer outgrows them; later the vocabulary in ``config.qwen`` already has the room.
+        """
+        # Left padding, as StarVLA's wrappers: prompts end at the same column.
+        tok.padding_side = "left"
+        if tok.pad_token is None:
+            raise BackboneError("the tokenizer has no pad token; a Qwen tokenizer uses <|endoftext|>")
+        if not getattr(tok, "chat_template", None):
+            raise BackboneError("the tokenizer has no chat template; use a Qwen-VL tokenizer")
+        specials = {}
+        for token in (IMAGE_PAD, VISION_START, VISION_END):
+            ids = tok.encode(token, add_special_tokens=False)
+            if len(ids) != 1:
+                raise BackboneError(f"the tokenizer has no {token} token: not a Qwen-VL tokenizer")
+            specials[token] = ids[0]
+        query = None
+        head = self.action_head
+        if head.num_query_tokens:
+            if head.query_token not in tok.get_vocab():
+                from tokenizers import AddedToken
+
+                # A special added token: never split, never merged with its neighbours.
+                tok.add_tokens(
+                    [AddedToken(head.query_token, special=True, normalized=False)],
+                    special_tokens=True,
+                )
+            ids = tok.encode(head.query_token, add_special_tokens=False)
+            if len(ids) != 1:
+                raise BackboneError(
+                    f"the action query token {head.query_token!r} encodes to {len(ids)} tokens"
+                )
+            query = ids[0]
+        vocab = self.vlm.get_input_embeddings().num_embeddings
+        if len(tok) > vocab:
+            if not allow_resize:
+                raise BackboneError(
+                    f"the tokenizer has {len(tok)} tokens but the embeddings only {vocab}: load "
+                    "the tokenizer saved with these weights"
+                )
+            self.vlm.resize_token_embeddings(len(tok), pad_to_multiple_of=64)
+            self.config.qwen["text_config"]["vocab_size"] = self.vlm.config.text_config.vocab_size
+        for name, token in (
+            ("image_token_id", IMAGE_PAD),
+            ("vision_start_token_id", VISION_START),
+            ("vision_end_token_id", VISION_END),
+        ):
+            setattr(self.vlm.config, name, specials[token])
+        self._ids = TokenIds(specials[IMAGE_PAD], specials[VISION_START], specials[VISION_END], query)
+        self._tokenizer = tok
+
+    # -- loading -----------------------------------------------------------------------------
+
+    def save_head_weights(self, path: str | Path) -> Path:
+        """The head's parameters alone, as one safetensors file (keys relative to the head)."""
+        from safetensors.torch import save
+
+        from capvector.fileio import atomic_write_bytes
+
+        state = {k: v.detach().cpu().contiguous() for k, v in self.action_head.state_dict().items()}
+        atomic_write_bytes(path, save(state, metadata={"format": "pt"}))
+        return Path(path)
+
+    def load_head_weights(self, path: str | Path) -> None:
+        """Strictly load head weights (keys relative to the head, or prefixed ``action_head.``)."""
+        from safetensors.torch import load_file
+
+        if not Path(path).is_file():
+            raise BackboneError(f"head weights file {path} does not exist")
+        state = {k.removeprefix(HEAD_WEIGHTS_PREFIX): v for k, v in load_file(str(path)).items()}
+        load_state_dict_strictly(self.action_head, state, source=str(path))
+
+    @classmethod
+    def from_qwen(
+        cls,
+        folder: str | Path,
+        preset: str,
+        head_weights: str | Path | None = None,
+        **overrides: Any,
+    ) -> StarVLA:
+        """The VLM from a local transformers Qwen-VL folder (``config.json``, safetensors, tokenizer
+        files), loaded with ``from_pretrained`` and checked strictly; the head from ``head_weights``
+        (safetensors) or freshly initialised. The preset gives the head and the data shapes; the
+        folder gives the VLM architecture, its tokenizer and image statistics."""
+        root = _folder(folder)
+        config = _starvla_config(preset, overrides)
+        version = _qwen_version(config.qwen_version)
+        _check_model_type(root, version, config.qwen_version)
+        _, model_class = version.classes()
+        vlm, info = model_class.from_pretrained(
+            str(root),
+            dtype=torch.float32,
+            attn_implementation=config.attn_implementation,
+            output_loading_info=True,
+        )
+        problems = [
+            f"{len(v)} {k.replace('_', ' ')}, e.g. {sorted(map(str, v))[:3]}"
+            for k in ("missing_keys", "unexpected_keys", "mismatched_keys", "error_msgs")
+            if (v := info.get(k))
+        ]
+        if problems:
+            raise BackboneError(
+                f"{root} does not hold a complete {version.model_class}: " + "; ".join(problems)
+            )
+        config.qwen = _architecture(vlm.config)
+        _read_image_statistics(root, config)
+        # Lightning checkpoints hold no tokenizer files: they reload it from here when first needed.
+        config.tokenizer = str(root)
+        model = cls(config, vlm=vlm, tokenizer=_load_tokenizer(str(root)))
+        if head_weights is not None:
+            model.load_head_weights(head_weights)
+        return model
+
+    @classmethod
+    def from_starvla(
+        cls,
+        checkpoint: str | Path,
+        qwen_folder: str | Path,
+        preset: str,
+        query_token_source: str | None = "🔍",
+        **overrides: Any,
+    ) -> tuple[StarVLA, dict[str, Any]]:
+        """A StarVLA run's ``checkpoints/steps_N_pytorch_model.pt`` (or ``.safetensors``): the full
+        framework state dict, mapped by ``starvla_key_map`` and loaded strictly. Returns the model
+        and the run's ``dataset_statistics.json`` (empty when absent).
+
+        ``qwen_folder`` is the base VLM the run started from (its ``framework.qwenvl.base_vlm``):
+        it gives the architecture and tokenizer; its weights are not read. For OFT heads the query
+        token's embedding row is copied from ``query_token_source``'s (StarVLA's emoji), so the
+        trained query embedding carries over to the added special token.
+        """
+        path = Path(checkpoint)
+        if not path.is_file():
+            raise BackboneError(f"StarVLA checkpoint {path} does not exist")
+        root = _folder(qwen_folder)
+        config = _starvla_config(preset, overrides)
+        version = _qwen_version(config.qwen_version)
+        _check_model_type(root, version, config.qwen_version)
+        config_class, model_class = version.classes()
+        hf_config = config_class.from_pretrained(str(root))
+        config.qwen = _architecture(hf_config)
+        _read_image_statistics(root, config)
+        config.tokenizer = str(root)
+        vlm = model_class._from_config(hf_config, attn_implementation=config.attn_implementation)
+        model = cls(config, vlm=vlm, tokenizer=_load_tokenizer(str(root)))
+        state = starvla_key_map(_read_state(path), model)
+        if model.action_head.num_query_tokens and query_token_source is not None:
+            model._copy_query_embedding(state, query_token_source)
+        load_state_dict_strictly(model, state, source=str(path))
+        stats_path = path.parent.parent / "dataset_statistics.json"
+        stats = json.loads(stats_path.read_text()) if stats_path.is_file() else {}
+        return model, stats
+
+    def _copy_query_embedding(self, state: dict[str, Tensor], source: str) -> None:
+        ids = self.tokenizer.encode(source, add_special_tokens=False)
+        if len(ids) != 1:
+            raise BackboneError(
+                f"query_token_source {source!r} is {len(ids)} tokens in this tokenizer, so it "
+                "cannot have been StarVLA's query token; pass query_token_source=None"
+            )
+        key = "vlm.model.language_model.embed_tokens.weight"
+        if key not in state:
+            raise BackboneError(f"the StarVLA checkpoint has no {key}")
+        embeddings = state[key].clone()
+        embeddings[self._token_ids.query] = embeddings[ids[0]]
+        state[key] = embeddings
+
+
+@dataclass
+class VLMEncoding:
+    input_ids: Tensor
+    """(B, S) token ids (left padded)."""
+    head_input: HeadInput
+    requested: dict[int, Tensor]
+    """Requested layer index -> (B, S, H), contract semantics (pre-norm)."""
+
+
+# -- StarVLA checkpoints -------------------------------------------------------------------------
+
+# StarVLA framework attribute -> ours. transformers >= 4.52 (StarVLA pins 4.57) names the
+# Qwen-VL's submodules model.visual / model.language_model; older runs saved visual.* / model.*.
+_STARVLA_PREFIXES = (
+    ("qwen_vl_interface.model.model.visual.", "vlm.model.visual."),
+    ("qwen_vl_interface.model.model.language_model.", "vlm.model.language_model."),
+    ("qwen_vl_interface.model.visual.", "vlm.model.visual."),
+    ("qwen_vl_interface.model.model.", "vlm.model.language_model."),
+    ("qwen_vl_interface.model.lm_head.", "vlm.lm_head."),
+    ("action_model.", "action_head."),
+    ("project_layers.", "action_head.projectors."),  # QwenPI_v3's per-layer projectors
+)
+
+
+def starvla_key_map(state: Mapping[str, Tensor], model: StarVLA) -> dict[str, Tensor]:
+    """StarVLA framework state dict -> ours. Keys of modules StarVLA builds but never runs are
+    dropped by name; any other unknown key is left for the strict loader to report."""
+    dropped = _starvla_unused_prefixes(model)
+    mapped: dict[str, Tensor] = {}
+    for key, value in state.items():
+        if key.startswith(dropped):
+            continue
+        for old, new in _STARVLA_PREFIXES:
+            if key.startswith(old):
+                key = new + key[len(old) :]
+                break
+        mapped[key] = value
+    if _tied(model):
+        mapped.pop("vlm.lm_head.weight", None)  # the embedding matrix under a second name
+    return mapped
+
+
+def _starvla_unused_prefixes(model: StarVLA) -> tuple[str, ...]:
+    unused = []
+    head = model.action_head
+    if getattr(head, "state_encoder", "absent") is None:
+        # StarVLA builds a state encoder whenever state_dim is set, also when the state goes into
+        # the prompt (QwenPI_v3) or is never given.
+        unused.append("action_model.state_encoder.")
+    if model.config.head == "layerwise":
+        # LayerwiseFM's DiT builds GR00T's output projection but its forward skips it.
+        unused += ["action_model.model.proj_out_1.", "action_model.model.proj_out_2."]
+    return tuple(unused)
+
+
+# -- helpers -------------------------------------------------------------------------------------
+
+
+def _state(batch: Mapping[str, Any]) -> Tensor:
+    if keys.PROPRIO not in batch:
+        raise BackboneError(
+            f"state_mode needs `{keys.PROPRIO}` in the batch; set state_mode='none' for data "
+            "without proprioception"
+        )
+    return batch[keys.PROPRIO]
+
+
+def _qwen_version(name: str) -> QwenVersion:
+    if name not in QWEN_VERSIONS:
+        raise BackboneError(f"unknown qwen_version {name!r}; use one of {sorted(QWEN_VERSIONS)}")
+    return QWEN_VERSIONS[name]
+
+
+def _starvla_config(preset: str, overrides: Mapping[str, Any]) -> StarVLAConfig:
+    config = preset_config(preset, **overrides)
+    if not isinstance(config, StarVLAConfig):
+        raise BackboneError(f"preset {preset!r} is not a StarVLA preset (starvla-*)")
+    head_class(config.head)  # unknown heads fail before any weights are read
+    return config
+
+
+def _folder(folder: str | Path) -> Path:
+    root = Path(folder)
+    if not (root / "config.json").is_file():
+        raise BackboneError(
+            f"{root} is not a local transformers model folder (no config.json); download the "
+            "checkpoint where the network allows and pass the folder"
+        )
+    return root
+
+
+def _check_model_type(root: Path, version: QwenVersion, name: str) -> None:
+    model_type = json.loads((root / "config.json").read_text()).get("model_type")
+    if model_type != version.model_type:
+        other = [k for k, v in QWEN_VERSIONS.items() if v.model_type == model_type]
+        hint = f"; pass qwen_version={other[0]!r} or a matching preset" if other else ""
+        raise BackboneError(
+            f"{root} holds a {model_type!r} model but qwen_version is {name!r} "
+            f"(expects {version.model_type!r}){hint}"
+        )
+
+
+_NOT_ARCHITECTURE = {
+    "transformers_version", "architectures", "dtype", "torch_dtype", "_name_or_path",
+    "model_type", "image_token_id", "video_token_id", "vision_start_token_id",
+    "vision_end_token_id",
+}  # fmt: skip
+
+
+def _architecture(hf_config: Any) -> dict[str, Any]:
+    """transformers config -> ``StarVLAConfig.qwen`` (architecture only; ids come from the tokenizer)."""
+    raw = hf_config.to_dict()
+    out = {k: v for k, v in raw.items() if k not in _NOT_ARCHITECTURE and not k.startswith("_")}
+    for sub in ("text_config", "vision_config"):
+        out[sub] = {
+            k: v
+            for k, v in raw[sub].items()
+            if k not in _NOT_ARCHITECTURE and not k.startswith("_")
+        }
+    return json.loads(json.dumps(out))
+
+
+def _read_image_statistics(root: Path, config: StarVLAConfig) -> None:
+    path = root / "preprocessor_config.json"
+    if path.is_file():
+        pre = json.loads(path.read_text())
+        config.image_mean = tuple(pre.get("image_mean", config.image_mean))
+        config.image_std = tuple(pre.get("image_std", config.image_std))
+
+
+def _read_state(path: Path) -> dict[str, Tensor]:
+    if path.suffix == ".safetensors":
+        from safetensors.torch import load_file
+
+        return load_file(str(path))
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    if not isinstance(state, Mapping):
+        raise BackboneError(f"{path} does not hold a state dict")
+    return dict(state)
+
+
+def _tied(model: StarVLA) -> bool:
+    vlm = model.vlm
+    return vlm.lm_head.weight is vlm.get_input_embeddings().weight
+
+
+def _drop_tied_lm_head(
+    module: StarVLA, state_dict: dict[str, Any], prefix: str, _metadata: Any
+) -> None:
+    if _tied(module):
+        state_dict.pop(prefix + "vlm.lm_head.weight", None)
+
+
+def _restore_tied_lm_head(
+    module: StarVLA, state_dict: dict[str, Any], prefix: str, *_args: Any
+) -> None:
+    embed = prefix + "vlm.model.language_model.embed_tokens.weight"
+    head = prefix + "vlm.lm_head.weight"
+    if _tied(module) and head not in state_dict and embed in state_dict:
+        state_dict[head] = state_dict[embed]
+

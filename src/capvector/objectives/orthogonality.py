@@ -1,0 +1,352 @@
+"""Orthogonal regularisation: keep the downstream update Δ = θ − θ_meta from undoing c.
+
+Per vector tensor c_l the penalty is on ⟨Δ_l, c_l⟩ (research B4), normalised per tensor:
+
+- ``squared_projection``: ⟨Δ, c⟩² / ‖c‖², the energy of Δ along ĉ;
+- ``squared_cosine``: ⟨Δ, c⟩² / (‖Δ‖²‖c‖² + eps), scale-free (needs ‖Δ‖, so LoRA terms only).
+
+Three ways to get Δ:
+
+- ``full`` (full fine-tuning): ⟨Δ, c⟩ = ⟨θ, c⟩ − ⟨θ_meta, c⟩. The scalars ⟨θ_meta, c⟩ ("anchors") are
+  computed once by ``bind`` and saved in checkpoints; no copy of θ_meta is kept.
+- ``lora``: Δ = s·B A of a peft LoRA layer, never formed: ⟨sBA, c⟩ = s·Σ((Bᵀc) ∘ A), or with a
+  low-rank c = B_c A_c, s·Σ((BᵀB_c) ∘ (A A_cᵀ)) in O(r·k·(d_in + d_out)); ‖sBA‖² = s²·Σ((BᵀB) ∘ (AAᵀ)).
+  Trainable parameters the vector covers that are not LoRA layers (e.g. a fully trained projector)
+  get ``full`` terms.
+- ``olora``: O-LoRA's loss (Wang et al. 2023, cmnfriend/O-LoRA ``uie_trainer_lora.py``) between the
+  vector's A_c and the new LoRA A: Σ|A_c A_newᵀ|. A_c·A_newᵀ = 0 is sufficient for ⟨BA, B_cA_c⟩ = 0
+  and also stops the update from reading the inputs c reads (research B1). It needs a low-rank
+  vector (``capvector extract --rank``).
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import torch
+from torch import Tensor, nn
+
+from capvector.vectors import CapabilityVector, CapVectorError, load_vector, match_tensors
+
+Mode = Literal["full", "lora", "olora"]
+Normalization = Literal["squared_projection", "squared_cosine"]
+MODES = ("full", "lora", "olora")
+NORMALIZATIONS = ("squared_projection", "squared_cosine")
+
+_CHUNK = 1 << 22
+"""Elements per chunk of the float64-accumulated inner products (bounds their temporary memory)."""
+
+
+def _inner64(theta: Tensor, c: Tensor | None, c_b: Tensor | None, c_a: Tensor | None) -> Tensor:
+    """⟨θ, c⟩ accumulated in float64, chunk by chunk; c dense or c = c_b @ c_a."""
+    total = torch.zeros((), dtype=torch.float64, device=theta.device)
+    if c is not None:
+        flat_theta, flat_c = theta.reshape(-1), c.reshape(-1)
+        for start in range(0, flat_theta.numel(), _CHUNK):
+            part = (
+                flat_theta[start : start + _CHUNK].float() * flat_c[start : start + _CHUNK].float()
+            )
+            total += part.sum(dtype=torch.float64)
+        return total
+    assert c_b is not None and c_a is not None
+    # ⟨θ, B_c A_c⟩ = Σ((B_cᵀθ) ∘ A_c); rows of θ are taken a chunk at a time.
+    rows = max(1, _CHUNK // max(1, theta.shape[1]))
+    projected = torch.zeros(c_b.shape[1], theta.shape[1], dtype=torch.float32, device=theta.device)
+    for start in range(0, theta.shape[0], rows):
+        projected += c_b[start : start + rows].T @ theta[start : start + rows].float()
+    return (projected * c_a).sum(dtype=torch.float64)
+
+
+class _FrozenInnerProduct(torch.autograd.Function):
+    """⟨θ, c⟩ for a constant c. Autograd of ``(θ.float() * c).sum()`` would keep a float32 copy of
+    every bf16 parameter alive until backward; this keeps only (a reference to) c."""
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx: Any, theta: Tensor, c: Tensor | None, c_b: Tensor | None, c_a: Tensor | None
+    ) -> Tensor:
+        ctx.save_for_backward(c, c_b, c_a)
+        ctx.theta_dtype = theta.dtype
+        return _inner64(theta.detach(), c, c_b, c_a)
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor, None, None, None]:  # type: ignore[override]
+        c, c_b, c_a = ctx.saved_tensors
+        dense = c.float() if c is not None else c_b @ c_a
+        return (grad.float() * dense).to(ctx.theta_dtype), None, None, None
+
+
+@dataclass
+class _Term:
+    index: int
+    key: str
+    kind: str
+    """"full" (θ − anchor), "lora" (s·BA) or "olora" (Σ|A_c A_newᵀ|)."""
+    param: Tensor | None = None
+    layer: nn.Module | None = None
+
+
+def _is_lora_layer(module: nn.Module | None, adapter: str) -> bool:
+    # Duck-typed peft ``LoraLayer`` (importing peft costs seconds; this module must stay light).
+    lora_a = getattr(module, "lora_A", None)
+    return isinstance(lora_a, nn.ModuleDict) and adapter in lora_a and hasattr(module, "scaling")
+
+
+class OrthogonalityLoss(nn.Module):
+    """Σ over vector tensors of the normalised squared projection of the update on c.
+
+    ``forward`` returns the unweighted penalty (the caller multiplies by ``weight``) and fills
+    ``last_stats`` with detached scalars for logging: ``mean_abs_projection`` (mean |⟨Δ, c⟩|/‖c‖²,
+    the fraction of c added or undone), ``mean_abs_cos`` (LoRA terms) and ``num_terms``.
+
+    Call ``bind(backbone)`` once the backbone holds θ_meta (after the vector was merged): it pairs
+    vector tensors with parameters and records the anchors of ``full`` terms. Anchors are buffers
+    saved in checkpoints; ``bind`` keeps anchors that were loaded (``anchored`` flags), so resuming
+    never re-anchors at a trained θ.
+
+    Args:
+        vector: a vector folder (full, low-rank or PEFT), a ``CapabilityVector`` or {name: c}.
+        mode: ``"full"``, ``"lora"`` or ``"olora"`` (see the module docstring).
+        normalization: ``"squared_projection"`` or ``"squared_cosine"`` (not in ``full`` mode:
+            ‖Δ‖ would need a copy of θ_meta).
+        weight: the loss weight, for the caller.
+        eps: added to the cosine's denominator.
+        adapter_name: the peft adapter holding the downstream LoRA.
+    """
+
+    def __init__(
+        self,
+        vector: str | Path | Mapping[str, Tensor] | CapabilityVector,
+        mode: Mode = "full",
+        normalization: Normalization = "squared_projection",
+        weight: float = 1.0,
+        eps: float = 1e-12,
+        adapter_name: str = "default",
+        name: str = "orthogonality",
+    ) -> None:
+        super().__init__()
+        if mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+        if normalization not in NORMALIZATIONS:
+            raise ValueError(
+                f"normalization must be one of {NORMALIZATIONS}, got {normalization!r}"
+            )
+        if mode == "full" and normalization == "squared_cosine":
+            raise ValueError(
+                "squared_cosine needs ‖Δ‖ = ‖θ − θ_meta‖, which full mode cannot compute without a "
+                "copy of θ_meta; use squared_projection, or mode='lora'"
+            )
+        self.name = name
+        self.mode = mode
+        self.normalization = normalization
+        self.weight = float(weight)
+        self.eps = eps
+        self.adapter_name = adapter_name
+
+        vec = load_vector(vector)
+        vec.check()
+        self.keys: list[str] = vec.keys()
+        norms = []
+        for i, key in enumerate(self.keys):
+            if key in vec.lowrank:
+                b, a = vec.lowrank[key].scaled()
+                self.register_buffer(f"c_b_{i}", b.contiguous(), persistent=False)
+                self.register_buffer(f"c_a_{i}", a.contiguous(), persistent=False)
+            else:
+                dense = vec.dense[key].detach()
+                # full terms read c in chunks and keep its stored dtype (memory); LoRA terms use it
+                # in matmuls with float32 factors, so they get it in float32 once.
+                dense = dense if mode == "full" else dense.float()
+                self.register_buffer(f"c_{i}", dense.contiguous(), persistent=False)
+            norms.append(vec.norm_sq(key))
+        self.register_buffer(
+            "c_norm_sq", torch.tensor(norms, dtype=torch.float64), persistent=False
+        )
+        self._zero = {i for i, n in enumerate(norms) if n == 0.0}
+        self.register_buffer("anchors", torch.zeros(len(self.keys), dtype=torch.float64))
+        self.register_buffer("anchored", torch.zeros(len(self.keys), dtype=torch.bool))
+        self._terms: list[_Term] = []
+        self.frozen: list[str] = []
+        """Vector keys left out by ``bind``: their parameters are frozen, so Δ = 0 there."""
+        self.last_stats: dict[str, Tensor] = {}
+
+    # -- pairing ----------------------------------------------------------------------------
+
+    def _vector(self, i: int) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
+        return (
+            self._buffers.get(f"c_{i}"),
+            self._buffers.get(f"c_b_{i}"),
+            self._buffers.get(f"c_a_{i}"),
+        )
+
+    def bind(self, backbone: nn.Module) -> OrthogonalityLoss:
+        """Pair every vector tensor with the backbone's parameter or LoRA layer; set missing anchors.
+
+        ``X.weight`` pairs with the parameter ``X.weight`` or, under peft, ``X.base_layer.weight``,
+        whose LoRA layer ``X`` gives Δ in ``lora``/``olora`` mode. Raises ``CapVectorError`` when a
+        vector tensor has no parameter of the same shape.
+        """
+        get_base = getattr(backbone, "get_base_model", None)
+        model = get_base() if callable(get_base) else backbone  # a PeftModel wraps the backbone
+        resolved = match_tensors(model, self.keys)
+        modules = dict(model.named_modules())
+        terms, frozen = [], []
+        for i, key in enumerate(self.keys):
+            name, param = resolved[key]
+            c, c_b, _ = self._vector(i)
+            shape = (
+                tuple(c.shape)
+                if c is not None
+                else (c_b.shape[0], self._buffers[f"c_a_{i}"].shape[1])
+            )  # type: ignore[union-attr]
+            if tuple(param.shape) != shape:
+                raise CapVectorError(
+                    f"vector tensor `{key}` has shape {shape} but the model's `{name}` has "
+                    f"{tuple(param.shape)}; the vector belongs to another architecture or preset"
+                )
+            owner = (
+                name.removesuffix(".base_layer.weight")
+                if name.endswith(".base_layer.weight")
+                else None
+            )
+            layer = modules.get(owner) if owner is not None else None
+            if _is_lora_layer(layer, self.adapter_name):
+                if self.mode == "full":
+                    raise CapVectorError(
+                        f"`{owner}` is a LoRA layer: its update is s·B·A, not a change of "
+                        f"`{name}`; use mode='lora' (or 'olora') for LoRA fine-tuning"
+                    )
+                if getattr(layer, "fan_in_fan_out", False) or getattr(layer, "use_dora", {}).get(
+                    self.adapter_name
+                ):
+                    raise CapVectorError(
+                        f"`{owner}`: fan_in_fan_out and DoRA LoRA layers are not supported"
+                    )
+                if self.mode == "olora" and c_b is None:
+                    raise CapVectorError(
+                        f"mode='olora' needs the vector in low-rank form, but `{key}` is dense; "
+                        "extract it with --rank or --energy"
+                    )
+                terms.append(_Term(i, key, self.mode, layer=layer))
+            elif self.mode == "full" or param.requires_grad:
+                terms.append(_Term(i, key, "full", param=param))
+            else:
+                frozen.append(key)
+        fallback = [t.key for t in terms if t.kind == "full"]
+        if self.normalization == "squared_cosine" and fallback:
+            warnings.warn(
+                f"{len(fallback)} trainable non-LoRA tensor(s) (e.g. `{fallback[0]}`) use "
+                "squared_projection: their cosine would need a copy of θ_meta",
+                stacklevel=2,
+            )
+        with torch.no_grad():
+            for t in terms:
+                if t.kind == "full" and not bool(self.anchored[t.index]):
+                    c, c_b, c_a = self._vector(t.index)
+                    assert t.param is not None
+                    self.anchors[t.index] = _inner64(t.param.detach(), c, c_b, c_a).to(
+                        self.anchors.device
+                    )
+                    self.anchored[t.index] = True
+        self._terms = terms
+        self.frozen = frozen
+        return self
+
+    def reset_anchors(self) -> None:
+        """Forget the anchors, so the next ``bind`` takes the current θ as θ_meta."""
+        self.anchored.zero_()
+        self.anchors.zero_()
+
+    @property
+    def bound(self) -> bool:
+        return bool(self._terms)
+
+    # -- loss -------------------------------------------------------------------------------
+
+    def forward(
+        self, batch: Any = None, output: Any = None, backbone: nn.Module | None = None
+    ) -> Tensor:
+        """The unweighted penalty, summed over tensors; binds to ``backbone`` on first use."""
+        if not self._terms:
+            if backbone is None:
+                raise RuntimeError(
+                    f"{type(self).__name__}: call bind(backbone) before the first forward"
+                )
+            self.bind(backbone)
+        device = self.c_norm_sq.device
+        total = torch.zeros((), dtype=torch.float32, device=device)
+        projections, cosines = [], []
+        for t in self._terms:
+            if t.index in self._zero:
+                continue
+            c, c_b, c_a = self._vector(t.index)
+            c_sq = self.c_norm_sq[t.index].float()
+            if t.kind == "full":
+                inner = _FrozenInnerProduct.apply(t.param, c, c_b, c_a) - self.anchors[t.index]
+                inner = inner.float()
+                term = inner.square() / c_sq
+            else:
+                a, b, s = self._lora_factors(t)
+                if t.kind == "olora":
+                    term = (c_a @ a.T).abs().sum()  # type: ignore[operator]
+                    with torch.no_grad():  # for the stats only
+                        inner = s * _lora_inner(b, a, c, c_b, c_a)
+                else:
+                    inner = s * _lora_inner(b, a, c, c_b, c_a)
+                    delta_sq = s * s * ((b.T @ b) * (a @ a.T)).sum()
+                    if self.normalization == "squared_cosine":
+                        term = inner.square() / (c_sq * delta_sq + self.eps)
+                    else:
+                        term = inner.square() / c_sq
+                    with torch.no_grad():
+                        cosines.append(inner.abs() / (c_sq * delta_sq + self.eps).sqrt())
+            total = total + term.to(total.device)
+            projections.append((inner.detach().abs() / c_sq).to(device))
+        stats = {"num_terms": torch.tensor(float(len(projections)), device=device)}
+        if projections:
+            stats["mean_abs_projection"] = torch.stack(projections).mean()
+        if cosines:
+            stats["mean_abs_cos"] = torch.stack([x.to(device) for x in cosines]).mean()
+        self.last_stats = stats
+        return total
+
+    def _lora_factors(self, t: _Term) -> tuple[Tensor, Tensor, float]:
+        layer = t.layer
+        assert layer is not None
+        a = layer.lora_A[self.adapter_name].weight.float()  # type: ignore[index]
+        b = layer.lora_B[self.adapter_name].weight.float()  # type: ignore[index]
+        return a, b, float(layer.scaling[self.adapter_name])  # type: ignore[index]
+
+    # -- dtype safety -----------------------------------------------------------------------
+
+    def _apply(self, fn: Callable[[Tensor], Tensor], recurse: bool = True) -> OrthogonalityLoss:
+        # Device moves apply, dtype casts do not: bf16-true precision calls module.to(bf16), which
+        # would round c and the anchors so that ⟨θ_meta, c⟩ − anchor is no longer 0 at the start.
+        for key, buf in self._buffers.items():
+            if buf is None:
+                continue
+            moved = fn(buf)
+            self._buffers[key] = moved if moved.dtype == buf.dtype else buf.to(moved.device)
+        if recurse:
+            for child in self.children():
+                child._apply(fn)
+        return self
+
+    def extra_repr(self) -> str:
+        return (
+            f"mode={self.mode!r}, normalization={self.normalization!r}, weight={self.weight}, "
+            f"tensors={len(self.keys)}, bound={self.bound}"
+        )
+
+
+def _lora_inner(
+    b: Tensor, a: Tensor, c: Tensor | None, c_b: Tensor | None, c_a: Tensor | None
+) -> Tensor:
+    """⟨B A, c⟩ without forming B A: Σ((Bᵀc) ∘ A), or Σ((BᵀB_c) ∘ (A A_cᵀ)) for c = B_c A_c."""
+    if c is not None:
+        return ((b.T @ c) * a).sum()
+    return ((b.T @ c_b) * (a @ c_a.T)).sum()  # type: ignore[operator]

@@ -1,0 +1,374 @@
+"""``capvector demos``: record scripted-expert demonstrations to a robomimic/LIBERO-layout HDF5.
+
+Layout (robomimic ``docs/datasets/overview.md``, plus LIBERO's per-demo language)::
+
+    data                      attrs: env_args (JSON: env_name, type=1, env_version, env_kwargs),
+                              total, language_instruction, cameras (JSON list),
+                              <camera>_intrinsics (3x3 px), camera_fovy (JSON), image_size,
+                              proprio_keys (JSON), noise_std, expert
+    data/demo_<i>             attrs: num_samples, model_file (MJCF), seed,
+                              language_instruction, first_success (step index)
+        actions               (T, 7) float32  clean expert action; gripper -1 open / +1 closed
+        executed_actions      (T, 7) float32  what the env executed: action + DART noise on xyz
+        states                (T, D) float64  flattened sim state [time, qpos, qvel] before step t
+        rewards, dones        (T,)            sparse reward after step t; 1 from the first success
+        annotations           (T,) str        what the expert does at step t, where things are
+        obs/<camera>_image    (T, H, W, 3) uint8 upright (row 0 = top of the picture)
+        obs/<camera>_depth    (T, H, W) float32 metres along the optical axis (--depth)
+        obs/robot0_eef_pos (T,3), robot0_eef_quat (T,4) xyzw, robot0_eef_axis_angle (T,3),
+        obs/robot0_gripper_qpos (T,2), object positions/quaternions, e.g. cube_pos, cube_quat
+
+Row t of every per-step dataset describes the same moment: the observation before action t.
+
+DART-style noise (Laskey et al. 2017, as in the feasibility study): the env executes the expert's
+action plus N(0, noise) on the xyz dims while the *clean* action is the label, so the demos visit
+the states a slightly-off policy reaches and show how to recover. A replay of ``executed_actions``
+from the demo's seed reproduces the episode exactly (see ``tests/test_sim_rollout.py``).
+
+Seeds: episode attempts use consecutive seeds from ``--seed``; failed attempts are skipped, so the
+saved demos record their seed. Evaluation must use seeds no demo used: ``capvector.sim.rollout``
+starts its default evaluation seeds at ``EVAL_SEED_START`` (1,000,000).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+from tqdm import tqdm
+
+from capvector.sim.annotations import Annotator
+from capvector.sim.envs import (
+    DEFAULT_CAMERAS,
+    DEFAULT_IMAGE_SIZE,
+    PROPRIO_KEYS,
+    TASKS,
+    SimEnv,
+    SimulationFault,
+)
+from capvector.sim.experts import ScriptedExpert, make_expert
+
+log = logging.getLogger(__name__)
+
+DEFAULT_NOISE = 0.1
+"""Std of the DART noise on the xyz action dims (0.1 ≈ 5 mm per step)."""
+DEFAULT_EXTRA_STEPS = 6
+"""Steps recorded after the first success, so a policy also learns to hold the result."""
+
+
+@dataclass
+class Episode:
+    """One recorded episode, arrays stacked over its T steps."""
+
+    seed: int
+    first_success: int
+    actions: np.ndarray
+    executed_actions: np.ndarray
+    states: np.ndarray
+    rewards: np.ndarray
+    dones: np.ndarray
+    annotations: list[str]
+    obs: dict[str, np.ndarray]
+
+    @property
+    def num_samples(self) -> int:
+        return int(self.actions.shape[0])
+
+
+@dataclass
+class RecordingSummary:
+    path: Path
+    demos: int
+    attempts: int
+    samples: int
+    seeds: list[int] = field(default_factory=list)
+    lengths: list[int] = field(default_factory=list)
+    seconds: float = 0.0
+
+    @property
+    def success_rate(self) -> float:
+        return self.demos / max(self.attempts, 1)
+
+
+def record_episode(
+    sim: SimEnv,
+    expert: ScriptedExpert,
+    annotator: Annotator,
+    seed: int,
+    *,
+    noise: float = DEFAULT_NOISE,
+    extra_steps: int = DEFAULT_EXTRA_STEPS,
+    render: bool = True,
+) -> Episode | None:
+    """Run the expert from ``seed``'s initial state; the episode, or None if it failed.
+
+    An episode fails when the task is not solved within the task's step limit, when it is not
+    solved anymore at the last recorded step, or on a :class:`SimulationFault`.
+    """
+    obs = sim.reset(seed)
+    expert.reset()
+    annotator.reset(obs)
+    # Noise stream tied to the seed, independent of how many attempts came before.
+    rng = np.random.default_rng([seed, 0xDA27])
+    rows: dict[str, list[np.ndarray]] = {}
+    actions, executed, states, rewards, dones, notes = [], [], [], [], [], []
+    first_success = -1
+    for t in range(sim.max_steps + extra_steps):
+        obs = sim.observation
+        if render:
+            images, depth = sim.render()
+            for cam, img in images.items():
+                rows.setdefault(f"{cam}_image", []).append(img)
+            for cam, dep in (depth or {}).items():
+                rows.setdefault(f"{cam}_depth", []).append(dep)
+        for key, value in obs.items():
+            rows.setdefault(key, []).append(value)
+        step = expert.act(obs)
+        action = step.action
+        noisy = action.copy()
+        if noise > 0:
+            noisy[:3] = np.clip(noisy[:3] + rng.normal(0.0, noise, 3), -1.0, 1.0)
+        notes.append(annotator(step, obs))
+        states.append(sim.flat_state())
+        try:
+            reward = sim.step(noisy)
+        except SimulationFault as e:
+            log.warning("seed %d: %s; episode dropped", seed, e)
+            return None
+        actions.append(action)
+        executed.append(noisy)
+        rewards.append(reward)
+        success = sim.success()
+        if success and first_success < 0:
+            first_success = t
+        dones.append(int(first_success >= 0))
+        if first_success < 0 and t + 1 >= sim.max_steps:
+            return None
+        if first_success >= 0 and t >= first_success + extra_steps:
+            if not success:
+                return None
+            break
+    return Episode(
+        seed=seed,
+        first_success=first_success,
+        actions=np.asarray(actions, dtype=np.float32),
+        executed_actions=np.asarray(executed, dtype=np.float32),
+        states=np.asarray(states, dtype=np.float64),
+        rewards=np.asarray(rewards, dtype=np.float64),
+        dones=np.asarray(dones, dtype=np.int64),
+        annotations=notes,
+        obs={key: np.stack(values) for key, values in rows.items()},
+    )
+
+
+def _write_demo(group: h5py.Group, ep: Episode, sim: SimEnv, model_xml: str) -> None:
+    group.attrs["num_samples"] = ep.num_samples
+    group.attrs["model_file"] = model_xml
+    group.attrs["seed"] = ep.seed
+    group.attrs["language_instruction"] = sim.instruction
+    group.attrs["first_success"] = ep.first_success
+    group.create_dataset("actions", data=ep.actions)
+    group.create_dataset("executed_actions", data=ep.executed_actions)
+    group.create_dataset("states", data=ep.states)
+    group.create_dataset("rewards", data=ep.rewards)
+    group.create_dataset("dones", data=ep.dones)
+    group.create_dataset(
+        "annotations", data=ep.annotations, dtype=h5py.string_dtype(encoding="utf-8")
+    )
+    obs = group.create_group("obs")
+    for key, value in ep.obs.items():
+        if key.endswith(("_image", "_depth")):
+            # One chunk per frame: a data loader reads random frames, gzip shrinks them ~3x.
+            obs.create_dataset(
+                key, data=value, chunks=(1, *value.shape[1:]), compression="gzip", compression_opts=4
+            )
+        else:
+            obs.create_dataset(key, data=value)
+
+
+def _write_data_attrs(data: h5py.Group, sim: SimEnv, total: int, noise: float, expert: str) -> None:
+    data.attrs["env_args"] = json.dumps(sim.env_args())
+    data.attrs["total"] = total
+    data.attrs["language_instruction"] = sim.instruction
+    data.attrs["cameras"] = json.dumps(list(sim.cameras))
+    for cam, k in sim.intrinsics().items():
+        data.attrs[f"{cam}_intrinsics"] = k
+    data.attrs["camera_fovy"] = json.dumps(sim.camera_fovy)
+    data.attrs["image_size"] = sim.image_size
+    data.attrs["proprio_keys"] = json.dumps(list(PROPRIO_KEYS))
+    data.attrs["noise_std"] = noise
+    data.attrs["expert"] = expert
+
+
+def record_demos(
+    task: str,
+    episodes: int,
+    out: str | os.PathLike[str],
+    *,
+    robot: str = "Panda",
+    gripper: str | None = None,
+    cameras: Sequence[str] = DEFAULT_CAMERAS,
+    image_size: int = DEFAULT_IMAGE_SIZE,
+    depth: bool = False,
+    seed: int = 0,
+    noise: float = DEFAULT_NOISE,
+    extra_steps: int = DEFAULT_EXTRA_STEPS,
+    max_attempts: int | None = None,
+    camera_fovy: Mapping[str, float] | None = None,
+    progress: bool = True,
+    sim: SimEnv | None = None,
+) -> RecordingSummary:
+    """Record ``episodes`` successful expert demos of ``task`` into ``out`` (written atomically).
+
+    Attempts use seeds ``seed, seed+1, ...`` until ``episodes`` succeed; more than
+    ``max_attempts`` (default ``max(2 * episodes, episodes + 20)``) attempts is an error and
+    leaves no file behind. ``sim`` reuses an existing env (its task/robot/cameras win).
+    """
+    if episodes < 1:
+        raise ValueError(f"episodes must be at least 1, got {episodes}")
+    if max_attempts is None:
+        max_attempts = max(2 * episodes, episodes + 20)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    own_sim = sim is None
+    if sim is None:
+        sim = SimEnv(
+            task,
+            robot,
+            gripper=gripper,
+            cameras=cameras,
+            image_size=image_size,
+            depth=depth,
+            camera_fovy=camera_fovy,
+        )
+    expert = make_expert(sim)
+    annotator = Annotator(sim.task, sim.spec)
+    model_xml = sim.model_xml()
+    summary = RecordingSummary(path=out, demos=0, attempts=0, samples=0)
+    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
+    start = time.perf_counter()
+    bar = tqdm(total=episodes, desc=f"{sim.task} demos", unit="demo", disable=not progress)
+    try:
+        with h5py.File(tmp, "w") as f:
+            data = f.create_group("data")
+            while summary.demos < episodes:
+                if summary.attempts >= max_attempts:
+                    raise RuntimeError(
+                        f"the {sim.task} expert on {sim.robot} succeeded in only {summary.demos} "
+                        f"of {summary.attempts} attempts (seeds {seed}..{seed + summary.attempts - 1}),"
+                        f" short of the {episodes} demos asked for: raise --max-attempts or lower "
+                        f"--noise (now {noise})"
+                    )
+                attempt_seed = seed + summary.attempts
+                summary.attempts += 1
+                ep = record_episode(
+                    sim, expert, annotator, attempt_seed, noise=noise, extra_steps=extra_steps
+                )
+                if ep is not None:
+                    _write_demo(data.create_group(f"demo_{summary.demos}"), ep, sim, model_xml)
+                    summary.demos += 1
+                    summary.samples += ep.num_samples
+                    summary.seeds.append(ep.seed)
+                    summary.lengths.append(ep.first_success + 1)
+                    bar.update(1)
+                bar.set_postfix(attempts=summary.attempts, success=f"{summary.success_rate:.0%}")
+            _write_data_attrs(data, sim, summary.samples, noise, type(expert).__name__)
+        os.replace(tmp, out)
+    finally:
+        bar.close()
+        tmp.unlink(missing_ok=True)
+        if own_sim:
+            sim.close()
+    summary.seconds = time.perf_counter() - start
+    return summary
+
+
+def _parse_fovy(items: Sequence[str]) -> dict[str, float]:
+    fovy = {}
+    for item in items:
+        cam, sep, deg = item.partition("=")
+        try:
+            fovy[cam] = float(deg)
+        except ValueError:
+            sep = ""
+        if not sep or not cam:
+            raise argparse.ArgumentTypeError(f"--fovy takes CAMERA=DEGREES, got {item!r}")
+    return fovy
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="capvector demos",
+        description="Record scripted-expert demonstrations (robosuite 1.5) to robomimic-layout HDF5.",
+    )
+    p.add_argument("--task", required=True, choices=sorted(TASKS))
+    p.add_argument("--episodes", type=int, required=True, help="successful demos to save")
+    p.add_argument("--out", required=True, help="HDF5 file to write (atomically)")
+    p.add_argument("--robot", default="Panda", help="robosuite arm: Panda, IIWA, UR5e, Kinova3, ...")
+    p.add_argument(
+        "--gripper",
+        default=None,
+        help="gripper override, e.g. PandaGripper (arms whose default gripper has 6 joints need one)",
+    )
+    p.add_argument("--image-size", type=int, default=DEFAULT_IMAGE_SIZE)
+    p.add_argument("--cameras", nargs="+", default=list(DEFAULT_CAMERAS))
+    p.add_argument("--depth", action="store_true", help="also store <camera>_depth in metres")
+    p.add_argument("--seed", type=int, default=0, help="first seed; attempts use seed, seed+1, ...")
+    p.add_argument("--noise", type=float, default=DEFAULT_NOISE, help="DART noise std on xyz")
+    p.add_argument("--extra-steps", type=int, default=DEFAULT_EXTRA_STEPS)
+    p.add_argument("--max-attempts", type=int, default=None)
+    p.add_argument(
+        "--fovy",
+        nargs="*",
+        default=[],
+        metavar="CAMERA=DEG",
+        help="override a camera's vertical field of view (task defaults: Lift/Stack agentview=35)",
+    )
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``capvector demos``; returns the process exit code."""
+    args = build_parser().parse_args(argv)
+    try:
+        summary = record_demos(
+            args.task,
+            args.episodes,
+            args.out,
+            robot=args.robot,
+            gripper=args.gripper,
+            cameras=args.cameras,
+            image_size=args.image_size,
+            depth=args.depth,
+            seed=args.seed,
+            noise=args.noise,
+            extra_steps=args.extra_steps,
+            max_attempts=args.max_attempts,
+            camera_fovy=_parse_fovy(args.fovy),
+            progress=not args.no_progress,
+        )
+    except (RuntimeError, ValueError, KeyError, argparse.ArgumentTypeError) as e:
+        print(f"capvector demos: error: {e}", file=sys.stderr)
+        return 1
+    lengths = np.asarray(summary.lengths)
+    print(
+        f"wrote {summary.demos} {args.task} demos ({args.robot}, {summary.samples} samples) to "
+        f"{summary.path}: expert success {summary.demos}/{summary.attempts} attempts "
+        f"({summary.success_rate:.1%}), steps to success mean {lengths.mean():.1f} "
+        f"max {lengths.max()}, {summary.seconds / summary.demos:.2f} s/demo"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,101 @@
+"""A short fit run as its own program, so Lightning can launch 2 CPU processes (gloo) for it.
+
+Used by tests/test_distributed.py: the same run on 1 process and on 2 processes (DDP or FSDP2 via
+``ModelParallelStrategy``) must give the same loss curve and the same exported weights.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import lightning as L
+import torch
+import torch.distributed as dist
+
+from capvector.callbacks import ExportOnFitEnd
+from capvector.data.datamodule import RobotDataModule
+from capvector.lora import LoraSettings
+from capvector.module import VLAModule
+
+
+class RecordGlobalLoss(L.Callback):
+    """Writes the loss averaged over ranks at every step (rank 0 writes the JSON file)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.losses: list[float] = []
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:  # noqa: ANN001
+        loss = outputs["loss"].detach().clone()
+        if dist.is_initialized():
+            dist.all_reduce(loss)
+            loss /= dist.get_world_size()
+        self.losses.append(loss.item())
+
+    def on_fit_end(self, trainer, pl_module) -> None:  # noqa: ANN001
+        if trainer.is_global_zero:
+            self.path.write_text(json.dumps(self.losses))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--data", required=True)
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--devices", type=int, default=1)
+    parser.add_argument("--strategy", default="auto", choices=["auto", "ddp", "fsdp2"])
+    parser.add_argument("--global-batch", type=int, default=4)
+    parser.add_argument("--steps", type=int, default=4)
+    parser.add_argument("--backbone", default="openvla-oft-tiny")
+    parser.add_argument("--pretrained", default=None)
+    parser.add_argument("--activation-checkpointing", action="store_true")
+    parser.add_argument("--ckpt-path", default=None)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    L.seed_everything(0)
+    out = Path(args.out)
+    dm = RobotDataModule(
+        train_files=[args.data],
+        batch_size=args.global_batch // args.devices,
+        augment=False,
+        shuffle=False,
+    )
+    module = VLAModule(
+        backbone=args.backbone,
+        pretrained=args.pretrained,
+        data_spec=dm.spec,
+        lora=LoraSettings(r=4, alpha=8),
+        activation_checkpointing=args.activation_checkpointing,
+    )
+    strategy: object = args.strategy
+    if args.strategy == "fsdp2":
+        from lightning.pytorch.strategies import ModelParallelStrategy
+
+        strategy = ModelParallelStrategy(
+            data_parallel_size=args.devices,
+            tensor_parallel_size=1,
+            save_distributed_checkpoint=False,
+        )
+    elif args.strategy == "ddp":
+        from lightning.pytorch.strategies import DDPStrategy
+
+        strategy = DDPStrategy(process_group_backend="gloo")
+    trainer = L.Trainer(
+        accelerator="cpu",
+        devices=args.devices,
+        strategy=strategy,
+        max_steps=args.steps,
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        limit_val_batches=0,
+        default_root_dir=out,
+        callbacks=[RecordGlobalLoss(out / "losses.json"), ExportOnFitEnd(str(out / "export"))],
+    )
+    trainer.fit(module, dm, ckpt_path=args.ckpt_path)
+    trainer.save_checkpoint(out / "last.ckpt")
+
+
+if __name__ == "__main__":
+    main()
