@@ -51,15 +51,21 @@ def main() -> None:
     parser.add_argument("--pretrained", default=None)
     parser.add_argument("--activation-checkpointing", action="store_true")
     parser.add_argument("--ckpt-path", default=None)
+    parser.add_argument(
+        "--validate-episodes", type=int, default=0, help="only run rollout validation"
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
     L.seed_everything(0)
     out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    eval_tasks = [{"task": "Lift", "episodes": args.validate_episodes, "max_steps": 16}]
     dm = RobotDataModule(
         train_files=[args.data],
         batch_size=args.global_batch // args.devices,
         augment=False,
         shuffle=False,
+        eval_tasks=eval_tasks if args.validate_episodes else None,
     )
     module = VLAModule(
         backbone=args.backbone,
@@ -89,10 +95,17 @@ def main() -> None:
         logger=False,
         enable_progress_bar=False,
         enable_model_summary=False,
-        limit_val_batches=0,
+        limit_val_batches=1.0 if args.validate_episodes else 0,
         default_root_dir=out,
         callbacks=[RecordGlobalLoss(out / "losses.json"), ExportOnFitEnd(str(out / "export"))],
     )
+    if args.validate_episodes:
+        (metrics,) = trainer.validate(module, dm)
+        if trainer.is_global_zero:
+            (out / "validate.json").write_text(
+                json.dumps({k: float(v) for k, v in metrics.items()})
+            )
+        return
     trainer.fit(module, dm, ckpt_path=args.ckpt_path)
     trainer.save_checkpoint(out / "last.ckpt")
 

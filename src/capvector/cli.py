@@ -18,6 +18,7 @@ TOOLS: dict[str, tuple[str, str, str]] = {
     "backbone-info": ("capvector.cli", "backbone_info_main", "parameter counts of a preset"),
     "export": ("capvector.cli", "export_main", "export a checkpoint to a safetensors folder"),
     "demos": ("capvector.sim.demos", "main", "record scripted robosuite demonstrations"),
+    "evaluate": ("capvector.evaluate", "main", "MuJoCo rollouts of a checkpoint, success table"),
     "extract": ("capvector.vectors.cli", "extract_main", "capability vector = aux - sft"),
     "merge": ("capvector.vectors.cli", "merge_main", "base + sum of scaled vectors"),
     "compose": ("capvector.vectors.cli", "compose_main", "combine vectors (sum, TIES)"),

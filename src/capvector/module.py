@@ -13,6 +13,7 @@ from typing import Any
 import lightning as L
 import torch
 from torch import Tensor, nn
+from torchmetrics import SumMetric
 
 from capvector.backbones.base import (
     BackboneError,
@@ -23,12 +24,25 @@ from capvector.backbones.base import (
     from_pretrained,
     load_export_config,
 )
+from capvector.data.episodes import EpisodeItem
 from capvector.data.spec import DataSpec
 from capvector.distributed import full_state_dict, is_rank_zero, parallelize
 from capvector.lora import LoraSettings, inject_lora, merge_lora_state_dict
+from capvector.metrics import SuccessRate
 from capvector.objectives.base import Objective
+from capvector.policy import VLAPolicy
 
 STATISTICS_FILE = "dataset_statistics.json"
+
+
+@dataclass
+class RolloutSettings:
+    """How the validation loop runs MuJoCo episodes (which episodes: ``data.eval_tasks``)."""
+
+    videos: int = 2
+    """Write mp4s of the first this-many episodes of each validation run."""
+    execute_steps: int | None = None
+    """Execute only the first k actions of each chunk (None: the whole chunk, as OpenVLA-OFT)."""
 
 
 @dataclass
@@ -59,6 +73,7 @@ class VLAModule(L.LightningModule):
         lora: LoraSettings | None = None,
         optimizer: OptimizerSettings | None = None,
         activation_checkpointing: bool = False,
+        rollout: RolloutSettings | None = None,
     ) -> None:
         """
         Args:
@@ -71,6 +86,7 @@ class VLAModule(L.LightningModule):
             optimizer: AdamW and learning-rate schedule.
             activation_checkpointing: recompute the backbone's blocks (``shard_units``) in the
                 backward pass instead of storing their activations.
+            rollout: videos and chunk execution of the MuJoCo validation loop.
         """
         super().__init__()
         self.save_hyperparameters()
@@ -91,6 +107,9 @@ class VLAModule(L.LightningModule):
                 param.requires_grad_(False)
         self.objectives = nn.ModuleDict()
         self.activation_checkpointing = activation_checkpointing
+        self.rollout = rollout or RolloutSettings()
+        self.success_rates = nn.ModuleDict()
+        self.episode_count = SumMetric()
         self._parallelized = False
 
     @staticmethod
@@ -167,15 +186,92 @@ class VLAModule(L.LightningModule):
         self.log("train/loss", total.detach(), prog_bar=True, batch_size=batch_size)
         return total
 
-    def validation_step(self, batch: Mapping[str, Any], batch_idx: int) -> None:
+    def setup(self, stage: str) -> None:
+        datamodule = (
+            getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
+        )
+        for task in getattr(datamodule, "eval_tasks", None) or []:
+            key = _task_key(task.task, task.robot)
+            if key not in self.success_rates:
+                self.success_rates[key] = SuccessRate()
+        if self.success_rates and "all" not in self.success_rates:
+            self.success_rates["all"] = SuccessRate()
+
+    def teardown(self, stage: str) -> None:
+        if self.success_rates:  # rollouts ran: release the cached simulators and their GL contexts
+            from capvector.sim.rollout import close_envs
+
+            close_envs()
+
+    def transfer_batch_to_device(
+        self, batch: Any, device: torch.device, dataloader_idx: int
+    ) -> Any:
+        if isinstance(batch, EpisodeItem):
+            return batch  # an episode spec: the policy moves its own inputs
+        return super().transfer_batch_to_device(batch, device, dataloader_idx)
+
+    def validation_step(self, batch: Any, batch_idx: int, dataloader_idx: int = 0) -> None:
+        if isinstance(batch, EpisodeItem):
+            self._rollout(batch)
+            return
         output = self.backbone(batch)
         self.log(
-            "val/action_l1",
-            output.loss,
-            prog_bar=True,
-            sync_dist=True,
-            batch_size=len(batch["instruction"]),
+            "val/action_l1", output.loss, prog_bar=True, sync_dist=True,
+            batch_size=len(batch["instruction"]), add_dataloader_idx=False,
+        )  # fmt: skip
+
+    def _rollout(self, item: EpisodeItem) -> None:
+        from capvector.sim.rollout import run_episode
+
+        spec = self.data_spec
+        result = run_episode(
+            VLAPolicy(self.backbone, spec),
+            item.spec,
+            cameras=spec.cameras,
+            image_size=spec.image_size,
+            camera_fovy=spec.camera_fovy,
+            video=item.index < self.rollout.videos,
+            execute_steps=self.rollout.execute_steps,
         )
+        if result.frames:
+            self._write_video(result)
+        if not item.counted:
+            return  # padding that keeps ranks in step
+        self.episode_count.update(1.0)
+        self.log(
+            "val/episodes",
+            self.episode_count,
+            on_epoch=True,
+            batch_size=1,
+            reduce_fx="sum",
+            add_dataloader_idx=False,
+        )
+        for key in (_task_key(item.spec.task, item.spec.robot), "all"):
+            metric = self.success_rates[key]
+            metric.update(result.success)
+            name = "val/success_rate" if key == "all" else f"val/success_rate/{key}"
+            self.log(
+                name,
+                metric,
+                on_epoch=True,
+                batch_size=1,
+                add_dataloader_idx=False,
+                prog_bar=key == "all",
+            )
+
+    def on_validation_epoch_start(self) -> None:
+        # trainer.log_dir is a collective call under DDP: every rank asks once, here.
+        root = Path(self.trainer.log_dir or self.trainer.default_root_dir)
+        self._video_dir = root / "videos" / f"step{self.global_step:06d}"
+
+    def _write_video(self, result: Any) -> None:
+        from capvector.sim.video import write_video
+
+        write_video(
+            result.frames, self._video_dir / f"{result.task}_{result.robot}_seed{result.seed}.mp4"
+        )
+
+    # -- optimisation ------------------------------------------------------------------------
 
     # -- optimisation ------------------------------------------------------------------------
 
@@ -232,6 +328,10 @@ class VLAModule(L.LightningModule):
             config_extra={"objectives": sorted(self.objectives)},
             overwrite=overwrite,
         )
+
+
+def _task_key(task: str, robot: str) -> str:
+    return task if robot == "Panda" else f"{task}_{robot}"
 
 
 def _schedule(settings: OptimizerSettings, total_steps: int | None) -> Any:

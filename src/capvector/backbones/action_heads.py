@@ -192,7 +192,9 @@ class OFTHeadConfig:
     query_token: str = "<|action_query|>"
     """A special token added to the tokenizer, so it is always exactly one token. StarVLA uses the
     emoji "🔍", which the Qwen3.5 tokenizer splits into 3 tokens (starVLA issue #291)."""
-    prompt_suffix: str = " Please predict the next {chunk} robot actions: <action>{queries}<action>."
+    prompt_suffix: str = (
+        " Please predict the next {chunk} robot actions: <action>{queries}<action>."
+    )
     """Appended to the instruction; ``{queries}`` becomes T query tokens (StarVLA's QwenOFT text)."""
 
 
@@ -330,6 +332,8 @@ class Attention(nn.Module):
         q = self.to_q(x)
         k, v = self.to_k(context), self.to_v(context)
         if k.shape[0] != batch:
+            if batch % k.shape[0]:
+                raise BackboneError(f"{batch} queries do not tile {k.shape[0]} context rows")
             repeats = batch // k.shape[0]
             k, v = k.repeat(repeats, 1, 1), v.repeat(repeats, 1, 1)
             if context_mask is not None:
@@ -415,7 +419,9 @@ class CrossAttentionDiT(nn.Module):
         }
         self.timestep_encoder = TimestepEncoder(width)
         self.transformer_blocks = nn.ModuleList(
-            DiTBlock(width, num_heads, None if i in self.self_attention_blocks else cross_dim, dropout)
+            DiTBlock(
+                width, num_heads, None if i in self.self_attention_blocks else cross_dim, dropout
+            )
             for i in range(num_layers)
         )
         self.norm_out = nn.LayerNorm(width, eps=1e-6, elementwise_affine=False)

@@ -124,6 +124,8 @@ class StarVLAConfig(BackboneConfig):
     """'tiny' builds a local Qwen-style byte tokenizer; a folder loads a saved tokenizer when first
     needed; '' means it comes with the checkpoint (``from_qwen`` / ``from_pretrained``)."""
     attn_implementation: str = "sdpa"
+    """transformers' attention kernel ('sdpa', 'eager', 'flash_attention_2'), honoured as set:
+    StarVLA's ``QWen3.py`` overwrites its configured value with 'sdpa'."""
 
 
 # -- presets -------------------------------------------------------------------------------------
@@ -239,6 +241,7 @@ def _full_size(qwen_version: str, head: str) -> StarVLAConfig:
 
 
 def _tiny(head: str) -> StarVLAConfig:
+    """The same architecture at toy width: trains on a 2-core CPU in seconds (64-px images)."""
     return StarVLAConfig(
         qwen_version="qwen2.5-vl",
         qwen=tiny_qwen_architecture("qwen2.5-vl"),
@@ -249,16 +252,49 @@ def _tiny(head: str) -> StarVLAConfig:
     )
 
 
-def _register_presets() -> None:
-    for head in HEADS:
-        for name, version in (("qwen2.5-vl-3b", "qwen2.5-vl"), ("qwen3-vl-4b", "qwen3-vl")):
-            register_preset(f"starvla-{name}-{head}")(
-                lambda version=version, head=head: _full_size(version, head)
-            )
-        register_preset(f"starvla-tiny-{head}")(lambda head=head: _tiny(head))
+@register_preset("starvla-qwen2.5-vl-3b-oft")
+def starvla_qwen2_5_vl_3b_oft() -> StarVLAConfig:
+    return _full_size("qwen2.5-vl", "oft")
 
 
-_register_presets()
+@register_preset("starvla-qwen2.5-vl-3b-gr00t")
+def starvla_qwen2_5_vl_3b_gr00t() -> StarVLAConfig:
+    return _full_size("qwen2.5-vl", "gr00t")
+
+
+@register_preset("starvla-qwen2.5-vl-3b-layerwise")
+def starvla_qwen2_5_vl_3b_layerwise() -> StarVLAConfig:
+    return _full_size("qwen2.5-vl", "layerwise")
+
+
+@register_preset("starvla-qwen3-vl-4b-oft")
+def starvla_qwen3_vl_4b_oft() -> StarVLAConfig:
+    return _full_size("qwen3-vl", "oft")
+
+
+@register_preset("starvla-qwen3-vl-4b-gr00t")
+def starvla_qwen3_vl_4b_gr00t() -> StarVLAConfig:
+    return _full_size("qwen3-vl", "gr00t")
+
+
+@register_preset("starvla-qwen3-vl-4b-layerwise")
+def starvla_qwen3_vl_4b_layerwise() -> StarVLAConfig:
+    return _full_size("qwen3-vl", "layerwise")
+
+
+@register_preset("starvla-tiny-oft")
+def starvla_tiny_oft() -> StarVLAConfig:
+    return _tiny("oft")
+
+
+@register_preset("starvla-tiny-gr00t")
+def starvla_tiny_gr00t() -> StarVLAConfig:
+    return _tiny("gr00t")
+
+
+@register_preset("starvla-tiny-layerwise")
+def starvla_tiny_layerwise() -> StarVLAConfig:
+    return _tiny("layerwise")
 
 
 # -- tokenizer -----------------------------------------------------------------------------------
@@ -345,18 +381,13 @@ class StarVLA(VLABackbone):
             raise BackboneError(f"state_mode {config.state_mode!r} is not one of {STATE_MODES}")
         if config.state_mode != "none" and not config.proprio_dim:
             raise BackboneError(f"state_mode={config.state_mode!r} needs proprio_dim > 0")
-        if vlm is None:
-            if not config.qwen:
-                raise BackboneError(
-                    "config.qwen is empty: use a starvla-* preset or StarVLA.from_qwen(folder, ...)"
-                )
-            config_class, model_class = version.classes()
-            vlm = model_class._from_config(
-                config_class(**config.qwen), attn_implementation=config.attn_implementation
+        if vlm is None and not config.qwen:
+            raise BackboneError(
+                "config.qwen is empty: use a starvla-* preset or StarVLA.from_qwen(folder, ...)"
             )
-        self.vlm = vlm
-        text = vlm.config.text_config
-        vision = vlm.config.vision_config
+        config_class, model_class = version.classes()
+        hf_config = vlm.config if vlm is not None else config_class(**config.qwen)
+        text, vision = hf_config.text_config, hf_config.vision_config
         self.patch_size: int = vision.patch_size
         self.merge_size: int = vision.spatial_merge_size
         self.temporal_patch_size: int = vision.temporal_patch_size
@@ -373,17 +404,25 @@ class StarVLA(VLABackbone):
             chunk_size=config.chunk_size,
             state_dim=config.proprio_dim if config.state_mode == "head" else 0,
         )
-        self.action_head = build_head(config.head, config.head_args, dims)
-        # Exports and checkpoints record every head field, not just the preset's overrides.
-        config.head_args = self.action_head.config_dict()
-        if self.action_head.bidirectional_queries and config.attn_implementation not in (
-            "sdpa",
-            "eager",
+        # The head first: its config errors come before the (slow, for 4B) VLM construction.
+        head = build_head(config.head, config.head_args, dims)
+        attention_kernels_with_4d_masks = ("sdpa", "eager")
+        if (
+            head.bidirectional_queries
+            and config.attn_implementation not in attention_kernels_with_4d_masks
         ):
             raise BackboneError(
                 "bidirectional_queries needs a 4-D attention mask: use attn_implementation "
                 f"'sdpa' or 'eager', not {config.attn_implementation!r}"
             )
+        if vlm is None:
+            vlm = model_class._from_config(
+                hf_config, attn_implementation=config.attn_implementation, dtype=torch.float32
+            )
+        self.vlm = vlm
+        self.action_head = head
+        # Exports and checkpoints record every head field, not just the preset's overrides.
+        config.head_args = head.config_dict()
         self.register_buffer(
             "pixel_mean", torch.tensor(config.image_mean).view(1, 3, 1, 1), persistent=False
         )
@@ -507,9 +546,7 @@ class StarVLA(VLABackbone):
             for hook in hooks:
                 hook.remove()
         last = out.last_hidden_state
-        layers = (
-            tuple(store[i] for i in range(1, self.num_layers)) + (last,) if all_layers else ()
-        )
+        layers = tuple(store[i] for i in range(1, self.num_layers)) + (last,) if all_layers else ()
         return VLMEncoding(
             input_ids=ids,
             head_input=HeadInput(
@@ -670,27 +707,29 @@ class StarVLA(VLABackbone):
         return is_query.nonzero()[:, 1].view(ids.shape[0], n)
 
     def _bidirectional_query_mask(self, mask: Tensor, query_positions: Tensor | None) -> Tensor:
-        """Additive (B, 1, S, S) mask: causal + padding, except that the query block attends to
-        itself in both directions, as OpenVLA-OFT's action slots (StarVLA keeps it causal)."""
-        batch, length = mask.shape
+        """(B, 1, S, S) mask: causal + padding, except that the query block attends to itself in
+        both directions, as OpenVLA-OFT's action slots (StarVLA keeps it causal). Boolean for sdpa
+        (True = attend), additive for eager attention, the formats transformers builds itself."""
+        length = mask.shape[1]
         causal = torch.ones(length, length, dtype=torch.bool, device=mask.device).tril()
         allowed = causal[None] & mask[:, None, :]
         if query_positions is not None:
             is_query = torch.zeros_like(mask).scatter_(1, query_positions, True)
             allowed = allowed | (is_query[:, :, None] & is_query[:, None, :])
         # Padded rows attend to themselves only: no row is empty, so no NaN from the softmax.
-        allowed = allowed | torch.eye(length, dtype=torch.bool, device=mask.device)[None]
+        allowed = (allowed | torch.eye(length, dtype=torch.bool, device=mask.device))[:, None]
+        if self.config.attn_implementation == "sdpa":
+            return allowed
         dtype = self.vlm.dtype
-        additive = torch.zeros(batch, 1, length, length, dtype=dtype, device=mask.device)
-        return additive.masked_fill_(~allowed[:, None], torch.finfo(dtype).min)
+        additive = torch.zeros(allowed.shape, dtype=dtype, device=mask.device)
+        return additive.masked_fill_(~allowed, torch.finfo(dtype).min)
 
     # -- tokenizer installation ---------------------------------------------------------------
 
     @property
     def _token_ids(self) -> TokenIds:
-        self.tokenizer  # noqa: B018 (installs a configured tokenizer on first use)
-        if self._ids is None:
-            raise BackboneError("this backbone has no tokenizer (see `tokenizer` in its config)")
+        self._require_tokenizer()  # installs a configured tokenizer on first use
+        assert self._ids is not None  # resolved with every tokenizer
         return self._ids
 
     def _install_tokenizer(self, tok: Any, allow_resize: bool = False) -> None:
@@ -702,7 +741,9 @@ class StarVLA(VLABackbone):
         # Left padding, as StarVLA's wrappers: prompts end at the same column.
         tok.padding_side = "left"
         if tok.pad_token is None:
-            raise BackboneError("the tokenizer has no pad token; a Qwen tokenizer uses <|endoftext|>")
+            raise BackboneError(
+                "the tokenizer has no pad token; a Qwen tokenizer uses <|endoftext|>"
+            )
         if not getattr(tok, "chat_template", None):
             raise BackboneError("the tokenizer has no chat template; use a Qwen-VL tokenizer")
         specials = {}
@@ -714,20 +755,50 @@ class StarVLA(VLABackbone):
         query = None
         head = self.action_head
         if head.num_query_tokens:
-            if head.query_token not in tok.get_vocab():
-                from tokenizers import AddedToken
+            (query,) = self._add_special_tokens(tok, [head.query_token])
+        self._fit_embeddings(tok, allow_resize)
+        for name, token in (
+            ("image_token_id", IMAGE_PAD),
+            ("vision_start_token_id", VISION_START),
+            ("vision_end_token_id", VISION_END),
+        ):
+            setattr(self.vlm.config, name, specials[token])
+        self._ids = TokenIds(
+            specials[IMAGE_PAD], specials[VISION_START], specials[VISION_END], query
+        )
+        self._tokenizer = tok
 
-                # A special added token: never split, never merged with its neighbours.
-                tok.add_tokens(
-                    [AddedToken(head.query_token, special=True, normalized=False)],
-                    special_tokens=True,
-                )
-            ids = tok.encode(head.query_token, add_special_tokens=False)
-            if len(ids) != 1:
-                raise BackboneError(
-                    f"the action query token {head.query_token!r} encodes to {len(ids)} tokens"
-                )
-            query = ids[0]
+    def add_action_tokens(self, tokens: Sequence[str]) -> range:
+        """Add ``tokens`` as special tokens (where missing) and return their id range, resolved
+        from the tokenizer (StarVLA hard-codes 151665-153712 for its ``<robot_action_k>``). Grows
+        the embeddings when the vocabulary is full; call it before training or loading weights."""
+        tok = self._require_tokenizer()
+        ids = self._add_special_tokens(tok, tokens)
+        self._fit_embeddings(tok, allow_resize=True)
+        if ids != list(range(ids[0], ids[0] + len(ids))):
+            raise BackboneError(f"tokens {list(tokens)[:3]}... did not get consecutive ids")
+        return range(ids[0], ids[0] + len(ids))
+
+    @staticmethod
+    def _add_special_tokens(tok: Any, tokens: Sequence[str]) -> list[int]:
+        from tokenizers import AddedToken
+
+        missing = [t for t in tokens if t not in tok.get_vocab()]
+        if missing:
+            # Special added tokens: never split, never merged with their neighbours.
+            tok.add_tokens(
+                [AddedToken(t, special=True, normalized=False) for t in missing],
+                special_tokens=True,
+            )
+        ids = []
+        for token in tokens:
+            encoded = tok.encode(token, add_special_tokens=False)
+            if len(encoded) != 1:
+                raise BackboneError(f"token {token!r} encodes to {len(encoded)} tokens, not one")
+            ids.append(encoded[0])
+        return ids
+
+    def _fit_embeddings(self, tok: Any, allow_resize: bool) -> None:
         vocab = self.vlm.get_input_embeddings().num_embeddings
         if len(tok) > vocab:
             if not allow_resize:
@@ -737,14 +808,6 @@ class StarVLA(VLABackbone):
                 )
             self.vlm.resize_token_embeddings(len(tok), pad_to_multiple_of=64)
             self.config.qwen["text_config"]["vocab_size"] = self.vlm.config.text_config.vocab_size
-        for name, token in (
-            ("image_token_id", IMAGE_PAD),
-            ("vision_start_token_id", VISION_START),
-            ("vision_end_token_id", VISION_END),
-        ):
-            setattr(self.vlm.config, name, specials[token])
-        self._ids = TokenIds(specials[IMAGE_PAD], specials[VISION_START], specials[VISION_END], query)
-        self._tokenizer = tok
 
     # -- loading -----------------------------------------------------------------------------
 
@@ -838,7 +901,10 @@ class StarVLA(VLABackbone):
         config.qwen = _architecture(hf_config)
         _read_image_statistics(root, config)
         config.tokenizer = str(root)
-        vlm = model_class._from_config(hf_config, attn_implementation=config.attn_implementation)
+        # fp32 as from_qwen; transformers would otherwise build in the folder's dtype (bf16).
+        vlm = model_class._from_config(
+            hf_config, attn_implementation=config.attn_implementation, dtype=torch.float32
+        )
         model = cls(config, vlm=vlm, tokenizer=_load_tokenizer(str(root)))
         state = starvla_key_map(_read_state(path), model)
         if model.action_head.num_query_tokens and query_token_source is not None:
@@ -1023,4 +1089,3 @@ def _restore_tied_lm_head(
     head = prefix + "vlm.lm_head.weight"
     if _tied(module) and head not in state_dict and embed in state_dict:
         state_dict[head] = state_dict[embed]
-

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import lightning as L
 import torch
 from torch.utils.data import DataLoader, DistributedSampler
 
+from capvector.data.episodes import EpisodeDataset, EpisodeSampler, EvalTask
 from capvector.data.hdf5 import DatasetError, HDF5RobotDataset
 from capvector.data.lerobot import LeRobotV3Dataset
 from capvector.data.spec import DataSpec
@@ -26,6 +27,7 @@ class RobotDataModule(L.LightningDataModule):
         self,
         train_files: list[str] | None = None,
         val_files: list[str] | None = None,
+        eval_tasks: list[EvalTask] | None = None,
         cameras: Sequence[str] = DEFAULT_CAMERAS,
         proprio_keys: Sequence[str] = DEFAULT_PROPRIO,
         chunk_size: int = 8,
@@ -46,6 +48,7 @@ class RobotDataModule(L.LightningDataModule):
         Args:
             train_files: HDF5 files in the robomimic/LIBERO layout.
             val_files: held-out files; validation then reports the action L1 on them.
+            eval_tasks: MuJoCo rollout episodes for the validation loop (success rates).
             cameras: camera names (``obs/<camera>_image``), in the order the model sees them.
             proprio_keys: ``obs`` keys concatenated into the proprio vector.
             chunk_size: actions per sample (the model's chunk size follows it).
@@ -65,6 +68,7 @@ class RobotDataModule(L.LightningDataModule):
         """
         super().__init__()
         self.save_hyperparameters()
+        self.eval_tasks = [EvalTask(**t) if isinstance(t, Mapping) else t for t in eval_tasks or []]
         if (lerobot_root is None) == (not train_files):
             raise DatasetError(
                 "set exactly one of data.train_files (HDF5 files) and data.lerobot_root "
@@ -133,6 +137,8 @@ class RobotDataModule(L.LightningDataModule):
             dataset_name=self.hparams.dataset_name,
             statistics={self.hparams.dataset_name: ds.statistics},
             center_crop=self.hparams.augment,
+            image_size=getattr(ds, "image_size", 64),
+            camera_fovy=getattr(ds, "camera_fovy", None),
         )
 
     def train_dataloader(self) -> DataLoader:
@@ -160,11 +166,25 @@ class RobotDataModule(L.LightningDataModule):
             drop_last=drop_last,
         )
 
-    def val_dataloader(self) -> DataLoader | list:
-        if self.val_dataset is None:
-            return []
-        return DataLoader(
-            self.val_dataset,
-            batch_size=self.hparams.batch_size,
-            num_workers=self.hparams.num_workers,
-        )
+    def val_dataloader(self) -> DataLoader | list[DataLoader]:
+        """Rollout episodes (``eval_tasks``) and/or held-out demos (``val_files``)."""
+        loaders = []
+        if self.eval_tasks:
+            episodes = EpisodeDataset(self.eval_tasks)
+            trainer = self.trainer
+            world, rank = (
+                (trainer.world_size, trainer.global_rank) if trainer is not None else (1, 0)
+            )
+            sampler = EpisodeSampler(episodes, num_replicas=world, rank=rank)
+            loaders.append(DataLoader(episodes, batch_size=None, sampler=sampler))
+        if self.val_dataset is not None:
+            loaders.append(
+                DataLoader(
+                    self.val_dataset,
+                    batch_size=self.hparams.batch_size,
+                    num_workers=self.hparams.num_workers,
+                )
+            )
+        if len(loaders) == 1:
+            return loaders[0]
+        return loaders

@@ -119,6 +119,11 @@ class HDF5RobotDataset(Dataset):
             raise DatasetError(
                 f"{self.files} hold no episode of at least chunk_size={chunk_size} steps"
             )
+        with h5py.File(self.files[0], "r") as f:
+            attrs = f["data"].attrs
+            first = f["data"][self.episodes[0].demo]["obs"][f"{self.cameras[0]}_image"]
+            self.image_size = int(attrs.get("image_size", first.shape[1]))
+            self.camera_fovy = json.loads(attrs["camera_fovy"]) if "camera_fovy" in attrs else None
         self.action_dim = all_actions[0].shape[1]
         self.proprio_dim = all_proprio[0].shape[1]
         self.statistics = statistics or compute_statistics(

@@ -26,6 +26,10 @@ class DataSpec:
     """The ``dataset_statistics.json`` content: {dataset_name: entry}."""
     center_crop: bool = False
     """Evaluation images get OFT's 90%-area centre crop (True when training used random crops)."""
+    image_size: int = 64
+    """Side of the stored square images; rollouts render at this size."""
+    camera_fovy: dict[str, float] | None = None
+    """Vertical field of view per camera the demos were rendered with (None: the task default)."""
 
     @property
     def stats_entry(self) -> dict[str, Any]:

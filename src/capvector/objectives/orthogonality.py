@@ -197,23 +197,16 @@ class OrthogonalityLoss(nn.Module):
         terms, frozen = [], []
         for i, key in enumerate(self.keys):
             name, param = resolved[key]
-            c, c_b, _ = self._vector(i)
-            shape = (
-                tuple(c.shape)
-                if c is not None
-                else (c_b.shape[0], self._buffers[f"c_a_{i}"].shape[1])
-            )  # type: ignore[union-attr]
+            c, c_b, c_a = self._vector(i)
+            shape = tuple(c.shape) if c is not None else (c_b.shape[0], c_a.shape[1])  # type: ignore[union-attr]
             if tuple(param.shape) != shape:
                 raise CapVectorError(
                     f"vector tensor `{key}` has shape {shape} but the model's `{name}` has "
                     f"{tuple(param.shape)}; the vector belongs to another architecture or preset"
                 )
-            owner = (
-                name.removesuffix(".base_layer.weight")
-                if name.endswith(".base_layer.weight")
-                else None
-            )
-            layer = modules.get(owner) if owner is not None else None
+            # peft puts the frozen weight of LoRA layer X at X.base_layer.weight.
+            owner = name.removesuffix(".base_layer.weight")
+            layer = modules.get(owner) if owner != name else None
             if _is_lora_layer(layer, self.adapter_name):
                 if self.mode == "full":
                     raise CapVectorError(

@@ -9,6 +9,7 @@ Modules (import the one you need; importing this package stays cheap):
 - :mod:`~capvector.sim.experts`: scripted experts (Lift, Stack, PickPlaceCan)
 - :mod:`~capvector.sim.annotations`: per-step text about what the expert does and where things are
 - :mod:`~capvector.sim.demos`: ``capvector demos``, recording to robomimic/LIBERO-layout HDF5
+- :mod:`~capvector.sim.policy`: the policy interface (``Observation``, ``EpisodeResult``)
 - :mod:`~capvector.sim.rollout`: ``run_episode`` / ``run_episodes`` for a policy
 - :mod:`~capvector.sim.video`: ``write_video``
 - :mod:`~capvector.sim.libero`: LIBERO adapter following the OpenVLA-OFT / openpi protocol

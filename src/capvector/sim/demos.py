@@ -189,7 +189,11 @@ def _write_demo(group: h5py.Group, ep: Episode, sim: SimEnv, model_xml: str) -> 
         if key.endswith(("_image", "_depth")):
             # One chunk per frame: a data loader reads random frames, gzip shrinks them ~3x.
             obs.create_dataset(
-                key, data=value, chunks=(1, *value.shape[1:]), compression="gzip", compression_opts=4
+                key,
+                data=value,
+                chunks=(1, *value.shape[1:]),
+                compression="gzip",
+                compression_opts=4,
             )
         else:
             obs.create_dataset(key, data=value)
@@ -271,7 +275,13 @@ def record_demos(
                 attempt_seed = seed + summary.attempts
                 summary.attempts += 1
                 ep = record_episode(
-                    sim, expert, annotator, attempt_seed, noise=noise, extra_steps=extra_steps
+                    sim,
+                    expert,
+                    annotator,
+                    attempt_seed,
+                    noise=noise,
+                    extra_steps=extra_steps,
+                    render=bool(sim.cameras),
                 )
                 if ep is not None:
                     _write_demo(data.create_group(f"demo_{summary.demos}"), ep, sim, model_xml)
@@ -313,14 +323,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--task", required=True, choices=sorted(TASKS))
     p.add_argument("--episodes", type=int, required=True, help="successful demos to save")
     p.add_argument("--out", required=True, help="HDF5 file to write (atomically)")
-    p.add_argument("--robot", default="Panda", help="robosuite arm: Panda, IIWA, UR5e, Kinova3, ...")
+    p.add_argument(
+        "--robot", default="Panda", help="robosuite arm: Panda, IIWA, UR5e, Kinova3, ..."
+    )
     p.add_argument(
         "--gripper",
         default=None,
         help="gripper override, e.g. PandaGripper (arms whose default gripper has 6 joints need one)",
     )
     p.add_argument("--image-size", type=int, default=DEFAULT_IMAGE_SIZE)
-    p.add_argument("--cameras", nargs="+", default=list(DEFAULT_CAMERAS))
+    p.add_argument(
+        "--cameras",
+        nargs="*",
+        default=list(DEFAULT_CAMERAS),
+        help="cameras to render; none (a bare --cameras) records low-dim demos only, fast",
+    )
     p.add_argument("--depth", action="store_true", help="also store <camera>_depth in metres")
     p.add_argument("--seed", type=int, default=0, help="first seed; attempts use seed, seed+1, ...")
     p.add_argument("--noise", type=float, default=DEFAULT_NOISE, help="DART noise std on xyz")

@@ -15,9 +15,13 @@ Facts this module relies on (measured on the project's 2-core CPU machines, see
 
 from __future__ import annotations
 
+import atexit
+import contextlib
 import copy
 import logging
 import math
+import os
+import weakref
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from types import ModuleType
@@ -25,7 +29,6 @@ from typing import Any
 
 import mujoco
 import numpy as np
-from mujoco import gl_context
 
 # robosuite logs five notices at import and one per controller load; none applies to us (no
 # private macro file is needed, robosuite_models and mink only matter for GR1/humanoids).
@@ -91,12 +94,13 @@ class TaskSpec:
     """Positions that are not robosuite observations (e.g. a goal), computed from the env."""
 
 
-# Step limits: the longest scripted demo (DART noise 0.1, 200 seeds) is 59 steps for Lift,
-# 131 for Stack and 179 for PickPlaceCan; the limits leave room for a slower learned policy
-# (Lift/Stack as in the feasibility study's evaluations).
-# agentview fovy: robosuite's 45 degrees renders Lift's cube at ~35 px of a 64x64 image; 35
-# degrees doubles that (63 px) and keeps the gripper's whole path (start pose to lift height) in
-# view. PickPlaceCan's bins fill the default view already, so it keeps 45.
+# Step limits: over 200 seeds (DART noise 0.1) the scripted expert's longest run to success is
+# 57 steps for Lift, 133 for Stack and 209 for PickPlaceCan. OFT puts LIBERO's limits ~10% above
+# the longest *human* demo; a scripted expert is faster and more direct than a learned policy,
+# so these leave 2-2.6x room (Lift 150 and Stack 300 as in the feasibility study's evaluations).
+# agentview fovy: at robosuite's 45 degrees Lift's cube covers ~35 px of a 64x64 image (its
+# geom's pixels at reset); at 35 degrees ~63 px, and the gripper's whole path (start pose to lift
+# height) stays in view. PickPlaceCan's two bins fill the default view already: it keeps 45.
 TASKS: dict[str, TaskSpec] = {
     "Lift": TaskSpec(
         env_name="Lift",
@@ -206,6 +210,43 @@ _FAULT_WARNINGS = (
 )
 
 
+def _gl_context_class() -> type:
+    # mujoco.gl_context binds its backend when mujoco is first imported, which may have happened
+    # before capvector.sim set MUJOCO_GL (e.g. `import mujoco` at the top of a script): it then
+    # picks GLFW and fails without a display. Choosing the backend here, from the variable as it
+    # is now, makes rendering independent of import order.
+    backend = os.environ.get("MUJOCO_GL", "egl").lower()
+    if backend == "egl":
+        from mujoco.egl import GLContext
+    elif backend == "osmesa":
+        from mujoco.osmesa import GLContext
+    elif backend in ("glfw", "glx"):
+        from mujoco.glfw import GLContext
+    else:
+        raise RuntimeError(
+            f"MUJOCO_GL={backend!r}: CameraRenderer supports egl (default), osmesa and glfw"
+        )
+    return GLContext
+
+
+_live_renderers: weakref.WeakSet[CameraRenderer] = weakref.WeakSet()
+
+
+def _close_renderers() -> None:
+    for renderer in list(_live_renderers):
+        renderer.close()
+
+
+def _track(renderer: CameraRenderer) -> None:
+    # mujoco.egl registers eglTerminate with atexit when it creates the first context; contexts
+    # still alive after that make PyOpenGL raise from __del__ at exit. atexit runs the last
+    # registered hook first, so registering ours after the first context frees them in time.
+    if not _live_renderers:
+        atexit.unregister(_close_renderers)
+        atexit.register(_close_renderers)
+    _live_renderers.add(renderer)
+
+
 class CameraRenderer:
     """Renders fixed cameras of a MuJoCo model, upright, at the cost of one GPU/llvmpipe readback.
 
@@ -213,8 +254,17 @@ class CameraRenderer:
     ``mjr_readPixels``; depth, when asked, comes from the same pass (no second render as
     ``mujoco.Renderer`` needs). Shadows and reflections are off and only geom group 1 (robosuite's
     visual meshes) is drawn: group 0 holds the collision geoms, which would paint the robot blue.
-    Multisampling stays at MuJoCo's default of 4 samples: at 64 px the anti-aliased edges carry
-    sub-pixel position information about small objects; ``msaa_samples=0`` renders ~35% faster.
+    Multisampling is off (MuJoCo's default is 4 samples): it renders ~35% faster on llvmpipe, and
+    depth read back from a multisampled buffer comes out ~0.35% short (3 mm at 0.8 m), whereas
+    without it depth equals ray-cast distances to 1e-7 m. With ``msaa_samples=4`` edges are
+    anti-aliased, at that price.
+
+    On Mesa's software rasteriser a 64 px frame costs what its triangles cost: robosuite's arm
+    meshes hold ~170k of them, most outside a given camera's view (the wrist camera sees two
+    fingers; the zoomed agentview misses the upper arm and the pedestal). ``cull=True`` drops every
+    geom whose bounding sphere lies wholly outside the camera's view frustum before drawing; the
+    picture is unchanged (no shadows or reflections are drawn that could come from such a geom).
+    Skybox and haze are off too: no default camera of our tasks sees the sky.
     """
 
     def __init__(
@@ -224,7 +274,8 @@ class CameraRenderer:
         size: int,
         *,
         depth: bool = False,
-        msaa_samples: int = 4,
+        msaa_samples: int = 0,
+        cull: bool = True,
     ) -> None:
         if not cameras:
             raise ValueError("CameraRenderer needs at least one camera")
@@ -234,6 +285,7 @@ class CameraRenderer:
         self.cameras = tuple(cameras)
         self.size = size
         self.depth = depth
+        self.cull = cull
         known = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_CAMERA, i) for i in range(model.ncam)]
         self._cams = []
         for name in self.cameras:
@@ -249,12 +301,8 @@ class CameraRenderer:
         model.vis.global_.offwidth = max(model.vis.global_.offwidth, width)
         model.vis.global_.offheight = max(model.vis.global_.offheight, size)
         model.vis.quality.offsamples = msaa_samples
-        if gl_context.GLContext is None:
-            raise RuntimeError(
-                "MuJoCo has no headless OpenGL backend; set MUJOCO_GL=egl (or osmesa) before "
-                "importing mujoco"
-            )
-        self._gl = gl_context.GLContext(width, size)
+        self._gl = _gl_context_class()(width, size)
+        _track(self)
         self._gl.make_current()
         self._ctx = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150.value)
         mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self._ctx)
@@ -263,6 +311,12 @@ class CameraRenderer:
         self._scene = mujoco.MjvScene(model, maxgeom=2000)
         self._scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
         self._scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+        self._scene.flags[mujoco.mjtRndFlag.mjRND_SKYBOX] = 0
+        self._scene.flags[mujoco.mjtRndFlag.mjRND_HAZE] = 0
+        # Bounding-sphere radius per model geom; planes (rbound 0: infinite) are never culled.
+        self._rbound = np.where(
+            model.geom_type == mujoco.mjtGeom.mjGEOM_PLANE, np.inf, model.geom_rbound
+        )
         self._option = mujoco.MjvOption()
         self._option.geomgroup[:] = 0
         self._option.geomgroup[1] = 1
@@ -289,6 +343,8 @@ class CameraRenderer:
                 mujoco.mjtCatBit.mjCAT_ALL.value,
                 self._scene,
             )
+            if self.cull:
+                self._cull(cam.fixedcamid, data)
             mujoco.mjr_render(rect, self._scene, self._ctx)
         mujoco.mjr_readPixels(self._rgb, self._zbuf, self._full, self._ctx)
         # OpenGL rows start at the bottom: flip once here so every image we hand out is upright.
@@ -306,6 +362,26 @@ class CameraRenderer:
             for i, name in enumerate(self.cameras)
         }
         return images, depth
+
+    def _cull(self, cam_id: int, data: mujoco.MjData) -> int:
+        """Mark scene geoms wholly outside camera ``cam_id``'s frustum as not drawn; the count."""
+        geoms = [g for g in self._scene.geoms[: self._scene.ngeom]]
+        index = [i for i, g in enumerate(geoms) if g.objtype == mujoco.mjtObj.mjOBJ_GEOM]
+        if not index:
+            return 0
+        centres = np.array([geoms[i].pos for i in index])
+        radius = self._rbound[[geoms[i].objid for i in index]]
+        # Camera frame: x right, y up, looking down -z (MuJoCo). Square viewport: the horizontal
+        # half-angle equals the vertical one, fovy / 2.
+        local = (centres - data.cam_xpos[cam_id]) @ data.cam_xmat[cam_id].reshape(3, 3)
+        ahead = -local[:, 2]
+        tan = math.tan(math.radians(self.model.cam_fovy[cam_id]) / 2)
+        # Distance from a slanted side plane, scaled by its normal's length sqrt(1 + tan^2).
+        slack = radius * math.sqrt(1 + tan * tan)
+        outside = (ahead < -radius) | (np.abs(local[:, :2]).max(axis=1) - tan * ahead > slack)
+        for i in np.asarray(index)[outside]:
+            geoms[i].type = mujoco.mjtGeom.mjGEOM_NONE  # mjr_render skips it
+        return int(outside.sum())
 
     def _linear_depth(self, zbuf: np.ndarray) -> np.ndarray:
         # Undo the reversed-Z projection with the model's clip planes (znear/zfar are fractions of
@@ -332,10 +408,8 @@ class CameraRenderer:
 
     def __del__(self) -> None:
         # At interpreter exit EGL may already be torn down; freeing then raises inside PyOpenGL.
-        try:
+        with contextlib.suppress(Exception):
             self.close()
-        except Exception:
-            pass
 
 
 def proprio_from(obs: Mapping[str, np.ndarray]) -> np.ndarray:
@@ -362,7 +436,7 @@ class SimEnv:
         image_size: int = DEFAULT_IMAGE_SIZE,
         depth: bool = False,
         camera_fovy: Mapping[str, float] | None = None,
-        msaa_samples: int = 4,
+        msaa_samples: int = 0,
     ) -> None:
         self.task = task
         self.spec = get_task(task)

@@ -23,31 +23,32 @@ from __future__ import annotations
 
 import logging
 from collections import OrderedDict
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, TypedDict
 
 import numpy as np
 
-from capvector.sim.envs import ACTION_DIM, SimEnv, SimulationFault, get_task
+from capvector.sim.envs import SimEnv, SimulationFault, get_task
+from capvector.sim.policy import EpisodeResult, Observation, Policy, as_chunk
+
+__all__ = [
+    "EVAL_SEED_START",
+    "EnvCache",
+    "EpisodeResult",
+    "EpisodeSpec",
+    "Observation",
+    "Policy",
+    "close_envs",
+    "eval_specs",
+    "run_episode",
+    "run_episodes",
+    "to_env_action",
+]
 
 log = logging.getLogger(__name__)
 
 EVAL_SEED_START = 1_000_000
 """First default evaluation seed; keep demo seeds below it."""
-
-
-class Observation(TypedDict, total=False):
-    """What a policy receives (key names match ``capvector.data.keys``)."""
-
-    images: dict[str, np.ndarray]
-    proprio: np.ndarray
-    instruction: str
-    depth: dict[str, np.ndarray]
-
-
-Policy = Callable[[Observation], Any]
-"""``policy(observation) -> (T, 7)`` actions (array-like; a single (7,) action is a chunk of 1)."""
 
 
 @dataclass(frozen=True)
@@ -65,20 +66,6 @@ class EpisodeSpec:
     @property
     def step_limit(self) -> int:
         return self.max_steps if self.max_steps is not None else get_task(self.task).max_steps
-
-
-@dataclass
-class EpisodeResult:
-    success: bool
-    steps: int
-    """Env steps executed (the step at which success was reached, when it was)."""
-    reason: str | None
-    """Why the episode failed (step limit, simulation fault, non-finite action); None on success."""
-    frames: list[np.ndarray] | None
-    """One (H, N_cam * W, 3) uint8 frame per state (cameras side by side), when video was asked."""
-    seed: int
-    task: str
-    robot: str
 
 
 def eval_specs(
@@ -224,13 +211,7 @@ def run_episode(
         images, dep = sim.render()
         if frames is not None:
             frames.append(np.concatenate(list(images.values()), axis=1))
-        chunk = np.asarray(policy(_observe(sim, images, dep)), dtype=np.float64)
-        if chunk.ndim == 1:
-            chunk = chunk[None]
-        if chunk.ndim != 2 or chunk.shape[1] != ACTION_DIM or chunk.shape[0] == 0:
-            raise ValueError(
-                f"policy must return (T, {ACTION_DIM}) actions, got shape {chunk.shape}"
-            )
+        chunk = as_chunk(policy(_observe(sim, images, dep)))
         if execute_steps is not None:
             chunk = chunk[:execute_steps]
         for i, action in enumerate(chunk):

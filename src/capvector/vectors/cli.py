@@ -23,6 +23,9 @@ def _run(command: str, job: Callable[[], Any]) -> int:
     except (CapVectorError, FileExistsError) as err:
         print(f"capvector {command}: error: {err}", file=sys.stderr)
         return 2
+    except OSError as err:  # disk full, permissions: the output was not written either
+        print(f"capvector {command}: error: {err}; nothing was written", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print(f"capvector {command}: interrupted; nothing was written", file=sys.stderr)
         return 130
@@ -241,7 +244,7 @@ def inspect_main(argv: list[str] | None = None) -> int:
     def job() -> None:
         from capvector.vectors.inspect import inspect_vector
 
-        report = inspect_vector(args.vector, against=args.against, plot=args.plot)
+        report = inspect_vector(args.vector, against=args.against, plot=args.plot, progress=True)
         print(report.table())
         print(
             f"\n{report.num_tensors} tensors ({report.lowrank_tensors} low-rank), ‖c‖ = {report.norm:.4g}"

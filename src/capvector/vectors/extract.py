@@ -19,6 +19,7 @@ from tqdm.auto import tqdm
 from capvector.vectors.io import (
     DEFAULT_MAX_SHARD_SIZE,
     CapVectorError,
+    Scratch,
     TensorInfo,
     WeightSource,
     atomic_output,
@@ -146,18 +147,20 @@ def extract(
                 desc="extract",
                 disable=not progress,
             )
+            scratch = Scratch()
             with bar:
                 for key in keys:
-                    if key in lowrank_keys:
-                        for o, w in zip(outputs, writers, strict=True):
-                            delta = _whole_delta(sources, o, key, infos[key])
-                            norm = float(torch.linalg.vector_norm(delta))
-                            factors, retained = svd_factors(delta, rank, energy)
-                            del delta
-                            w.add_lowrank(key, factors, norm, retained, infos[key].dtype)
-                    else:
-                        _stream_full(sources, outputs, writers, key, infos[key], bar.update)
+                    if key not in lowrank_keys:
+                        _stream_full(
+                            sources, outputs, writers, key, infos[key], bar.update, scratch
+                        )
                         continue
+                    for o, w in zip(outputs, writers, strict=True):
+                        delta = _whole_delta(sources, o, key, infos[key])
+                        norm = float(torch.linalg.vector_norm(delta))
+                        factors, retained = svd_factors(delta, rank, energy)
+                        del delta  # before the next output's delta: one whole tensor at a time
+                        w.add_lowrank(key, factors, norm, retained, infos[key].dtype)
                     bar.update(infos[key].nbytes)
             metas = []
             for o, w in zip(outputs, writers, strict=True):
@@ -266,13 +269,18 @@ def _stream_full(
     key: str,
     info: TensorInfo,
     advance: Callable[[int], Any],
+    scratch: Scratch,
 ) -> None:
     for rows in row_chunks(info):
         chunks = {name: src.read(key, rows) for name, src in sources.items()}
         work = compute_dtype(*(c.dtype for c in chunks.values()))
         chunks = {name: c.to(work) for name, c in chunks.items()}
+        shape = chunks["aux"].shape
         for o, w in zip(outputs, writers, strict=True):
-            stored = (chunks[o.minuend] - chunks[o.subtrahend]).to(info.dtype)
+            diff = torch.sub(
+                chunks[o.minuend], chunks[o.subtrahend], out=scratch.get("diff", shape, work)
+            )
+            stored = diff.to(info.dtype)
             norm = torch.linalg.vector_norm(stored.to(work))
             if not torch.isfinite(norm):
                 raise _not_finite(sources, chunks, key, o, info)

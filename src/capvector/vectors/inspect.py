@@ -11,6 +11,8 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from tqdm.auto import tqdm
+
 from capvector.vectors.io import CapVectorError, atomic_write_file, examples, row_chunks
 from capvector.vectors.vector import VectorFolder
 
@@ -109,6 +111,7 @@ def inspect_vector(
     path: str | Path,
     against: str | Path | None = None,
     plot: str | Path | None = None,
+    progress: bool = False,
 ) -> InspectReport:
     """Per-layer norms of the vector at ``path``; with ``against``, per-layer and overall cosines.
 
@@ -123,7 +126,7 @@ def inspect_vector(
     report.num_tensors = len(keys)
     report.lowrank_tensors = sum(vector.storage(k) == "lora" for k in keys)
     groups: dict[str, GroupStats] = {}
-    for key in keys:
+    for key in tqdm(keys, desc="inspect", unit="tensor", disable=not progress):
         name, stack, layer = group_of(key)
         g = groups.setdefault(name, GroupStats(name, stack, layer))
         info = vector.info(key)

@@ -20,8 +20,10 @@ from capvector.vectors.io import (
     CapVectorError,
     SafetensorsFolder,
     SafetensorsWriter,
+    Scratch,
     ShardLayout,
     TensorInfo,
+    all_finite,
     atomic_output,
     capvector_version,
     check_output,
@@ -44,13 +46,25 @@ _WRAPPER_NAMES = frozenset(
 )
 
 
-def add_scaled(base: Tensor, deltas: Sequence[tuple[Tensor, float]]) -> Tensor:
-    """``base + Σ λ·delta`` computed in float32 (float64 for float64 inputs), cast to base's dtype."""
+def add_scaled(
+    base: Tensor, deltas: Sequence[tuple[Tensor, float]], out: Tensor | None = None
+) -> Tensor:
+    """``base + Σ λ·delta`` computed in float32 (float64 for float64 inputs), cast to base's dtype.
+
+    ``out`` is an optional work buffer of base's shape in the compute dtype (it may be returned).
+    """
     work = compute_dtype(base.dtype, *(d.dtype for d, _ in deltas))
-    out = base.to(work, copy=True)
+    if not deltas:
+        return base.clone()
+    acc: Tensor | None = None
     for delta, scale in deltas:
-        out.add_(delta.to(device=out.device, dtype=work), alpha=scale)
-    return out.to(base.dtype)
+        d = delta.to(device=base.device, dtype=work)
+        if acc is None:
+            acc = torch.add(base.to(work), d, alpha=scale, out=out)
+        else:
+            acc.add_(d, alpha=scale)
+    assert acc is not None
+    return acc.to(base.dtype)
 
 
 def check_compatible(
@@ -159,9 +173,10 @@ def merge(
             with tqdm(
                 total=total, unit="B", unit_scale=True, desc="merge", disable=not progress
             ) as bar:
+                scratch = Scratch()
                 for _, items in layout.files:
                     for key, info in items:
-                        _merge_tensor(source, folders, writer, key, info)
+                        _merge_tensor(source, folders, writer, key, info, scratch)
                         bar.update(info.nbytes)
             writer.finish()
         except BaseException:
@@ -177,14 +192,16 @@ def _merge_tensor(
     writer: SafetensorsWriter,
     key: str,
     info: TensorInfo,
+    scratch: Scratch,
 ) -> None:
     touching = [(f, s) for f, s in folders if key in f]
     for rows in row_chunks(info):
         chunk = source.read(key, rows)
         if touching:
             deltas = [(f.read(key, rows), s) for f, s in touching]
-            merged = add_scaled(chunk, deltas)
-            if not torch.isfinite(merged).all():
+            work = compute_dtype(chunk.dtype, *(d.dtype for d, _ in deltas))
+            merged = add_scaled(chunk, deltas, out=scratch.get("merged", chunk.shape, work))
+            if not all_finite(merged):
                 culprits = [
                     str(f.path)
                     for (f, _), (d, _) in zip(touching, deltas, strict=True)

@@ -85,9 +85,11 @@ class VectorFolder:
         if has_adapter:
             self._lowrank, self._extra = read_adapter(self.path)
         full_keys = set(self._full.keys()) if self._full else set()
-        both = sorted((full_keys | set(self._extra)) & set(self._lowrank))
-        if both or full_keys & set(self._extra):
-            raise CapVectorError(f"{self.path} stores some tensors twice, e.g. {examples(both)}")
+        twice = sorted(
+            ((full_keys | set(self._extra)) & set(self._lowrank)) | (full_keys & set(self._extra))
+        )
+        if twice:
+            raise CapVectorError(f"{self.path} stores some tensors twice, e.g. {examples(twice)}")
         listed = self.metadata.get("tensors")
         if isinstance(listed, dict):
             missing = sorted(set(listed) - set(self.keys()))

@@ -1,0 +1,67 @@
+"""Evaluation episodes as a validation dataset: Lightning's validation loop runs MuJoCo rollouts.
+
+Every rank gets the same number of items, so collective calls inside validation steps line up;
+when the episodes do not divide evenly the extra items are marked ``counted=False`` and the
+success metrics skip them, so the rate equals a one-process run on the same episodes.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+from torch.utils.data import Dataset, DistributedSampler
+
+from capvector.sim.rollout import EVAL_SEED_START, EpisodeSpec, eval_specs
+
+
+@dataclass
+class EvalTask:
+    """Episodes of one task for the rollout validation loop. Seeds start far above demo seeds."""
+
+    task: str
+    episodes: int = 10
+    robot: str = "Panda"
+    start_seed: int = EVAL_SEED_START
+    max_steps: int | None = None
+
+
+@dataclass(frozen=True)
+class EpisodeItem:
+    spec: EpisodeSpec
+    index: int
+    """Position in the full episode list (video naming, ordering)."""
+    counted: bool = True
+    """False for the padding items that even out ranks."""
+
+
+class EpisodeDataset(Dataset):
+    def __init__(self, tasks: list[EvalTask]) -> None:
+        self.specs: list[EpisodeSpec] = []
+        for t in tasks:
+            self.specs += eval_specs(
+                t.task, t.episodes, robot=t.robot, start_seed=t.start_seed, max_steps=t.max_steps
+            )
+
+    def __len__(self) -> int:
+        return len(self.specs)
+
+    def __getitem__(self, i: int) -> EpisodeItem:
+        n = len(self.specs)
+        return EpisodeItem(self.specs[i % n], i % n, counted=i < n)
+
+
+class EpisodeSampler(DistributedSampler):
+    """Rank r takes episodes r, r + world, ...; ranks are padded to equal length with uncounted
+    repeats (indices past the end, which ``EpisodeDataset`` maps to counted=False items)."""
+
+    def __init__(self, dataset: EpisodeDataset, num_replicas: int, rank: int) -> None:
+        super().__init__(dataset, num_replicas=num_replicas, rank=rank, shuffle=False)
+        self.per_rank = math.ceil(len(dataset) / num_replicas)
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(range(self.rank, self.per_rank * self.num_replicas, self.num_replicas))
+
+    def __len__(self) -> int:
+        return self.per_rank
