@@ -180,7 +180,8 @@ def measure(stage: str, root: Path, out: Path) -> tuple[float, float]:
 
 
 def spot_check(root: Path, merged: Path) -> None:
-    """θ_merged == θ_pre + (θ_aux − θ_sft) on a few tensors (rows of the big ones)."""
+    """θ_merged == θ_pre + (θ_aux − θ_sft) on a few tensors (rows of the big ones), bit for bit:
+    c is computed in float32 and stored in the models' dtype, the sum likewise."""
     import torch
     from safetensors import safe_open
 
@@ -196,9 +197,11 @@ def spot_check(root: Path, merged: Path) -> None:
         for name in ("pre", "aux", "sft", "merged"):
             folder = merged if name == "merged" else root / name
             with safe_open(str(folder / index[key]), "pt") as f:
-                values[name] = f.get_slice(key)[rows].float()
-        expected = values["pre"] + (values["aux"] - values["sft"])
-        if not torch.allclose(values["merged"], expected, rtol=1e-5, atol=1e-6):
+                values[name] = f.get_slice(key)[rows]
+        dtype = values["pre"].dtype
+        vector = (values["aux"].float() - values["sft"].float()).to(dtype)
+        expected = (values["pre"].float() + vector.float()).to(dtype)
+        if not torch.equal(values["merged"], expected):
             raise AssertionError(f"merged `{key}` differs from pre + (aux - sft)")
 
 

@@ -5,7 +5,7 @@ Layout (robomimic ``docs/datasets/overview.md``, plus LIBERO's per-demo language
     data                      attrs: env_args (JSON: env_name, type=1, env_version, env_kwargs),
                               total, language_instruction, cameras (JSON list),
                               <camera>_intrinsics (3x3 px), camera_fovy (JSON), image_size,
-                              proprio_keys (JSON), noise_std, expert
+                              proprio_keys (JSON), model_fixes (JSON), noise_std, expert
     data/demo_<i>             attrs: num_samples, model_file (MJCF), seed,
                               language_instruction, first_success (step index)
         actions               (T, 7) float32  clean expert action; gripper -1 open / +1 closed
@@ -209,6 +209,7 @@ def _write_data_attrs(data: h5py.Group, sim: SimEnv, total: int, noise: float, e
     data.attrs["camera_fovy"] = json.dumps(sim.camera_fovy)
     data.attrs["image_size"] = sim.image_size
     data.attrs["proprio_keys"] = json.dumps(list(PROPRIO_KEYS))
+    data.attrs["model_fixes"] = json.dumps(sim.model_fixes)
     data.attrs["noise_std"] = noise
     data.attrs["expert"] = expert
 

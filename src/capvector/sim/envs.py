@@ -129,6 +129,19 @@ TASKS: dict[str, TaskSpec] = {
 }
 
 
+# Model bugs of robosuite 1.5.2 that stop our controllers, patched after the model is built
+# (and recorded in the demo files' `model_fixes` attr): robot -> [(geom, what was done and why)].
+MODEL_FIXES: dict[str, list[tuple[str, str]]] = {
+    "Sawyer": [
+        (
+            "robot0_base_col",
+            "contacts disabled: at rest it touches robot0_link0_collision, which joint 0 turns; "
+            "the contact's friction stalls the arm's sideways (y) motion ~1 cm short of the goal",
+        )
+    ],
+}
+
+
 def get_task(name: str) -> TaskSpec:
     """The :class:`TaskSpec` called ``name``, with the known names in the error."""
     try:
@@ -452,8 +465,15 @@ class SimEnv:
         self.seed: int | None = None
         self.steps = 0
         self._renderer: CameraRenderer | None = None
-        self.observation = self._lowdim(self.env.reset())
         model = self.env.sim.model._model
+        self.model_fixes: dict[str, str] = {}
+        for geom, why in MODEL_FIXES.get(robot, []):
+            geom_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, geom)
+            if geom_id >= 0:
+                model.geom_contype[geom_id] = 0
+                model.geom_conaffinity[geom_id] = 0
+                self.model_fixes[geom] = why
+        self.observation = self._lowdim(self.env.reset())
         self.camera_fovy: dict[str, float] = {}
         for name, fovy in {**self.spec.camera_fovy, **(camera_fovy or {})}.items():
             cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, name)

@@ -1,0 +1,76 @@
+"""MuJoCo evaluation as Lightning's validation loop, and `capvector evaluate`."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from capvector.cli import main
+from capvector.data.episodes import EpisodeDataset, EpisodeSampler, EvalTask
+from capvector.evaluate import wilson_interval
+
+REPO = Path(__file__).resolve().parents[1]
+SCRIPT = Path(__file__).with_name("distributed_fit.py")
+
+
+def test_episode_sampler_evens_out_ranks_without_counting_twice() -> None:
+    dataset = EpisodeDataset([EvalTask("Lift", episodes=3), EvalTask("Stack", episodes=2)])
+    per_rank = [list(EpisodeSampler(dataset, num_replicas=2, rank=r)) for r in range(2)]
+    assert [len(p) for p in per_rank] == [3, 3]  # equal step counts keep collectives in line
+    items = [dataset[i] for p in per_rank for i in p]
+    counted = sorted((item.spec.task, item.spec.seed) for item in items if item.counted)
+    assert counted == sorted((s.task, s.seed) for s in dataset.specs)  # each episode exactly once
+    assert sum(not item.counted for item in items) == 1
+    assert all(s.seed >= 1_000_000 for s in dataset.specs)  # disjoint from demo seeds
+
+
+def test_wilson_interval() -> None:
+    low, high = wilson_interval(0, 20)
+    assert low == 0 and 0.1 < high < 0.2
+    low, high = wilson_interval(10, 20)
+    assert low < 0.5 < high
+
+
+@pytest.mark.sim
+def test_fit_runs_the_rollout_validation_loop(tmp_path: Path) -> None:
+    demos = tmp_path / "lift.hdf5"
+    assert main(["demos", "--task", "Lift", "--episodes", "2", "--image-size", "64", "--seed", "10000", "--out", str(demos)]) == 0
+    main([
+        "fit", "--config", str(REPO / "configs/debug.yaml"), f"--data.train_files=[{demos}]",
+        "--trainer.max_steps=2", "--trainer.val_check_interval=2", "--trainer.num_sanity_val_steps=0",
+        "--data.eval_tasks=[{task: Lift, episodes: 2, max_steps: 16}]", "--model.rollout.videos=1",
+        f"--trainer.default_root_dir={tmp_path}", f"--trainer.logger.init_args.save_dir={tmp_path}",
+        "--trainer.enable_progress_bar=false", "--trainer.log_every_n_steps=1",
+    ])  # fmt: skip
+    version = tmp_path / "fit" / "version_0"
+    header = (version / "metrics.csv").read_text().splitlines()[0]
+    assert "val/success_rate" in header and "val/success_rate/Lift" in header and "val/episodes" in header
+    assert len(list((version / "videos").rglob("*.mp4"))) == 1
+    ckpt = next((version / "checkpoints").glob("*.ckpt"))
+    table = tmp_path / "eval.json"
+    assert main(["evaluate", "--ckpt", str(ckpt), "--episodes", "2", "--json", str(table)]) == 0
+    (row,) = json.loads(table.read_text())
+    assert row["task"] == "Lift" and row["episodes"] == 2 and 0 <= row["success_rate"] <= 1
+
+
+@pytest.mark.sim
+@pytest.mark.distributed
+def test_ddp_validation_counts_each_episode_once(tmp_path: Path, demo_file: Path) -> None:
+    """3 episodes over 2 ranks: the padded rank runs an uncounted episode; rates match 1 process."""
+    results = []
+    for devices in ("1", "2"):
+        out = tmp_path / devices
+        args = ["--devices", devices, "--strategy", "ddp" if devices == "2" else "auto"]
+        completed = subprocess.run(
+            [sys.executable, str(SCRIPT), "--data", str(demo_file), "--out", str(out), "--validate-episodes", "3", *args],
+            capture_output=True, text=True, timeout=600,
+        )  # fmt: skip
+        assert completed.returncode == 0, completed.stderr[-3000:]
+        results.append(json.loads((out / "validate.json").read_text()))
+    single, ddp = results
+    assert single["val/episodes"] == ddp["val/episodes"] == 3
+    assert single["val/success_rate"] == ddp["val/success_rate"]
