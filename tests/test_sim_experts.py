@@ -10,14 +10,15 @@ from capvector.sim.demos import record_episode
 from capvector.sim.envs import TASKS, SimEnv
 from capvector.sim.experts import EXPERTS, PHASES, ExpertAction, make_expert
 
-# (task, arm, gripper): every expert on the Panda, and Lift on a second arm with the same
-# 7-d OSC action space (the transfer setting); measured rates over 100-200 seeds are in the
-# module docs of capvector.sim.experts.
+# (task, arm, gripper): every expert on the Panda, and Lift on two other arms with the same
+# 7-d OSC action space (the transfer setting); success rates measured over 100-200 seeds are in
+# the module docs of capvector.sim.experts.
 CASES = [
     ("Lift", "Panda", None),
     ("Stack", "Panda", None),
     ("PickPlaceCan", "Panda", None),
     ("Lift", "IIWA", "PandaGripper"),
+    ("Lift", "Sawyer", None),  # needs envs.MODEL_FIXES["Sawyer"]
 ]
 
 

@@ -91,6 +91,12 @@ def backbone_info_main(argv: list[str]) -> int:
     )
     parser.add_argument("preset", nargs="?", help="a registered preset; omit with --list")
     parser.add_argument("--list", action="store_true", help="list the registered presets")
+    parser.add_argument("--memory", action="store_true", help="estimate per-device training memory")
+    parser.add_argument("--batch", type=int, default=8, help="per-device batch size (--memory)")
+    parser.add_argument("--precision", default="bf16-mixed", help="32-true, bf16-mixed or bf16-true")
+    parser.add_argument("--strategy", default="fsdp2", help="ddp, fsdp2, deepspeed_zero2, deepspeed_zero3")
+    parser.add_argument("--devices", type=int, default=1, help="devices the model is sharded over")
+    parser.add_argument("--lora-rank", type=int, default=None, help="train LoRA of this rank")
     args = parser.parse_args(argv)
     if args.list or not args.preset:
         print("\n".join(list_presets()))
@@ -109,6 +115,14 @@ def backbone_info_main(argv: list[str]) -> int:
         print(f"  {name:<{width}}  {count:>15,}")
     print(f"  {'total':<{width}}  {total:>15,}")
     print(f"  {'capability':<{width}}  {in_vector:>15,}  (parameters a capability vector covers)")
+    if args.memory:
+        from capvector.memory import describe, estimate_memory
+
+        settings = {
+            "batch_size": args.batch, "precision": args.precision, "strategy": args.strategy,
+            "devices": args.devices, "lora_rank": args.lora_rank,
+        }  # fmt: skip
+        print(describe(estimate_memory(args.preset, **settings), **settings))
     return 0
 
 

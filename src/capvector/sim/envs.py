@@ -435,8 +435,9 @@ class SimEnv:
 
     ``observation`` is the low-dim state after the last reset/step: ``robot0_eef_pos`` (3,),
     ``robot0_eef_quat`` (4,) xyzw, ``robot0_eef_axis_angle`` (3,), ``robot0_gripper_qpos`` (2,),
-    the task's object positions (e.g. ``cube_pos``) and quaternions (e.g. ``cube_quat``, xyzw). ``robot0_eef_quat`` is robosuite's
-    body-frame quaternion, the key LIBERO/OFT datasets use for the axis-angle proprio.
+    the task's object positions (e.g. ``cube_pos``) and quaternions (e.g. ``cube_quat``, xyzw).
+    ``robot0_eef_quat`` is robosuite's eef *body* quaternion in the world frame, the key the
+    LIBERO/OFT datasets take the axis-angle proprio from.
     """
 
     def __init__(
@@ -475,29 +476,43 @@ class SimEnv:
                 self.model_fixes[geom] = why
         self.observation = self._lowdim(self.env.reset())
         self.camera_fovy: dict[str, float] = {}
-        for name, fovy in {**self.spec.camera_fovy, **(camera_fovy or {})}.items():
-            cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, name)
-            if cam_id < 0:
-                raise ValueError(f"camera_fovy names {name!r}, which {task} does not have")
-            model.cam_fovy[cam_id] = fovy
-        for name in self.cameras:
-            cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, name)
-            if cam_id < 0:
-                raise ValueError(f"camera {name!r} is not in {task}")
-            self.camera_fovy[name] = float(model.cam_fovy[cam_id])
-        n_fingers = self.observation["robot0_gripper_qpos"].shape[0]
-        if n_fingers != 2:
-            grip = type(self.env.robots[0].gripper["right"]).__name__
+        try:
+            self._check_and_set_cameras(model, camera_fovy)
+            n_fingers = self.observation["robot0_gripper_qpos"].shape[0]
+            if n_fingers != 2:
+                grip = type(self.env.robots[0].gripper["right"]).__name__
+                raise ValueError(
+                    f"{robot} with {grip} has {n_fingers} finger joints, but the 8-d proprio "
+                    "(eef pos + axis-angle + 2 finger joints) needs a gripper with two: pass "
+                    "gripper='PandaGripper' (CLI: --gripper PandaGripper) or 'RethinkGripper'"
+                )
+            if self.cameras:
+                self._renderer = CameraRenderer(
+                    model, self.cameras, image_size, depth=depth, msaa_samples=msaa_samples
+                )
+        except Exception:
             self.close()
-            raise ValueError(
-                f"{robot} with {grip} has {n_fingers} finger joints, but the 8-d proprio "
-                "(eef pos + axis-angle + 2 finger joints) needs a gripper with two: pass "
-                "gripper='PandaGripper' (CLI: --gripper PandaGripper) or 'RethinkGripper'"
-            )
-        if self.cameras:
-            self._renderer = CameraRenderer(
-                model, self.cameras, image_size, depth=depth, msaa_samples=msaa_samples
-            )
+            raise
+
+    def _check_and_set_cameras(
+        self, model: mujoco.MjModel, camera_fovy: Mapping[str, float] | None
+    ) -> None:
+        def camera_id(name: str, what: str) -> int:
+            cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, name)
+            if cam_id < 0:
+                known = [
+                    mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_CAMERA, i)
+                    for i in range(model.ncam)
+                ]
+                raise ValueError(
+                    f"{what} {name!r} is not in {self.task}; it has {', '.join(known)}"
+                )
+            return cam_id
+
+        for name, fovy in {**self.spec.camera_fovy, **(camera_fovy or {})}.items():
+            model.cam_fovy[camera_id(name, "camera_fovy names camera")] = fovy
+        for name in self.cameras:
+            self.camera_fovy[name] = float(model.cam_fovy[camera_id(name, "camera")])
 
     @property
     def instruction(self) -> str:

@@ -274,14 +274,16 @@ def _stream_full(
     for rows in row_chunks(info):
         chunks = {name: src.read(key, rows) for name, src in sources.items()}
         work = compute_dtype(*(c.dtype for c in chunks.values()))
-        chunks = {name: c.to(work) for name, c in chunks.items()}
+        chunks = {name: scratch.cast(name, c, work) for name, c in chunks.items()}
         shape = chunks["aux"].shape
         for o, w in zip(outputs, writers, strict=True):
             diff = torch.sub(
                 chunks[o.minuend], chunks[o.subtrahend], out=scratch.get("diff", shape, work)
             )
-            stored = diff.to(info.dtype)
-            norm = torch.linalg.vector_norm(stored.to(work))
+            stored = scratch.cast("stored", diff, info.dtype)
+            if stored is not diff:  # the recorded norm is the stored (rounded) tensor's
+                diff.copy_(stored)
+            norm = torch.linalg.vector_norm(diff)
             if not torch.isfinite(norm):
                 raise _not_finite(sources, chunks, key, o, info)
             w.write(key, stored, norm)

@@ -140,6 +140,10 @@ class Scratch:
             self._buffers[(name, dtype)] = buffer
         return buffer[:numel].view(tuple(shape))
 
+    def cast(self, name: str, t: Tensor, dtype: torch.dtype) -> Tensor:
+        """``t`` in ``dtype``: itself when it already is, else a copy in the buffer ``name``."""
+        return t if t.dtype == dtype else self.get(name, t.shape, dtype).copy_(t)
+
 
 def all_finite(t: Tensor) -> bool:
     """True when no entry is NaN/Inf. One reduction; the elementwise check only when it fails

@@ -47,24 +47,30 @@ _WRAPPER_NAMES = frozenset(
 
 
 def add_scaled(
-    base: Tensor, deltas: Sequence[tuple[Tensor, float]], out: Tensor | None = None
+    base: Tensor, deltas: Sequence[tuple[Tensor, float]], scratch: Scratch | None = None
 ) -> Tensor:
     """``base + Σ λ·delta`` computed in float32 (float64 for float64 inputs), cast to base's dtype.
 
-    ``out`` is an optional work buffer of base's shape in the compute dtype (it may be returned).
+    With ``scratch`` the casts and the sum go to reused buffers (the result too: it is valid until
+    the next call); without, the result is a new tensor.
     """
-    work = compute_dtype(base.dtype, *(d.dtype for d, _ in deltas))
     if not deltas:
         return base.clone()
+    work = compute_dtype(base.dtype, *(d.dtype for d, _ in deltas))
+
+    def cast(name: str, t: Tensor, dtype: torch.dtype) -> Tensor:
+        return scratch.cast(name, t, dtype) if scratch is not None else t.to(dtype)
+
     acc: Tensor | None = None
     for delta, scale in deltas:
-        d = delta.to(device=base.device, dtype=work)
+        d = cast("delta", delta.to(base.device), work)
         if acc is None:
-            acc = torch.add(base.to(work), d, alpha=scale, out=out)
+            out = scratch.get("sum", base.shape, work) if scratch is not None else None
+            acc = torch.add(cast("base", base, work), d, alpha=scale, out=out)
         else:
             acc.add_(d, alpha=scale)
     assert acc is not None
-    return acc.to(base.dtype)
+    return cast("result", acc, base.dtype)
 
 
 def check_compatible(
@@ -199,9 +205,8 @@ def _merge_tensor(
         chunk = source.read(key, rows)
         if touching:
             deltas = [(f.read(key, rows), s) for f, s in touching]
-            work = compute_dtype(chunk.dtype, *(d.dtype for d, _ in deltas))
-            merged = add_scaled(chunk, deltas, out=scratch.get("merged", chunk.shape, work))
-            if not all_finite(merged):
+            merged = add_scaled(chunk, deltas, scratch)
+            if not all_finite(merged):  # after the cast back, which may overflow float16
                 culprits = [
                     str(f.path)
                     for (f, _), (d, _) in zip(touching, deltas, strict=True)

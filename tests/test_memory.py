@@ -1,0 +1,41 @@
+"""The meta-device memory estimate against what the same step saves on the CPU."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from capvector.backbones import build_backbone
+from capvector.cli import main
+from capvector.memory import estimate_memory, saved_activation_bytes, synthetic_batch
+
+
+def test_meta_activation_estimate_is_close_to_a_real_step() -> None:
+    estimate = estimate_memory("openvla-oft-tiny", batch_size=4, precision="32-true", strategy="ddp")
+    model = build_backbone("openvla-oft-tiny")
+    store: list[float] = []
+    with saved_activation_bytes(store):
+        model(synthetic_batch(model, 4, "cpu")).loss.backward()
+    # The meta device takes SDPA's math path (it saves attention weights), the CPU a fused kernel,
+    # so the estimate is an upper bound, but of the right size.
+    assert store[0] <= estimate.activations <= 2.0 * store[0]
+    assert estimate.activations_checkpointed < 0.25 * estimate.activations
+
+
+def test_strategies_shard_what_they_should() -> None:
+    ddp = estimate_memory("openvla-oft-tiny", strategy="ddp", devices=4, precision="32-true")
+    zero2 = estimate_memory("openvla-oft-tiny", strategy="deepspeed_zero2", devices=4, precision="32-true")
+    fsdp = estimate_memory("openvla-oft-tiny", strategy="fsdp2", devices=4, precision="32-true")
+    params = sum(p.numel() for p in build_backbone("openvla-oft-tiny").parameters())
+    assert ddp.parameters == zero2.parameters == pytest.approx(4 * params)
+    assert zero2.optimizer == pytest.approx(ddp.optimizer / 4)
+    assert fsdp.parameters < ddp.parameters
+    with pytest.raises(ValueError, match="unknown strategy"):
+        estimate_memory("openvla-oft-tiny", strategy="fsdp1")
+
+
+def test_backbone_info_prints_the_estimate(capsys: pytest.CaptureFixture[str]) -> None:
+    torch.manual_seed(0)
+    assert main(["backbone-info", "openvla-oft-tiny", "--memory", "--batch", "2", "--devices", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "activations, checkpointed" in out and "GiB" in out
