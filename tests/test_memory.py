@@ -11,7 +11,9 @@ from capvector.memory import estimate_memory, saved_activation_bytes, synthetic_
 
 
 def test_meta_activation_estimate_is_close_to_a_real_step() -> None:
-    estimate = estimate_memory("openvla-oft-tiny", batch_size=4, precision="32-true", strategy="ddp")
+    estimate = estimate_memory(
+        "openvla-oft-tiny", batch_size=4, precision="32-true", strategy="ddp"
+    )
     model = build_backbone("openvla-oft-tiny")
     store: list[float] = []
     with saved_activation_bytes(store):
@@ -24,7 +26,9 @@ def test_meta_activation_estimate_is_close_to_a_real_step() -> None:
 
 def test_strategies_shard_what_they_should() -> None:
     ddp = estimate_memory("openvla-oft-tiny", strategy="ddp", devices=4, precision="32-true")
-    zero2 = estimate_memory("openvla-oft-tiny", strategy="deepspeed_zero2", devices=4, precision="32-true")
+    zero2 = estimate_memory(
+        "openvla-oft-tiny", strategy="deepspeed_zero2", devices=4, precision="32-true"
+    )
     fsdp = estimate_memory("openvla-oft-tiny", strategy="fsdp2", devices=4, precision="32-true")
     params = sum(p.numel() for p in build_backbone("openvla-oft-tiny").parameters())
     assert ddp.parameters == zero2.parameters == pytest.approx(4 * params)
@@ -36,6 +40,9 @@ def test_strategies_shard_what_they_should() -> None:
 
 def test_backbone_info_prints_the_estimate(capsys: pytest.CaptureFixture[str]) -> None:
     torch.manual_seed(0)
-    assert main(["backbone-info", "openvla-oft-tiny", "--memory", "--batch", "2", "--devices", "2"]) == 0
+    assert (
+        main(["backbone-info", "openvla-oft-tiny", "--memory", "--batch", "2", "--devices", "2"])
+        == 0
+    )
     out = capsys.readouterr().out
     assert "activations, checkpointed" in out and "GiB" in out

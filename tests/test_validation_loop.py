@@ -38,7 +38,24 @@ def test_wilson_interval() -> None:
 @pytest.mark.sim
 def test_fit_runs_the_rollout_validation_loop(tmp_path: Path) -> None:
     demos = tmp_path / "lift.hdf5"
-    assert main(["demos", "--task", "Lift", "--episodes", "2", "--image-size", "64", "--seed", "10000", "--out", str(demos)]) == 0
+    assert (
+        main(
+            [
+                "demos",
+                "--task",
+                "Lift",
+                "--episodes",
+                "2",
+                "--image-size",
+                "64",
+                "--seed",
+                "10000",
+                "--out",
+                str(demos),
+            ]
+        )
+        == 0
+    )
     main([
         "fit", "--config", str(REPO / "configs/debug.yaml"), f"--data.train_files=[{demos}]",
         "--trainer.max_steps=2", "--trainer.val_check_interval=2", "--trainer.num_sanity_val_steps=0",
@@ -48,7 +65,11 @@ def test_fit_runs_the_rollout_validation_loop(tmp_path: Path) -> None:
     ])  # fmt: skip
     version = tmp_path / "fit" / "version_0"
     header = (version / "metrics.csv").read_text().splitlines()[0]
-    assert "val/success_rate" in header and "val/success_rate/Lift" in header and "val/episodes" in header
+    assert (
+        "val/success_rate" in header
+        and "val/success_rate/Lift" in header
+        and "val/episodes" in header
+    )
     assert len(list((version / "videos").rglob("*.mp4"))) == 1
     ckpt = next((version / "checkpoints").glob("*.ckpt"))
     table = tmp_path / "eval.json"

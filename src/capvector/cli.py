@@ -17,6 +17,11 @@ LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
 TOOLS: dict[str, tuple[str, str, str]] = {
     "backbone-info": ("capvector.cli", "backbone_info_main", "parameter counts of a preset"),
     "export": ("capvector.cli", "export_main", "export a checkpoint to a safetensors folder"),
+    "import-original": (
+        "capvector.cli",
+        "import_original_main",
+        "original checkpoint -> export folder",
+    ),
     "demos": ("capvector.sim.demos", "main", "record scripted robosuite demonstrations"),
     "evaluate": ("capvector.evaluate", "main", "MuJoCo rollouts of a checkpoint, success table"),
     "extract": ("capvector.vectors.cli", "extract_main", "capability vector = aux - sft"),
@@ -93,8 +98,12 @@ def backbone_info_main(argv: list[str]) -> int:
     parser.add_argument("--list", action="store_true", help="list the registered presets")
     parser.add_argument("--memory", action="store_true", help="estimate per-device training memory")
     parser.add_argument("--batch", type=int, default=8, help="per-device batch size (--memory)")
-    parser.add_argument("--precision", default="bf16-mixed", help="32-true, bf16-mixed or bf16-true")
-    parser.add_argument("--strategy", default="fsdp2", help="ddp, fsdp2, deepspeed_zero2, deepspeed_zero3")
+    parser.add_argument(
+        "--precision", default="bf16-mixed", help="32-true, bf16-mixed or bf16-true"
+    )
+    parser.add_argument(
+        "--strategy", default="fsdp2", help="ddp, fsdp2, deepspeed_zero2, deepspeed_zero3"
+    )
     parser.add_argument("--devices", type=int, default=1, help="devices the model is sharded over")
     parser.add_argument("--lora-rank", type=int, default=None, help="train LoRA of this rank")
     args = parser.parse_args(argv)
@@ -137,6 +146,56 @@ def export_main(argv: list[str]) -> int:
     args = parser.parse_args(argv)
     folder = load_module(args.ckpt).export(args.out, overwrite=args.overwrite)
     print(f"exported {args.ckpt} to {folder}")
+    return 0
+
+
+def import_original_main(argv: list[str]) -> int:
+    """Convert an original project's checkpoint (OpenVLA-OFT run folder, LeRobot pi05_base folder,
+    StarVLA .pt + Qwen folder) into an export folder usable as ``--model.pretrained`` (θ_pre)."""
+    from capvector.backbones import preset_config
+    from capvector.errors import CapVectorError
+
+    parser = argparse.ArgumentParser(
+        prog="capvector import-original", description=import_original_main.__doc__
+    )
+    parser.add_argument(
+        "--preset", required=True, help="the architecture, e.g. openvla-oft-7b, pi05-3b"
+    )
+    parser.add_argument(
+        "--folder", required=True, help="original checkpoint folder (or StarVLA .pt file)"
+    )
+    parser.add_argument("--out", required=True, help="export folder to write (atomically)")
+    parser.add_argument(
+        "--qwen-folder", help="StarVLA: the Qwen-VL folder the .pt was trained from"
+    )
+    parser.add_argument(
+        "--apply-lora-adapter", action="store_true", help="OpenVLA-OFT: merge lora_adapter/"
+    )
+    args = parser.parse_args(argv)
+    family = preset_config(args.preset).family
+    statistics: dict = {}
+    if family == "openvla-oft":
+        from capvector.backbones.openvla_oft import OpenVLAOFT
+
+        model, statistics = OpenVLAOFT.from_original(
+            args.folder, preset=args.preset, apply_lora_adapter=args.apply_lora_adapter
+        )
+    elif family == "pi05":
+        from capvector.backbones.pi05 import Pi05
+
+        model, _ = Pi05.from_original(args.folder, preset=args.preset)
+    elif family == "starvla":
+        from capvector.backbones.starvla import StarVLA
+
+        if args.qwen_folder:
+            model, _ = StarVLA.from_starvla(args.folder, args.qwen_folder, preset=args.preset)
+        else:
+            model = StarVLA.from_qwen(args.folder, preset=args.preset)
+    else:
+        raise CapVectorError(f"no original-checkpoint loader for family {family!r}")
+    extra = {"dataset_statistics.json": statistics} if statistics else {}
+    model.save_pretrained(args.out, extra_json=extra)
+    print(f"wrote {args.out} ({family}, {sum(p.numel() for p in model.parameters()):,} parameters)")
     return 0
 
 

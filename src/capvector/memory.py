@@ -78,10 +78,14 @@ def saved_activation_bytes(store: list[float]) -> Iterator[None]:
     store.append(float(total))
 
 
-def synthetic_batch(backbone: VLABackbone, batch_size: int, device: str | torch.device) -> dict[str, Any]:
+def synthetic_batch(
+    backbone: VLABackbone, batch_size: int, device: str | torch.device
+) -> dict[str, Any]:
     c = backbone.config
     return {
-        keys.IMAGES: torch.rand(batch_size, c.num_images, 3, c.image_size, c.image_size, device=device),
+        keys.IMAGES: torch.rand(
+            batch_size, c.num_images, 3, c.image_size, c.image_size, device=device
+        ),
         keys.PROPRIO: torch.zeros(batch_size, c.proprio_dim, device=device),
         keys.ACTIONS: torch.zeros(batch_size, c.chunk_size, c.action_dim, device=device),
         keys.INSTRUCTION: ["pick up the red cube and place it on the plate"] * batch_size,
@@ -103,7 +107,7 @@ def measure_activations(backbone: VLABackbone, batch: dict[str, Any], checkpoint
 def _tiny_tokenizer(preset: str) -> dict[str, Any]:
     """The family's tiny-preset tokenizer, so a full-size preset can run a meta forward pass."""
     config = preset_config(preset)
-    if not hasattr(config, "tokenizer") or getattr(config, "tokenizer"):
+    if not hasattr(config, "tokenizer") or config.tokenizer:
         return {}
     for name in list_presets():
         other = preset_config(name)
@@ -124,7 +128,9 @@ def estimate_memory(
     if strategy not in STRATEGIES:
         raise CapVectorError(f"unknown strategy {strategy!r}; choose from {', '.join(STRATEGIES)}")
     if precision not in PRECISIONS:
-        raise CapVectorError(f"unknown precision {precision!r}; choose from {', '.join(PRECISIONS)}")
+        raise CapVectorError(
+            f"unknown precision {precision!r}; choose from {', '.join(PRECISIONS)}"
+        )
     overrides = _tiny_tokenizer(preset)
     activations = []
     for checkpointed in (False, True):
@@ -152,7 +158,9 @@ def estimate_memory(
     params = total * param_bytes / (devices if shard_params else 1)
     if shard_params and devices > 1:
         # FSDP2 all-gathers one unit at a time (plus one prefetched): add the two largest units.
-        units = sorted((sum(p.numel() for p in u.parameters()) for u in backbone.shard_units()), reverse=True)
+        units = sorted(
+            (sum(p.numel() for p in u.parameters()) for u in backbone.shard_units()), reverse=True
+        )
         params += sum(units[:2]) * param_bytes
     grads = trainable * state_bytes / (devices if shard_grads else 1)
     optimizer = 2 * trainable * state_bytes / (devices if shard_grads else 1)
