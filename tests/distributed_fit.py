@@ -14,7 +14,7 @@ import lightning as L
 import torch
 import torch.distributed as dist
 
-from capvector.callbacks import ExportOnFitEnd
+from capvector.callbacks import ExportOnFitEnd, MergeCapabilityVector, OrthogonalRegularization
 from capvector.data.datamodule import RobotDataModule
 from capvector.lora import LoraSettings
 from capvector.module import VLAModule
@@ -51,6 +51,10 @@ def main() -> None:
     parser.add_argument("--pretrained", default=None)
     parser.add_argument("--activation-checkpointing", action="store_true")
     parser.add_argument("--ckpt-path", default=None)
+    parser.add_argument("--vector", default=None, help="merge this capability vector at fit start")
+    parser.add_argument("--scale", type=float, default=1.0)
+    parser.add_argument("--orth-weight", type=float, default=0.0, help="orthogonal regularization")
+    parser.add_argument("--export-initial", default=None, help="export the weights before training")
     parser.add_argument(
         "--validate-episodes", type=int, default=0, help="only run rollout validation"
     )
@@ -74,6 +78,18 @@ def main() -> None:
         lora=LoraSettings(r=4, alpha=8),
         activation_checkpointing=args.activation_checkpointing,
     )
+    if args.export_initial:
+        module.export(args.export_initial)
+    callbacks: list[L.Callback] = [
+        RecordGlobalLoss(out / "losses.json"),
+        ExportOnFitEnd(str(out / "export")),
+    ]
+    if args.vector:
+        callbacks.append(MergeCapabilityVector(args.vector, scale=args.scale))
+        if args.orth_weight:
+            callbacks.append(
+                OrthogonalRegularization(args.vector, weight=args.orth_weight, mode="lora")
+            )
     strategy: object = args.strategy
     if args.strategy == "fsdp2":
         from lightning.pytorch.strategies import ModelParallelStrategy
@@ -97,7 +113,7 @@ def main() -> None:
         enable_model_summary=False,
         limit_val_batches=1.0 if args.validate_episodes else 0,
         default_root_dir=out,
-        callbacks=[RecordGlobalLoss(out / "losses.json"), ExportOnFitEnd(str(out / "export"))],
+        callbacks=callbacks,
     )
     if args.validate_episodes:
         (metrics,) = trainer.validate(module, dm)

@@ -50,7 +50,7 @@ def test_two_processes_match_one_on_the_same_global_batch(
     assert ours.keys() == theirs.keys()
     assert not any("lora_" in k or "base_layer" in k for k in ours)  # gathered and merged
     for key in theirs:
-        torch.testing.assert_close(ours[key], theirs[key], rtol=1e-5, atol=1e-6, msg=key)
+        torch.testing.assert_close(ours[key], theirs[key], rtol=1e-4, atol=1e-5, msg=key)
 
 
 def test_activation_checkpointing_changes_nothing_but_memory(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import mujoco
 import numpy as np
@@ -153,7 +154,10 @@ def test_depth_is_metric(sim: SimEnv) -> None:
 
 
 @pytest.mark.sim
-def test_faults_and_bad_actions(sim: SimEnv) -> None:
+def test_faults_and_bad_actions(
+    sim: SimEnv, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)  # MuJoCo appends its warnings to ./MUJOCO_LOG.TXT
     sim.reset(6)
     with pytest.raises(ValueError, match="7 values"):
         sim.step(np.zeros(6))

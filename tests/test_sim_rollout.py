@@ -107,7 +107,10 @@ def test_execute_steps_replans_more_often(demos, envs) -> None:
 
 
 @pytest.mark.sim
-def test_bad_actions_and_sim_faults_fail_only_their_episode(demos, envs) -> None:
+def test_bad_actions_and_sim_faults_fail_only_their_episode(
+    demos, envs, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)  # MuJoCo appends its warnings to ./MUJOCO_LOG.TXT
     spec = EpisodeSpec("Lift", demos[0]["seed"], max_steps=20)
     nan = _run(lambda obs: np.full((8, 7), np.nan), spec, envs)
     assert not nan.success and nan.steps == 0 and "non-finite action" in nan.reason

@@ -102,7 +102,9 @@ def _lora_backbone(state: dict[str, torch.Tensor], seed: int) -> nn.Module:
 
     model = TinyVLA()
     model.load_state_dict(state)
-    config = LoraConfig(r=4, lora_alpha=8, target_modules=["q_proj", "v_proj", "up_proj", "embed_tokens"])
+    config = LoraConfig(
+        r=4, lora_alpha=8, target_modules=["q_proj", "v_proj", "up_proj", "embed_tokens"]
+    )
     model = inject_adapter_in_model(config, model)
     g = torch.Generator().manual_seed(seed)
     with torch.no_grad():

@@ -24,6 +24,7 @@ TOOLS: dict[str, tuple[str, str, str]] = {
     ),
     "demos": ("capvector.sim.demos", "main", "record scripted robosuite demonstrations"),
     "evaluate": ("capvector.evaluate", "main", "MuJoCo rollouts of a checkpoint, success table"),
+    "recipe": ("capvector.recipe", "main", "run the whole recipe: stages of capvector commands"),
     "extract": ("capvector.vectors.cli", "extract_main", "capability vector = aux - sft"),
     "merge": ("capvector.vectors.cli", "merge_main", "base + sum of scaled vectors"),
     "compose": ("capvector.vectors.cli", "compose_main", "combine vectors (sum, TIES)"),
@@ -44,7 +45,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     try:
         if command in LIGHTNING_SUBCOMMANDS:
-            run_lightning_cli([command, *rest])
+            # From a shell, LightningCLI reads sys.argv itself (it warns when given both).
+            run_lightning_cli(None if argv is None else [command, *rest])
             return 0
         module, function, _ = TOOLS[command]
         tool: Callable[[list[str]], int] = getattr(importlib.import_module(module), function)
@@ -63,7 +65,7 @@ def _usage() -> str:
     return "\n".join(lines)
 
 
-def run_lightning_cli(args: list[str]) -> object:
+def run_lightning_cli(args: list[str] | None) -> object:
     from lightning.pytorch.cli import LightningCLI
 
     from capvector.data.datamodule import RobotDataModule

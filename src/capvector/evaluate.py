@@ -91,6 +91,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--ckpt", required=True, help="Lightning checkpoint of a VLAModule")
     parser.add_argument("--task", nargs="+", default=["Lift"], help="robosuite task(s)")
     parser.add_argument("--robot", default="Panda")
+    parser.add_argument(
+        "--gripper", default=None, help="e.g. PandaGripper for IIWA/UR5e/Kinova3/Jaco"
+    )
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument(
         "--start-seed", type=int, default=EvalTask.start_seed, help="first evaluation seed"
@@ -102,7 +105,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--execute-steps", type=int, default=None)
     parser.add_argument("--json", default=None, help="also write the rows as JSON")
     args = parser.parse_args(argv)
-    tasks = [EvalTask(t, args.episodes, args.robot, args.start_seed) for t in args.task]
+    tasks = [
+        EvalTask(t, args.episodes, args.robot, args.start_seed, gripper=args.gripper)
+        for t in args.task
+    ]
     rows = evaluate(args.ckpt, tasks, args.video, args.videos, args.execute_steps)
     print(format_table(rows))
     if args.json:

@@ -8,7 +8,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import lightning as L
 import torch
@@ -90,8 +90,19 @@ class VLAModule(L.LightningModule):
         """
         super().__init__()
         self.save_hyperparameters()
-        if isinstance(data_spec, Mapping):  # from YAML or a checkpoint saved as plain data
-            data_spec = DataSpec(**data_spec)
+        # Settings arrive as dataclasses (CLI, Python) or plain dicts (YAML, checkpoints); the
+        # checkpoint keeps plain dicts so it loads with torch.load(weights_only=True).
+        data_spec = _as(DataSpec, data_spec)
+        lora = _as(LoraSettings, lora)
+        optimizer = _as(OptimizerSettings, optimizer)
+        rollout = _as(RolloutSettings, rollout)
+        for name, value in (
+            ("data_spec", data_spec),
+            ("lora", lora),
+            ("optimizer", optimizer),
+            ("rollout", rollout),
+        ):
+            self.hparams[name] = None if value is None else dataclasses.asdict(value)
         self.data_spec = data_spec or DataSpec()
         self.optimizer_settings = optimizer or OptimizerSettings()
         self.lora_settings = lora
@@ -202,13 +213,6 @@ class VLAModule(L.LightningModule):
             from capvector.sim.rollout import close_envs
 
             close_envs()
-
-    def transfer_batch_to_device(
-        self, batch: Any, device: torch.device, dataloader_idx: int
-    ) -> Any:
-        if isinstance(batch, EpisodeItem):
-            return batch  # an episode spec: the policy moves its own inputs
-        return super().transfer_batch_to_device(batch, device, dataloader_idx)
 
     def validation_step(self, batch: Any, batch_idx: int, dataloader_idx: int = 0) -> None:
         if isinstance(batch, EpisodeItem):
@@ -328,6 +332,13 @@ class VLAModule(L.LightningModule):
             config_extra={"objectives": sorted(self.objectives)},
             overwrite=overwrite,
         )
+
+
+T = TypeVar("T")
+
+
+def _as(cls: type[T], value: T | Mapping[str, Any] | None) -> T | None:
+    return cls(**value) if isinstance(value, Mapping) else value
 
 
 def _task_key(task: str, robot: str) -> str:

@@ -1,6 +1,12 @@
 """Thin Lightning callbacks: they attach, schedule and persist; the math lives elsewhere."""
 
 from capvector.callbacks.auxiliary import AuxiliaryObjective
+from capvector.callbacks.capability import MergeCapabilityVector, OrthogonalRegularization
 from capvector.callbacks.export import ExportOnFitEnd
 
-__all__ = ["AuxiliaryObjective", "ExportOnFitEnd"]
+__all__ = [
+    "AuxiliaryObjective",
+    "ExportOnFitEnd",
+    "MergeCapabilityVector",
+    "OrthogonalRegularization",
+]

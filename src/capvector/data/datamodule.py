@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import lightning as L
 import torch
 from torch.utils.data import DataLoader, DistributedSampler
 
-from capvector.data.episodes import EpisodeDataset, EpisodeSampler, EvalTask
+from capvector.data.episodes import EpisodeDataset, EpisodeItem, EpisodeSampler, EvalTask
 from capvector.data.hdf5 import DatasetError, HDF5RobotDataset
 from capvector.data.lerobot import LeRobotV3Dataset
 from capvector.data.spec import DataSpec
@@ -69,6 +71,8 @@ class RobotDataModule(L.LightningDataModule):
         super().__init__()
         self.save_hyperparameters()
         self.eval_tasks = [EvalTask(**t) if isinstance(t, Mapping) else t for t in eval_tasks or []]
+        # Plain data in checkpoints, so they load with torch.load(weights_only=True).
+        self.hparams["eval_tasks"] = [dataclasses.asdict(t) for t in self.eval_tasks] or None
         if (lerobot_root is None) == (not train_files):
             raise DatasetError(
                 "set exactly one of data.train_files (HDF5 files) and data.lerobot_root "
@@ -165,6 +169,13 @@ class RobotDataModule(L.LightningDataModule):
             generator=torch.Generator().manual_seed(hp.seed),
             drop_last=drop_last,
         )
+
+    def transfer_batch_to_device(
+        self, batch: Any, device: torch.device, dataloader_idx: int
+    ) -> Any:
+        if isinstance(batch, EpisodeItem):
+            return batch  # an episode spec: the policy moves its own inputs
+        return super().transfer_batch_to_device(batch, device, dataloader_idx)
 
     def val_dataloader(self) -> DataLoader | list[DataLoader]:
         """Rollout episodes (``eval_tasks``) and/or held-out demos (``val_files``)."""

@@ -25,6 +25,9 @@ class EvalTask:
     robot: str = "Panda"
     start_seed: int = EVAL_SEED_START
     max_steps: int | None = None
+    gripper: str | None = None
+    """Gripper override for arms whose own gripper lacks 2 finger joints (IIWA, UR5e, Kinova3,
+    Jaco take PandaGripper), as the demos were recorded."""
 
 
 @dataclass(frozen=True)
@@ -41,8 +44,9 @@ class EpisodeDataset(Dataset):
         self.specs: list[EpisodeSpec] = []
         for t in tasks:
             self.specs += eval_specs(
-                t.task, t.episodes, robot=t.robot, start_seed=t.start_seed, max_steps=t.max_steps
-            )
+                t.task, t.episodes, robot=t.robot, start_seed=t.start_seed, max_steps=t.max_steps,
+                gripper=t.gripper,
+            )  # fmt: skip
 
     def __len__(self) -> int:
         return len(self.specs)

@@ -30,6 +30,7 @@ from typing import Any, Literal
 import torch
 from torch import Tensor, nn
 
+from capvector.objectives.base import Objective
 from capvector.vectors import CapabilityVector, CapVectorError, load_vector, match_tensors
 
 Mode = Literal["full", "lora", "olora"]
@@ -59,6 +60,37 @@ def _inner64(theta: Tensor, c: Tensor | None, c_b: Tensor | None, c_a: Tensor | 
     for start in range(0, theta.shape[0], rows):
         projected += c_b[start : start + rows].T @ theta[start : start + rows].float()
     return (projected * c_a).sum(dtype=torch.float64)
+
+
+def _sharded_inner(
+    theta: Tensor, c: Tensor | None, c_b: Tensor | None, c_a: Tensor | None
+) -> Tensor:
+    """⟨θ, c⟩ for a parameter that may be an FSDP2 DTensor shard.
+
+    Each rank takes the inner product of its own shard with the matching slice of c and the
+    values are summed across ranks. The gradient reaches the local shard only, as ⟨θ, c⟩'s
+    gradient c restricted to it: exactly the one-process gradient, with no extra communication
+    in the backward pass.
+    """
+    from torch.distributed.tensor import DTensor, distribute_tensor
+
+    if not isinstance(theta, DTensor):
+        return _FrozenInnerProduct.apply(theta, c, c_b, c_a)
+    dense = c if c is not None else c_b @ c_a  # type: ignore[operator]
+    local_c = distribute_tensor(
+        dense.to(theta.to_local().device), theta.device_mesh, theta.placements, src_data_rank=None
+    ).to_local()
+    local = _FrozenInnerProduct.apply(theta.to_local(), local_c, None, None)
+    total = local.detach().clone()
+    torch.distributed.all_reduce(total, group=theta.device_mesh.get_group())
+    return local + (total - local.detach())
+
+
+def _full(tensor: Tensor) -> Tensor:
+    """A (small) LoRA factor gathered from its FSDP2 shards, differentiably; plain tensors pass."""
+    from torch.distributed.tensor import DTensor
+
+    return tensor.full_tensor() if isinstance(tensor, DTensor) else tensor
 
 
 class _FrozenInnerProduct(torch.autograd.Function):
@@ -96,7 +128,7 @@ def _is_lora_layer(module: nn.Module | None, adapter: str) -> bool:
     return isinstance(lora_a, nn.ModuleDict) and adapter in lora_a and hasattr(module, "scaling")
 
 
-class OrthogonalityLoss(nn.Module):
+class OrthogonalityLoss(Objective):
     """Σ over vector tensors of the normalised squared projection of the update on c.
 
     ``forward`` returns the unweighted penalty (the caller multiplies by ``weight``) and fills
@@ -128,7 +160,7 @@ class OrthogonalityLoss(nn.Module):
         adapter_name: str = "default",
         name: str = "orthogonality",
     ) -> None:
-        super().__init__()
+        super().__init__(name=name, weight=weight)
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
         if normalization not in NORMALIZATIONS:
@@ -140,10 +172,8 @@ class OrthogonalityLoss(nn.Module):
                 "squared_cosine needs ‖Δ‖ = ‖θ − θ_meta‖, which full mode cannot compute without a "
                 "copy of θ_meta; use squared_projection, or mode='lora'"
             )
-        self.name = name
         self.mode = mode
         self.normalization = normalization
-        self.weight = float(weight)
         self.eps = eps
         self.adapter_name = adapter_name
 
@@ -241,7 +271,7 @@ class OrthogonalityLoss(nn.Module):
                 if t.kind == "full" and not bool(self.anchored[t.index]):
                     c, c_b, c_a = self._vector(t.index)
                     assert t.param is not None
-                    self.anchors[t.index] = _inner64(t.param.detach(), c, c_b, c_a).to(
+                    self.anchors[t.index] = _sharded_inner(t.param.detach(), c, c_b, c_a).to(
                         self.anchors.device
                     )
                     self.anchored[t.index] = True
@@ -279,7 +309,7 @@ class OrthogonalityLoss(nn.Module):
             c, c_b, c_a = self._vector(t.index)
             c_sq = self.c_norm_sq[t.index].float()
             if t.kind == "full":
-                inner = _FrozenInnerProduct.apply(t.param, c, c_b, c_a) - self.anchors[t.index]
+                inner = _sharded_inner(t.param, c, c_b, c_a) - self.anchors[t.index]
                 inner = inner.float()
                 term = inner.square() / c_sq
             else:
@@ -310,8 +340,8 @@ class OrthogonalityLoss(nn.Module):
     def _lora_factors(self, t: _Term) -> tuple[Tensor, Tensor, float]:
         layer = t.layer
         assert layer is not None
-        a = layer.lora_A[self.adapter_name].weight.float()  # type: ignore[index]
-        b = layer.lora_B[self.adapter_name].weight.float()  # type: ignore[index]
+        a = _full(layer.lora_A[self.adapter_name].weight).float()  # type: ignore[index]
+        b = _full(layer.lora_B[self.adapter_name].weight).float()  # type: ignore[index]
         return a, b, float(layer.scaling[self.adapter_name])  # type: ignore[index]
 
     # -- dtype safety -----------------------------------------------------------------------

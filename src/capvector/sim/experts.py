@@ -4,8 +4,11 @@ Every expert outputs the same 7-d OSC_POSE delta action on any arm: the translat
 ``clip(10 * (target - eef), -1, 1)`` (one unit = 5 cm per step, so a 1 cm error gives 5 mm), the
 rotation holds the gripper at its orientation at reset (robosuite's delta OSC otherwise lets it
 drift), and the gripper is -1 (open) or +1 (close). Recipe from the feasibility study
-(``research/toy_benchmark_feasibility.md`` §1), with one addition: an expert that sees the object
-slip out of the gripper goes back to the approach phase instead of carrying air.
+(``research/toy_benchmark_feasibility.md`` §1), plus three things that took Stack and
+PickPlaceCan from ~93% to 100%: the grasp yaw is chosen per task (Stack closes on two faces of
+the red cube with no finger towards the green one; the can is gripped with the fingers along x,
+away from the bin's side walls); a descent that drifts off the object or stalls goes back up and
+lines up again; and an object that slips out of the gripper sends the expert back to approach.
 
 The phase names are a shared vocabulary that :mod:`capvector.sim.annotations` turns into text.
 

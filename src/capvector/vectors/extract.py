@@ -274,16 +274,19 @@ def _stream_full(
     for rows in row_chunks(info):
         chunks = {name: src.read(key, rows) for name, src in sources.items()}
         work = compute_dtype(*(c.dtype for c in chunks.values()))
-        chunks = {name: scratch.cast(name, c, work) for name, c in chunks.items()}
         shape = chunks["aux"].shape
         for o, w in zip(outputs, writers, strict=True):
-            diff = torch.sub(
-                chunks[o.minuend], chunks[o.subtrahend], out=scratch.get("diff", shape, work)
-            )
-            stored = scratch.cast("stored", diff, info.dtype)
-            if stored is not diff:  # the recorded norm is the stored (rounded) tensor's
-                diff.copy_(stored)
-            norm = torch.linalg.vector_norm(diff)
+            a, b = chunks[o.minuend], chunks[o.subtrahend]
+            if a.dtype == b.dtype == info.dtype:
+                # torch's reduced-precision kernels subtract in float32 and round once: the same
+                # result as the general path below, without its casts.
+                stored = torch.sub(a, b, out=scratch.get("stored", shape, info.dtype))
+            else:
+                a, b = scratch.cast("a", a, work), scratch.cast("b", b, work)
+                diff = torch.sub(a, b, out=scratch.get("diff", shape, work))
+                stored = scratch.cast("stored", diff, info.dtype)
+            # The recorded norm is the stored (rounded) tensor's, accumulated in float32.
+            norm = torch.linalg.vector_norm(scratch.cast("norm", stored, work))
             if not torch.isfinite(norm):
                 raise _not_finite(sources, chunks, key, o, info)
             w.write(key, stored, norm)

@@ -27,6 +27,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from capvector.errors import CapVectorError  # noqa: F401 (re-exported: the vector tools' error)
 from capvector.fileio import atomic_directory
 
 # File names of an export folder; the writer is ``capvector.backbones.base`` (``VLABackbone.
@@ -53,10 +54,6 @@ chunk-sized temporaries stay well under the 1 GB budget next to torch's own ~0.5
 # Names of the checkpoint's top-level modules (``VLAModule``): the model and the auxiliary losses.
 CHECKPOINT_MODEL_PREFIX = "backbone."
 CHECKPOINT_OBJECTIVES_PREFIX = "objectives."
-
-
-class CapVectorError(ValueError):
-    """A bad input to a vector tool; the message names the tensors or files and what to do."""
 
 
 def examples(items: Sequence[str], n: int = 3) -> str:

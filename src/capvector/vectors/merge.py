@@ -56,6 +56,11 @@ def add_scaled(
     """
     if not deltas:
         return base.clone()
+    if len(deltas) == 1 and deltas[0][0].dtype == base.dtype and deltas[0][1] == 1.0:
+        # torch's reduced-precision kernels add in float32 and round once, like the general path,
+        # at a quarter of its memory traffic. Not for λ ≠ 1: alpha is rounded to base's dtype.
+        out = scratch.get("result", base.shape, base.dtype) if scratch is not None else None
+        return torch.add(base, deltas[0][0].to(base.device), out=out)
     work = compute_dtype(base.dtype, *(d.dtype for d, _ in deltas))
 
     def cast(name: str, t: Tensor, dtype: torch.dtype) -> Tensor:

@@ -1,0 +1,175 @@
+"""MergeCapabilityVector and OrthogonalRegularization in real fits: one process, DDP and FSDP2."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import lightning as L
+import pytest
+import torch
+from safetensors.torch import load_file, save_file
+
+from capvector.callbacks import MergeCapabilityVector, OrthogonalRegularization
+from capvector.data.datamodule import RobotDataModule
+from capvector.errors import CapVectorError
+from capvector.module import VLAModule
+from capvector.vectors import extract, merge
+from conftest import write_demo_file
+
+SCRIPT = Path(__file__).with_name("distributed_fit.py")
+
+
+def run(out: Path, data: Path, *args: str) -> list[float]:
+    result = subprocess.run(
+        [sys.executable, str(SCRIPT), "--data", str(data), "--out", str(out), *args],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-4000:]
+    return json.loads((out / "losses.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """θ_init (the start of every run below), a vector c = θ_2steps − θ_init, and θ_init + 0.5·c."""
+    root = tmp_path_factory.mktemp("capability")
+    data = write_demo_file(root / "demos.hdf5", lengths=(20, 20))
+    run(root / "donor", data, "--steps", "2", "--export-initial", str(root / "initial"))
+    extract(aux=root / "donor" / "export", sft=root / "initial", out=root / "vector")
+    merge(root / "initial", [(root / "vector", 0.5)], root / "merged")
+    return {
+        "data": data,
+        "initial": root / "initial",
+        "vector": root / "vector",
+        "merged": root / "merged",
+    }
+
+
+def assert_same_weights(a: Path, b: Path) -> None:
+    ours, theirs = load_file(a / "model.safetensors"), load_file(b / "model.safetensors")
+    assert ours.keys() == theirs.keys()
+    for key in theirs:
+        torch.testing.assert_close(ours[key], theirs[key], rtol=1e-4, atol=1e-5, msg=key)
+
+
+@pytest.mark.distributed
+@pytest.mark.parametrize("devices,strategy", [("1", "auto"), ("2", "fsdp2"), ("2", "ddp")])
+def test_merge_callback_equals_the_offline_merge(
+    devices: str, strategy: str, setup: dict, tmp_path: Path
+) -> None:
+    vector = ["--vector", str(setup["vector"]), "--scale", "0.5"]
+    run(
+        tmp_path,
+        setup["data"],
+        "--steps",
+        "0",
+        "--devices",
+        devices,
+        "--strategy",
+        strategy,
+        *vector,
+    )
+    assert_same_weights(tmp_path / "export", setup["merged"])
+
+
+@pytest.mark.distributed
+def test_lora_merge_and_orthogonality_match_one_process_and_resume_without_merging_twice(
+    setup: dict, tmp_path: Path
+) -> None:
+    recipe = ["--vector", str(setup["vector"]), "--scale", "0.5", "--orth-weight", "100"]
+    # 26 samples, global batch 4: an epoch is 6 steps. Stopping at the epoch's end makes the first
+    # resumed step see the batch the uninterrupted run saw (Lightning restarts the data loader).
+    single = run(tmp_path / "single", setup["data"], "--steps", "7", *recipe)
+    sharded = run(
+        tmp_path / "fsdp2",
+        setup["data"],
+        "--steps",
+        "7",
+        "--devices",
+        "2",
+        "--strategy",
+        "fsdp2",
+        *recipe,
+    )
+    torch.testing.assert_close(torch.tensor(sharded), torch.tensor(single), rtol=1e-5, atol=1e-6)
+    assert_same_weights(tmp_path / "fsdp2" / "export", tmp_path / "single" / "export")
+    # Stop after 6 steps, resume to 7 under FSDP2: the same loss and weights, so no second merge.
+    fsdp2 = ["--devices", "2", "--strategy", "fsdp2", *recipe]
+    run(tmp_path / "first", setup["data"], "--steps", "6", *fsdp2)
+    saved = torch.load(tmp_path / "first" / "last.ckpt", weights_only=False)
+    assert any(state.get("merged") for state in saved["callbacks"].values())
+    assert any(k.startswith("objectives.orthogonality.anchors") for k in saved["state_dict"])
+    resumed = run(
+        tmp_path / "resumed",
+        setup["data"],
+        "--steps",
+        "7",
+        "--ckpt-path",
+        str(tmp_path / "first" / "last.ckpt"),
+        *fsdp2,
+    )
+    torch.testing.assert_close(
+        torch.tensor(resumed), torch.tensor(single[6:]), rtol=1e-5, atol=1e-6
+    )
+    assert_same_weights(tmp_path / "resumed" / "export", tmp_path / "single" / "export")
+
+
+def fit(
+    module: VLAModule, dm: RobotDataModule, callbacks: list, steps: int, root: Path
+) -> L.Trainer:
+    trainer = L.Trainer(
+        max_steps=steps, accelerator="cpu", logger=False, enable_progress_bar=False,
+        enable_model_summary=False, default_root_dir=root, limit_val_batches=0,
+        enable_checkpointing=False, callbacks=callbacks,
+    )  # fmt: skip
+    trainer.fit(module, dm)
+    return trainer
+
+
+def test_a_bad_vector_stops_the_run_before_anything_changes(setup: dict, tmp_path: Path) -> None:
+    dm = RobotDataModule(train_files=[str(setup["data"])], batch_size=4)
+    module = VLAModule(pretrained=str(setup["initial"]), data_spec=dm.spec)
+    before = {k: v.clone() for k, v in module.state_dict().items()}
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    for f in setup["vector"].iterdir():
+        (broken / f.name).write_bytes(f.read_bytes())
+    tensors = load_file(broken / "capability_vector.safetensors")
+    key = next(k for k in tensors if k.endswith("fc1.weight"))
+    tensors[key] = tensors[key][:, :3].contiguous()  # wrong shape
+    save_file(tensors, str(broken / "capability_vector.safetensors"))
+    with pytest.raises(CapVectorError, match="fc1.weight"):
+        fit(module, dm, [MergeCapabilityVector(str(broken))], 2, tmp_path)
+    after = module.state_dict()
+    assert all(torch.equal(v, after[k]) for k, v in before.items())
+
+
+def test_orthogonality_is_anchored_at_the_merged_weights(setup: dict, tmp_path: Path) -> None:
+    """Merge at fit start, then penalise: the penalty is exactly 0 at θ_meta and grows after."""
+    from lightning.pytorch.loggers import CSVLogger
+
+    dm = RobotDataModule(train_files=[str(setup["data"])], batch_size=4, augment=False)
+    module = VLAModule(pretrained=str(setup["initial"]), data_spec=dm.spec)
+    callbacks = [
+        MergeCapabilityVector(str(setup["vector"]), scale=0.5),
+        OrthogonalRegularization(str(setup["vector"]), weight=10.0),
+    ]
+    trainer = L.Trainer(
+        max_steps=4, accelerator="cpu", logger=CSVLogger(tmp_path), log_every_n_steps=1,
+        enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
+        enable_checkpointing=False, callbacks=callbacks,
+    )  # fmt: skip
+    trainer.fit(module, dm)
+    rows = list(csv.DictReader((Path(trainer.log_dir) / "metrics.csv").open()))
+    penalty = [
+        float(r["train/loss_orthogonality"]) for r in rows if r.get("train/loss_orthogonality")
+    ]
+    assert penalty[0] == 0.0 and penalty[-1] > 0.0
+    for r in rows:
+        if r.get("train/loss"):
+            total = float(r["train/loss_action"]) + 10.0 * float(r["train/loss_orthogonality"])
+            assert float(r["train/loss"]) == pytest.approx(total, rel=1e-5)
+    assert any(r.get("orth/mean_abs_projection") for r in rows)
