@@ -5,8 +5,6 @@ CAPVECTOR := $(VENV)/bin/capvector
 # Headless MuJoCo rendering on CPU through Mesa's EGL.
 export MUJOCO_GL ?= egl
 
-DEMOS := data/demos/lift_debug.hdf5
-
 .PHONY: demo test lint format clean
 
 $(VENV)/.installed: pyproject.toml
@@ -18,11 +16,10 @@ $(VENV)/.installed: pyproject.toml
 	$(PY) -m pip install --quiet --no-build-isolation "deepspeed==0.19.8"
 	touch $@
 
-$(DEMOS): | $(VENV)/.installed
-	$(CAPVECTOR) demos --task Lift --episodes 20 --image-size 64 --seed 10000 --out $@
-
-demo: $(VENV)/.installed $(DEMOS)
-	$(CAPVECTOR) fit --config configs/debug.yaml
+# The quick recipe: demos -> θ_pre -> SFT / aux-SFT -> capability vector -> merge -> downstream
+# on another arm -> MuJoCo evaluation; ends with the results table. Rerunning resumes.
+demo: $(VENV)/.installed
+	$(CAPVECTOR) recipe --config configs/recipes/quick.yaml
 
 test: $(VENV)/.installed
 	$(PY) -m pytest -q

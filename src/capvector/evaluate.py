@@ -88,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="capvector evaluate", description="MuJoCo rollouts of a checkpoint."
     )
-    parser.add_argument("--ckpt", required=True, help="Lightning checkpoint of a VLAModule")
+    parser.add_argument("--ckpt", required=True, help="Lightning checkpoint or export folder")
     parser.add_argument("--task", nargs="+", default=["Lift"], help="robosuite task(s)")
     parser.add_argument("--robot", default="Panda")
     parser.add_argument(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import json
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -369,7 +370,15 @@ def _schedule(settings: OptimizerSettings, total_steps: int | None) -> Any:
 
 
 def load_module(checkpoint: str | Path, map_location: str = "cpu") -> VLAModule:
-    """A trained module from a Lightning checkpoint (objectives are training-only and dropped)."""
+    """A trained module from a Lightning checkpoint or an export folder (objectives, which are
+    training-only, are dropped)."""
+    if Path(checkpoint).is_dir():
+        spec_file = Path(checkpoint) / "capvector_data_spec.json"
+        if not spec_file.is_file():
+            raise BackboneError(
+                f"{checkpoint} has no capvector_data_spec.json: export it with capvector"
+            )
+        return VLAModule(pretrained=str(checkpoint), data_spec=json.loads(spec_file.read_text()))
     if not Path(checkpoint).is_file():
         raise BackboneError(f"checkpoint {checkpoint} does not exist")
     ckpt = torch.load(checkpoint, map_location=map_location, weights_only=False)
