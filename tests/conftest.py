@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import h5py
@@ -66,3 +68,16 @@ def demo_file(tmp_path: Path) -> Path:
 def _deterministic() -> None:
     torch.manual_seed(0)
     torch.set_num_threads(1)  # tests run beside each other on 2 cores; avoid oversubscription
+
+
+FIT_SCRIPT = Path(__file__).with_name("distributed_fit.py")
+
+
+def run_fit_script(out: Path, data: Path, *args: str) -> list[float]:
+    """Run tests/distributed_fit.py (Lightning launches the processes); the per-step global losses."""
+    result = subprocess.run(
+        [sys.executable, str(FIT_SCRIPT), "--data", str(data), "--out", str(out), *args],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-4000:]
+    return json.loads((out / "losses.json").read_text())

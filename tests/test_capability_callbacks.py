@@ -3,9 +3,6 @@
 from __future__ import annotations
 
 import csv
-import json
-import subprocess
-import sys
 from pathlib import Path
 
 import lightning as L
@@ -18,18 +15,9 @@ from capvector.data.datamodule import RobotDataModule
 from capvector.errors import CapVectorError
 from capvector.module import VLAModule
 from capvector.vectors import extract, merge
-from conftest import write_demo_file
+from conftest import run_fit_script, write_demo_file
 
-SCRIPT = Path(__file__).with_name("distributed_fit.py")
-
-
-def run(out: Path, data: Path, *args: str) -> list[float]:
-    result = subprocess.run(
-        [sys.executable, str(SCRIPT), "--data", str(data), "--out", str(out), *args],
-        capture_output=True, text=True, timeout=600,
-    )  # fmt: skip
-    assert result.returncode == 0, result.stderr[-4000:]
-    return json.loads((out / "losses.json").read_text())
+run = run_fit_script
 
 
 @pytest.fixture(scope="module")

@@ -2,28 +2,18 @@
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
 from safetensors.torch import load_file
 
-from conftest import write_demo_file
+from conftest import run_fit_script, write_demo_file
 
-SCRIPT = Path(__file__).with_name("distributed_fit.py")
 pytestmark = pytest.mark.distributed
 
 
-def run(out: Path, data: Path, *args: str) -> list[float]:
-    result = subprocess.run(
-        [sys.executable, str(SCRIPT), "--data", str(data), "--out", str(out), *args],
-        capture_output=True, text=True, timeout=600,
-    )  # fmt: skip
-    assert result.returncode == 0, result.stderr[-4000:]
-    return json.loads((out / "losses.json").read_text())
+run = run_fit_script
 
 
 @pytest.fixture(scope="module")
