@@ -35,7 +35,9 @@ def make_data(root: Path) -> Path:
     return write_demo_file(root / "demos.hdf5", lengths=(40, 40))
 
 
-def build_arms(preset: str, data: Path, root: Path) -> dict[str, tuple[VLAModule, torch.optim.Optimizer]]:
+def build_arms(
+    preset: str, data: Path, root: Path
+) -> dict[str, tuple[VLAModule, torch.optim.Optimizer]]:
     from capvector.data.datamodule import RobotDataModule
 
     spec = RobotDataModule(train_files=[str(data)], load_depth=True, load_annotations=True).spec
@@ -108,12 +110,16 @@ def main() -> None:
             memory[name] = store[0]
             del losses
     baseline = statistics.median(times["plain SFT"])
-    print(f"{args.preset}, batch {args.batch}, {args.steps} interleaved rounds, {args.threads} thread(s)\n")
+    print(
+        f"{args.preset}, batch {args.batch}, {args.steps} interleaved rounds, {args.threads} thread(s)\n"
+    )
     print("| arm | step time (ms, median) | ratio to plain SFT | saved activations (MiB) |")
     print("|---|---|---|---|")
     for name in arms:
         median = statistics.median(times[name])
-        print(f"| {name} | {median * 1e3:.1f} | {median / baseline:.3f} | {memory[name] / 2**20:.1f} |")
+        print(
+            f"| {name} | {median * 1e3:.1f} | {median / baseline:.3f} | {memory[name] / 2**20:.1f} |"
+        )
 
 
 if __name__ == "__main__":

@@ -128,7 +128,7 @@ def test_cli_fit_writes_checkpoint_and_export(tmp_path: Path) -> None:
     root = tmp_path / "runs"
     main([
         "fit", "--config", str(REPO / "configs/debug.yaml"), f"--data.train_files=[{data}]",
-        "--trainer.max_steps=3", f"--trainer.default_root_dir={root}",
+        "--trainer.max_steps=3", f"--trainer.default_root_dir={root}", "--data.eval_tasks=null",
         f"--trainer.logger.init_args.save_dir={root}", "--trainer.enable_progress_bar=false",
     ])  # fmt: skip
     version = root / "fit" / "version_0"
@@ -156,7 +156,7 @@ def test_cli_fit_writes_checkpoint_and_export(tmp_path: Path) -> None:
 def test_cli_errors_are_clear(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     data = write_demo_file(tmp_path / "demos.hdf5", lengths=(20,))
     assert main(["fit", "--config", str(REPO / "configs/debug.yaml"), f"--data.train_files=[{data}]",
-                 "--model.backbone=openvla-oft-tinyy", "--trainer.max_steps=1"]) == 2  # fmt: skip
+                 "--model.backbone=openvla-oft-tinyy", "--trainer.max_steps=1", "--data.eval_tasks=null"]) == 2  # fmt: skip
     assert "unknown backbone preset 'openvla-oft-tinyy'" in capsys.readouterr().err
     assert (
         main(

@@ -524,6 +524,7 @@ def test_cli_composes_the_config_fragment(tmp_path: Path) -> None:
         "fit", "--config", str(REPO / "configs/debug.yaml"),
         "--config", str(REPO / "configs/backbones/starvla-tiny-gr00t.yaml"),
         f"--data.train_files=[{data}]", "--data.batch_size=4", "--trainer.max_steps=2",
+        "--data.eval_tasks=null",
         f"--trainer.default_root_dir={root}", f"--trainer.logger.init_args.save_dir={root}",
         "--trainer.enable_progress_bar=false",
     ])  # fmt: skip
