@@ -94,7 +94,7 @@ def main() -> None:
         batch = next(iter(torch.utils.data.DataLoader(dataset, batch_size=args.batch)))
         arms = build_arms(args.preset, data, root)
         times: dict[str, list[float]] = {name: [] for name in arms}
-        for name, (module, optimizer) in arms.items():  # warm-up (allocator, lazy init)
+        for module, optimizer in arms.values():  # warm-up (allocator, lazy init)
             for _ in range(3):
                 step(module, optimizer, batch)
         for _ in range(args.steps):
