@@ -25,6 +25,11 @@ TOOLS: dict[str, tuple[str, str, str]] = {
     "demos": ("capvector.sim.demos", "main", "record scripted robosuite demonstrations"),
     "evaluate": ("capvector.evaluate", "main", "MuJoCo rollouts of a checkpoint, success table"),
     "recipe": ("capvector.recipe", "main", "run the whole recipe: stages of capvector commands"),
+    "sweep-scale": (
+        "capvector.sweep",
+        "main",
+        "choose the merge scale λ by rollouts / held-out L1",
+    ),
     "extract": ("capvector.vectors.cli", "extract_main", "capability vector = aux - sft"),
     "merge": ("capvector.vectors.cli", "merge_main", "base + sum of scaled vectors"),
     "compose": ("capvector.vectors.cli", "compose_main", "combine vectors (sum, TIES)"),

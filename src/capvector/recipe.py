@@ -13,6 +13,7 @@ Arguments may refer to other stages' outputs with omegaconf interpolation::
     ${out.<stage>.export}   a fit stage's export folder (weights + config + statistics)
     ${out.<stage>.ckpt}     a fit stage's last checkpoint
     ${run_dir}              the run folder
+    ${best_scale:${out.<sweep stage>.dir}}   the λ a ``sweep-scale`` stage found best
 """
 
 from __future__ import annotations
@@ -55,9 +56,27 @@ def stage_outputs(run_dir: Path, name: str) -> dict[str, str]:
     }
 
 
+def _best_scale(sweep_dir: str) -> str:
+    """Resolver ``${best_scale:DIR}``: the best λ of a finished ``sweep-scale`` stage."""
+    from capvector.sweep import best_scale
+
+    path = Path(sweep_dir) / "sweep.json"
+    if not path.is_file():
+        return "<best λ of " + sweep_dir + ">"  # a dry run before the sweep has run
+    return f"{best_scale(json.loads(path.read_text())):g}"
+
+
 def load_recipe(path: str | Path, overrides: list[str] | None = None) -> tuple[Path, list[Stage]]:
+    """The run folder and the stages, their arguments resolved now (see ``resolve_stage``)."""
+    run_dir, raw = _load_raw(path, overrides)
+    return run_dir, [resolve_stage(raw, i, run_dir, path) for i in range(len(raw.stages))]
+
+
+def _load_raw(path: str | Path, overrides: list[str] | None) -> tuple[Path, Any]:
     from omegaconf import OmegaConf
 
+    if not OmegaConf.has_resolver("best_scale"):
+        OmegaConf.register_new_resolver("best_scale", _best_scale)
     raw = OmegaConf.load(path)
     if overrides:
         raw = OmegaConf.merge(raw, OmegaConf.from_dotlist(overrides))
@@ -68,20 +87,19 @@ def load_recipe(path: str | Path, overrides: list[str] | None = None) -> tuple[P
     if len(set(names)) != len(names):
         raise CapVectorError(f"{path}: stage names must be unique, got {names}")
     raw.out = {name: stage_outputs(run_dir, name) for name in names}
-    resolved: Any = OmegaConf.to_container(raw, resolve=True)
-    stages = []
-    for entry in resolved["stages"]:
-        if "command" not in entry:
-            raise CapVectorError(f"stage {entry.get('name')!r} in {path} has no `command`")
-        stages.append(
-            Stage(
-                entry["name"],
-                entry["command"],
-                [str(a) for a in entry.get("args", [])],
-                run_dir / entry["name"],
-            )
-        )
-    return run_dir, stages
+    return run_dir, raw
+
+
+def resolve_stage(raw: Any, index: int, run_dir: Path, path: str | Path) -> Stage:
+    """One stage with its interpolations resolved. Done right before the stage runs, so a stage
+    can use what an earlier one produced (``${best_scale:${out.sweep.dir}}``)."""
+    from omegaconf import OmegaConf
+
+    entry: Any = OmegaConf.to_container(raw.stages[index], resolve=True)
+    if "command" not in entry:
+        raise CapVectorError(f"stage {entry.get('name')!r} in {path} has no `command`")
+    args = [str(a) for a in entry.get("args", [])]
+    return Stage(entry["name"], entry["command"], args, run_dir / entry["name"])
 
 
 def command_line(stage: Stage) -> list[str]:
@@ -107,15 +125,18 @@ def command_line(stage: Stage) -> list[str]:
 def run(
     recipe: str | Path, overrides: list[str] | None = None, dry_run: bool = False
 ) -> list[dict]:
-    run_dir, stages = load_recipe(recipe, overrides)
+    run_dir, raw = _load_raw(recipe, overrides)
     run_dir.mkdir(parents=True, exist_ok=True)
-    for index, stage in enumerate(stages, start=1):
-        left = [s.name for s in stages[index:]]
-        status = f"[recipe {index}/{len(stages)}] {stage.name} ({stage.command})"
+    names = [str(s.name) for s in raw.stages]
+    stages = []
+    for index in range(len(names)):
+        stage = resolve_stage(raw, index, run_dir, recipe)
+        stages.append(stage)
+        status = f"[recipe {index + 1}/{len(names)}] {stage.name} ({stage.command})"
         if stage.done_marker.is_file():
             print(f"{status}: done earlier, skipped", flush=True)
             continue
-        print(f"{status}; then: {', '.join(left) or 'nothing'}", flush=True)
+        print(f"{status}; then: {', '.join(names[index + 1 :]) or 'nothing'}", flush=True)
         cmd = command_line(stage)
         if dry_run:
             print("  " + " ".join(cmd[2:]))

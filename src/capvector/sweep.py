@@ -1,0 +1,200 @@
+"""``capvector sweep-scale``: choose the merge scale λ by MuJoCo rollouts on validation seeds.
+
+For each λ the vector is merged in memory (θ_pre + λ·c, never written unless asked), optionally
+fine-tuned for a few steps with the orthogonal regularization, then scored by the action-prediction
+L1 on held-out demos and by rollouts on validation seeds, which are disjoint from the evaluation
+seeds used for reporting (as the task-vector literature picks λ on held-out validation data).
+Results go to ``<out>/sweep.json`` after every λ, so an interrupted sweep resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+import torch
+from tqdm import tqdm
+
+from capvector.data.episodes import EvalTask
+from capvector.evaluate import wilson_interval
+from capvector.fileio import atomic_write_bytes
+from capvector.module import load_module
+
+VALIDATION_SEED_START = 2_000_000
+"""Sweep episodes start here: disjoint from demo seeds and from evaluation seeds (1,000,000+)."""
+
+
+def held_out_l1(module: Any, demos: str, batch_size: int = 16) -> float:
+    """Mean action L1 of the module on every chunk of ``demos`` (normalised action space)."""
+    from capvector.data.hdf5 import HDF5RobotDataset
+    from capvector.data.transforms import ImageTransform
+
+    spec = module.data_spec
+    dataset = HDF5RobotDataset(
+        [demos], cameras=spec.cameras, proprio_keys=spec.proprio_keys, chunk_size=spec.chunk_size,
+        statistics=spec.stats_entry, transform=ImageTransform(augment=False, center_crop=spec.center_crop),
+    )  # fmt: skip
+    total, count = 0.0, 0
+    with torch.no_grad():
+        for batch in torch.utils.data.DataLoader(dataset, batch_size=batch_size):
+            n = len(batch["instruction"])
+            total += float(module.backbone(batch).loss) * n
+            count += n
+    return total / count
+
+
+def finetune(module: Any, vector: str, demos: str, steps: int, orth_weight: float) -> None:
+    import lightning as L
+
+    from capvector.callbacks import OrthogonalRegularization
+    from capvector.data.datamodule import RobotDataModule
+
+    spec = module.data_spec
+    dm = RobotDataModule(train_files=[demos], cameras=spec.cameras, proprio_keys=spec.proprio_keys,
+                         chunk_size=spec.chunk_size, batch_size=8)  # fmt: skip
+    callbacks = [OrthogonalRegularization(vector, weight=orth_weight)] if orth_weight else []
+    trainer = L.Trainer(
+        max_steps=steps, accelerator="cpu", logger=False, enable_progress_bar=False,
+        enable_model_summary=False, enable_checkpointing=False, limit_val_batches=0,
+        callbacks=callbacks,
+    )  # fmt: skip
+    trainer.fit(module, dm)
+    for name in list(module.objectives):
+        module.remove_objective(name)
+
+
+def sweep(
+    base: str,
+    vector: str,
+    scales: list[float],
+    out: str,
+    task: str | None = None,
+    episodes: int = 0,
+    robot: str = "Panda",
+    demos: str | None = None,
+    finetune_steps: int = 0,
+    orth_weight: float = 1.0,
+) -> list[dict[str, Any]]:
+    from capvector.data.episodes import EpisodeDataset
+    from capvector.policy import VLAPolicy
+    from capvector.sim.rollout import run_episode
+    from capvector.vectors import apply_vector_, load_vector
+
+    out_dir = Path(out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    results_path = out_dir / "sweep.json"
+    rows: list[dict[str, Any]] = (
+        json.loads(results_path.read_text()) if results_path.is_file() else []
+    )
+    done = {row["scale"] for row in rows}
+    c = load_vector(vector)
+    specs = (
+        EpisodeDataset([EvalTask(task, episodes, robot, VALIDATION_SEED_START)]).specs
+        if task and episodes
+        else []
+    )
+    for scale in tqdm(scales, desc="λ", unit="scale"):
+        if scale in done:
+            continue
+        module = load_module(base)
+        apply_vector_(module.backbone, c, scale)
+        if finetune_steps:
+            if demos is None:
+                raise ValueError("--finetune-steps needs --demos (the downstream training demos)")
+            finetune(module, vector, demos, finetune_steps, orth_weight)
+        module.eval()
+        row: dict[str, Any] = {"scale": scale}
+        if demos:
+            row["held_out_l1"] = held_out_l1(module, demos)
+        if specs:
+            policy = VLAPolicy(module.backbone, module.data_spec)
+            successes = 0
+            for spec in tqdm(specs, desc=f"λ={scale:g} episodes", leave=False):
+                successes += run_episode(
+                    policy, spec, cameras=module.data_spec.cameras, image_size=module.data_spec.image_size,
+                    camera_fovy=module.data_spec.camera_fovy,
+                ).success  # fmt: skip
+            row.update(episodes=len(specs), successes=successes, success_rate=successes / len(specs),
+                       ci95=list(wilson_interval(successes, len(specs))))  # fmt: skip
+        rows.append(row)
+        rows.sort(key=lambda r: r["scale"])
+        atomic_write_bytes(results_path, json.dumps(rows, indent=2).encode())  # resumable
+    return [r for r in rows if r["scale"] in scales]
+
+
+def best_scale(rows: list[dict[str, Any]]) -> float:
+    """Highest success rate; ties (and sweeps without rollouts) go to the lowest held-out L1."""
+    return min(rows, key=lambda r: (-r.get("success_rate", 0.0), r.get("held_out_l1", 0.0)))[
+        "scale"
+    ]
+
+
+def format_table(rows: list[dict[str, Any]]) -> str:
+    lines = ["| λ | success (95% CI) | held-out L1 |", "|---|---|---|"]
+    for r in rows:
+        success = "–"
+        if "success_rate" in r:
+            low, high = r["ci95"]
+            success = f"{r['success_rate']:.0%} ({low:.0%}–{high:.0%}, {r['episodes']} episodes)"
+        l1 = f"{r['held_out_l1']:.4f}" if "held_out_l1" in r else "–"
+        lines.append(f"| {r['scale']:g} | {success} | {l1} |")
+    return "\n".join(lines)
+
+
+def plot(rows: list[dict[str, Any]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scales = [r["scale"] for r in rows]
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    if all("success_rate" in r for r in rows):
+        rates = [r["success_rate"] for r in rows]
+        low = [r["success_rate"] - r["ci95"][0] for r in rows]
+        high = [r["ci95"][1] - r["success_rate"] for r in rows]
+        ax.errorbar(scales, rates, yerr=[low, high], marker="o", capsize=3, label="success rate")
+        ax.set_ylabel("success rate")
+    if all("held_out_l1" in r for r in rows):
+        other = ax.twinx() if all("success_rate" in r for r in rows) else ax
+        other.plot(
+            scales, [r["held_out_l1"] for r in rows], "s--", color="tab:orange", label="held-out L1"
+        )
+        other.set_ylabel("held-out action L1")
+    ax.set_xlabel("merge scale λ")
+    ax.set_title("θ_pre + λ·c")
+    fig.tight_layout()
+    tmp = path.with_suffix(".tmp.png")
+    fig.savefig(tmp, dpi=120)
+    plt.close(fig)
+    tmp.replace(path)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="capvector sweep-scale", description=__doc__.splitlines()[0]
+    )
+    parser.add_argument("--base", required=True, help="θ_pre: export folder or checkpoint")
+    parser.add_argument("--vector", required=True, help="capability vector folder")
+    parser.add_argument("--scales", default="0,0.25,0.5,0.75,1,1.25,1.5")
+    parser.add_argument("--task", default=None, help="robosuite task for validation rollouts")
+    parser.add_argument("--robot", default="Panda")
+    parser.add_argument("--episodes", type=int, default=0, help="validation episodes per λ")
+    parser.add_argument("--demos", default=None, help="held-out demos (HDF5) for the action L1")
+    parser.add_argument("--finetune-steps", type=int, default=0, help="downstream SFT steps per λ")
+    parser.add_argument("--orth-weight", type=float, default=1.0)
+    parser.add_argument("--out", required=True, help="folder for sweep.json and sweep.png")
+    args = parser.parse_args(argv)
+    scales = [float(s) for s in args.scales.split(",")]
+    if not (args.task and args.episodes) and not args.demos:
+        raise SystemExit(
+            "capvector sweep-scale: give --task/--episodes (rollouts) and/or --demos (held-out L1)"
+        )
+    rows = sweep(args.base, args.vector, scales, args.out, args.task, args.episodes, args.robot,
+                 args.demos, args.finetune_steps, args.orth_weight)  # fmt: skip
+    plot(rows, Path(args.out) / "sweep.png")
+    print(format_table(rows))
+    print(f"\nbest λ = {best_scale(rows):g}  (plot: {Path(args.out) / 'sweep.png'})")
+    return 0

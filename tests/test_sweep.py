@@ -1,0 +1,50 @@
+"""`capvector sweep-scale`: a vector whose right scale is known is ranked right; sweeps resume."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import lightning as L
+import torch
+
+from capvector.cli import main
+from capvector.data.datamodule import RobotDataModule
+from capvector.module import VLAModule
+from capvector.sweep import best_scale, sweep
+from capvector.vectors import extract
+from conftest import write_demo_file
+
+
+def test_exact_difference_vector_is_best_at_scale_one(tmp_path: Path) -> None:
+    data = write_demo_file(tmp_path / "demos.hdf5", lengths=(16, 16))
+    dm = RobotDataModule(train_files=[str(data)], batch_size=8, augment=False)
+    torch.manual_seed(0)
+    module = VLAModule(data_spec=dm.spec)
+    module.export(tmp_path / "pre")
+    trainer = L.Trainer(
+        max_steps=40, accelerator="cpu", logger=False, enable_progress_bar=False,
+        enable_model_summary=False, enable_checkpointing=False, limit_val_batches=0,
+    )  # fmt: skip
+    trainer.fit(module, dm)  # fits the demos: the model that "solves" them
+    module.export(tmp_path / "solved")
+    # c = θ_solved − θ_pre over every parameter: θ_pre + 1·c is exactly the solved model.
+    extract(aux=tmp_path / "solved", sft=tmp_path / "pre", out=tmp_path / "vector", include=["*"])
+    rows = sweep(
+        str(tmp_path / "pre"),
+        str(tmp_path / "vector"),
+        [0.0, 0.5, 1.0, 1.5],
+        str(tmp_path / "sweep"),
+        demos=str(data),
+    )
+    assert [r["scale"] for r in rows] == [0.0, 0.5, 1.0, 1.5]
+    assert best_scale(rows) == 1.0
+    # Resume: finished scales are read back, only the new one is computed.
+    saved = json.loads((tmp_path / "sweep" / "sweep.json").read_text())
+    assert main([
+        "sweep-scale", "--base", str(tmp_path / "pre"), "--vector", str(tmp_path / "vector"),
+        "--scales", "0,0.5,0.75,1,1.5", "--demos", str(data), "--out", str(tmp_path / "sweep"),
+    ]) == 0  # fmt: skip
+    resumed = json.loads((tmp_path / "sweep" / "sweep.json").read_text())
+    assert [r for r in resumed if r["scale"] != 0.75] == saved
+    assert (tmp_path / "sweep" / "sweep.png").is_file()
