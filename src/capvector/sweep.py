@@ -155,14 +155,18 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
         rates = [r["success_rate"] for r in rows]
         low = [r["success_rate"] - r["ci95"][0] for r in rows]
         high = [r["ci95"][1] - r["success_rate"] for r in rows]
-        ax.errorbar(scales, rates, yerr=[low, high], marker="o", capsize=3, label="success rate")
+        ax.errorbar(
+            scales, rates, yerr=[low, high], marker="o", capsize=3, label="success rate (95% CI)"
+        )
         ax.set_ylabel("success rate")
+        ax.set_ylim(-0.02, 1.02)
     if all("held_out_l1" in r for r in rows):
         other = ax.twinx() if all("success_rate" in r for r in rows) else ax
         other.plot(
             scales, [r["held_out_l1"] for r in rows], "s--", color="tab:orange", label="held-out L1"
         )
         other.set_ylabel("held-out action L1")
+    fig.legend(loc="upper center", bbox_to_anchor=(0.5, 0.9), fontsize=8)
     ax.set_xlabel("merge scale λ")
     ax.set_title("θ_pre + λ·c")
     fig.tight_layout()
