@@ -34,6 +34,7 @@ Reproduce with ``python -m capvector.sim.demos --task Lift --episodes 200 --out 
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -73,7 +74,7 @@ def _yaw(quat_xyzw: np.ndarray) -> float:
     return math.atan2(rot[1, 0], rot[0, 0])
 
 
-class ScriptedExpert:
+class ScriptedExpert(ABC):
     """Base class: orientation hold, gripper bookkeeping and the grasp-an-object phases.
 
     Subclasses implement :meth:`_after_grasp` (what to do once the object is in the hand) and set
@@ -152,8 +153,9 @@ class ScriptedExpert:
             return self._act(obs, self._hold, GRIPPER_CLOSED, self.obj)
         return self._after_grasp(obs)
 
+    @abstractmethod
     def _after_grasp(self, obs: Mapping[str, np.ndarray]) -> ExpertAction:
-        raise NotImplementedError
+        """The action once the object is in the hand."""
 
     def _holding(self, obs: Mapping[str, np.ndarray], max_gap: float = 0.04) -> bool:
         # The object travels with the gripper: slip shows up as a growing eef-object distance.
@@ -195,9 +197,9 @@ class _PlaceExpert(ScriptedExpert):
     place_with_reset_yaw = False
     """Turn the gripper back to its reset yaw once the object is lifted (before carrying)."""
 
+    @abstractmethod
     def _goal(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
         """Where the held object's position should be when it is released."""
-        raise NotImplementedError
 
     def _carry_z(self, obs: Mapping[str, np.ndarray]) -> float:
         return float(self._goal(obs)[2] + self.carry_clearance)

@@ -18,6 +18,7 @@ import os
 import re
 import struct
 import tempfile
+from abc import ABC, abstractmethod
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -204,15 +205,16 @@ def _safetensors_header_size(path: Path) -> int:
 # -- reading --------------------------------------------------------------------------------
 
 
-class WeightSource:
+class WeightSource(ABC):
     """Read-only access to named tensors, by key and row range, without loading everything."""
 
     path: Path
     kind: str
     config: dict[str, Any]
 
+    @abstractmethod
     def keys(self) -> list[str]:
-        raise NotImplementedError
+        """The tensor names."""
 
     def __iter__(self) -> Iterator[str]:
         return iter(self.keys())
@@ -220,15 +222,17 @@ class WeightSource:
     def __contains__(self, key: object) -> bool:
         return key in self.keys()
 
+    @abstractmethod
     def info(self, key: str) -> TensorInfo:
-        raise NotImplementedError
+        """The info of this source."""
 
+    @abstractmethod
     def read(self, key: str, rows: slice | None = None) -> Tensor:
         """Rows ``rows`` (all when None) of tensor ``key``; the caller owns the returned tensor."""
-        raise NotImplementedError
 
+    @abstractmethod
     def fingerprint(self) -> str:
-        raise NotImplementedError
+        """The fingerprint of this source."""
 
     @property
     def capability_parameters(self) -> list[str] | None:
