@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 import lightning as L
+import pytest
 import torch
 
 from capvector.cli import main
@@ -48,3 +49,23 @@ def test_exact_difference_vector_is_best_at_scale_one(tmp_path: Path) -> None:
     resumed = json.loads((tmp_path / "sweep" / "sweep.json").read_text())
     assert [r for r in resumed if r["scale"] != 0.75] == saved
     assert (tmp_path / "sweep" / "sweep.png").is_file()
+
+
+@pytest.mark.sim
+def test_sweep_with_downstream_finetuning_and_rollouts(tmp_path: Path) -> None:
+    """Each λ: merge in memory, 2 steps of SFT + orthogonal regularization, 1 validation episode."""
+    data = write_demo_file(tmp_path / "demos.hdf5", lengths=(12, 12))
+    dm = RobotDataModule(train_files=[str(data)], batch_size=4)
+    torch.manual_seed(0)
+    VLAModule(data_spec=dm.spec).export(tmp_path / "pre")
+    torch.manual_seed(1)
+    VLAModule(data_spec=dm.spec).export(tmp_path / "other")
+    extract(aux=tmp_path / "other", sft=tmp_path / "pre", out=tmp_path / "vector")
+    rows = sweep(
+        str(tmp_path / "pre"), str(tmp_path / "vector"), [0.0, 1.0], str(tmp_path / "sweep"),
+        task="Lift", episodes=1, demos=str(data), finetune_steps=2,
+    )  # fmt: skip
+    assert [r["episodes"] for r in rows] == [1, 1]
+    assert all(
+        0 <= r["success_rate"] <= 1 and len(r["ci95"]) == 2 and r["held_out_l1"] > 0 for r in rows
+    )
