@@ -164,13 +164,21 @@ class VLABackbone(nn.Module, ABC):
         """
         raise BackboneError(f"{type(self).__name__} has no language-model head for text objectives")
 
+    _tokenizer: Any = None
+
     @property
     def tokenizer(self) -> Any:
         """The tokenizer that turns instructions into ids, when the family has one."""
+        return self._tokenizer
+
+    def make_tokenizer(self, folder: str) -> Any:
+        """Build the family's tokenizer from saved files (families with a tokenizer override this)."""
         return None
 
     def load_tokenizer(self, folder: str | Path) -> None:
-        """Load tokenizer files saved beside the weights (families with a tokenizer override this)."""
+        """Load tokenizer files saved beside the weights, when there are any."""
+        if (Path(folder) / "tokenizer_config.json").is_file():
+            self._tokenizer = self.make_tokenizer(str(folder))
 
     def capability_parameter_names(self) -> list[str]:
         names = [name for name, _ in self.named_parameters()]

@@ -339,13 +339,8 @@ class OpenVLAOFT(VLABackbone):
     def hidden_size(self) -> int:
         return self.config.llm.hidden_size
 
-    @property
-    def tokenizer(self) -> Any:
-        return self._tokenizer
-
-    def load_tokenizer(self, folder: str | Path) -> None:
-        if (Path(folder) / "tokenizer_config.json").is_file():
-            self._tokenizer = _make_tokenizer(str(folder))
+    def make_tokenizer(self, folder: str) -> Any:
+        return _make_tokenizer(folder)
 
     def unused_parameter_names(self) -> list[str]:
         # Features come from the second-to-last ViT block without the final norm, and SigLIP's

@@ -626,13 +626,8 @@ class Pi05(VLABackbone):
     def hidden_size(self) -> int:
         return self.config.vlm.hidden_size
 
-    @property
-    def tokenizer(self) -> Any:
-        return self._tokenizer
-
-    def load_tokenizer(self, folder: str | Path) -> None:
-        if (Path(folder) / "tokenizer_config.json").is_file():
-            self._tokenizer = _load_tokenizer(str(folder))
+    def make_tokenizer(self, folder: str) -> Any:
+        return _load_tokenizer(folder)
 
     def shard_units(self) -> list[nn.Module]:
         """SigLIP's encoder layers and the joint decoder layers (each VLM layer runs its joint
