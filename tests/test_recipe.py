@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from capvector.recipe import command_line, load_recipe
+from capvector.errors import CapVectorError
+from capvector.recipe import command_line, dependencies, load_recipe
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -83,7 +84,48 @@ def test_recipe_errors_are_clear(tmp_path: Path) -> None:
     assert completed.returncode == 2 and "needs `run_dir`" in completed.stderr
 
 
-@pytest.mark.parametrize("name", ["quick.yaml"])
+@pytest.mark.parametrize("name", ["quick.yaml", "experiment.yaml"])
 def test_shipped_recipes_resolve(name: str) -> None:
     run_dir, stages = load_recipe(REPO / "configs/recipes" / name, ["run_dir=/tmp/x"])
     assert str(run_dir) == "/tmp/x" and all("${" not in a for s in stages for a in s.args)
+
+
+def test_a_stage_waits_for_the_one_before_its_after_list_and_the_outputs_it_names() -> None:
+    from omegaconf import OmegaConf
+
+    raw = OmegaConf.create({"stages": [
+        {"name": "a", "command": "demos"},
+        {"name": "b", "command": "demos", "after": []},
+        {"name": "c", "command": "fit", "after": ["b"], "args": ["--x=${out.a.export}"]},
+        {"name": "d", "command": "fit"},
+    ]})  # fmt: skip
+    assert [dependencies(raw, i) for i in range(4)] == [set(), set(), {"a", "b"}, {"c"}]
+    raw.stages[3].after = ["e"]
+    with pytest.raises(CapVectorError, match=r"`after` names \['e'\], which are not earlier"):
+        dependencies(raw, 3)
+
+
+def test_jobs_run_independent_stages_together_and_stop_at_a_failure(tmp_path: Path) -> None:
+    info = ["openvla-oft-tiny"]
+    stages = [
+        {"name": "a", "command": "backbone-info", "args": info},
+        {"name": "b", "command": "backbone-info", "after": [], "args": info},
+        {"name": "c", "command": "backbone-info", "after": ["a", "b"], "args": ["no-such-preset"]},
+        {"name": "d", "command": "backbone-info", "args": info},
+    ]
+    path = tmp_path / "recipe.yaml"
+    path.write_text(json.dumps({"run_dir": str(tmp_path / "run"), "jobs": 2, "stages": stages}))
+    completed = capvector("recipe", "--config", str(path))
+    assert completed.returncode == 2 and "stage(s) ['c'] failed" in completed.stderr
+    run = tmp_path / "run"
+    # a and b ran at once (each logging to its own file), c only after both, d never.
+    assert (run / "a/.done").is_file() and (run / "b/.done").is_file()
+    assert not (run / "c/.done").exists() and not (run / "d").exists()
+    assert "openvla-oft-tiny" in (run / "a/log.txt").read_text()
+    assert "no-such-preset" in (run / "c/log.txt").read_text()  # the error, shown as well:
+    assert "no-such-preset" in completed.stdout
+    started = [line.split("] ")[1].split(" ")[0] for line in completed.stdout.splitlines()
+               if line.startswith("[recipe") and "; then:" in line]  # fmt: skip
+    assert started == ["a", "b", "c"]
+    a_done = (run / "a/.done").stat().st_mtime
+    assert (run / "c/log.txt").stat().st_ctime >= a_done

@@ -34,6 +34,7 @@ TOOLS: dict[str, tuple[str, str, str]] = {
     "merge": ("capvector.vectors.cli", "merge_main", "base + sum of scaled vectors"),
     "compose": ("capvector.vectors.cli", "compose_main", "combine vectors (sum, TIES)"),
     "inspect": ("capvector.vectors.cli", "inspect_main", "norms, cosines and plots of vectors"),
+    "report": ("capvector.report", "main", "success vs steps of a recipe's arms: table + plot"),
 }
 
 

@@ -14,12 +14,18 @@ Arguments may refer to other stages' outputs with omegaconf interpolation::
     ${out.<stage>.ckpt}     a fit stage's last checkpoint
     ${run_dir}              the run folder
     ${best_scale:${out.<sweep stage>.dir}}   the λ a ``sweep-scale`` stage found best
+
+A stage waits for the stage before it, or for the stages in its ``after:`` list, and always for
+the stages whose outputs it names. With ``jobs: N`` (or ``--jobs N``) up to N stages whose waits
+are over run at once, e.g. the seeds of a downstream comparison.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import re
 import subprocess
 import sys
 import time
@@ -31,6 +37,7 @@ from capvector.errors import CapVectorError
 from capvector.fileio import atomic_write_bytes
 
 DONE = ".done"
+OUT_REFERENCE = re.compile(r"\$\{out\.([A-Za-z0-9_]+)\.")
 FIT_VERSION = "version_0"
 
 
@@ -76,7 +83,7 @@ def _load_raw(path: str | Path, overrides: list[str] | None) -> tuple[Path, Any]
     from omegaconf import OmegaConf
 
     if not OmegaConf.has_resolver("best_scale"):
-        OmegaConf.register_new_resolver("best_scale", _best_scale)
+        OmegaConf.register_resolver("best_scale", _best_scale)
     raw = OmegaConf.load(path)
     if overrides:
         raw = OmegaConf.merge(raw, OmegaConf.from_dotlist(overrides))
@@ -122,40 +129,121 @@ def command_line(stage: Stage) -> list[str]:
     return [sys.executable, "-m", "capvector.cli", *args]
 
 
+def dependencies(raw: Any, index: int) -> set[str]:
+    """The stages stage ``index`` waits for: its ``after:`` list (default: the stage before it)
+    plus every stage whose outputs its arguments name (``${out.<stage>...}``)."""
+    from omegaconf import OmegaConf
+
+    entry = raw.stages[index]
+    names = [str(s.name) for s in raw.stages]
+    if "after" in entry:
+        after = [str(a) for a in entry.after]
+        unknown = sorted(set(after) - set(names[:index]))
+        if unknown:
+            raise CapVectorError(
+                f"stage {names[index]!r}: `after` names {unknown}, which are not earlier stages "
+                f"(earlier: {names[:index]})"
+            )
+    else:
+        after = names[index - 1 : index]
+    text = json.dumps(OmegaConf.to_container(entry, resolve=False).get("args", []))
+    return set(after) | (set(OUT_REFERENCE.findall(text)) & set(names[:index]))
+
+
 def run(
-    recipe: str | Path, overrides: list[str] | None = None, dry_run: bool = False
+    recipe: str | Path,
+    overrides: list[str] | None = None,
+    dry_run: bool = False,
+    jobs: int | None = None,
 ) -> list[dict]:
+    """Run the stages, up to ``jobs`` at a time once their dependencies have finished.
+
+    With ``jobs > 1`` each stage's output goes to ``<stage>/log.txt`` and its process gets
+    ``cpu_count // jobs`` threads (two 1-thread trainings outrun one 2-thread training on small
+    models: torch's intra-op parallelism scales poorly at these sizes).
+    """
     run_dir, raw = _load_raw(recipe, overrides)
+    jobs = int(jobs or raw.get("jobs", 1))
+    if jobs < 1:
+        raise CapVectorError(f"jobs must be at least 1, got {jobs}")
     run_dir.mkdir(parents=True, exist_ok=True)
     names = [str(s.name) for s in raw.stages]
-    stages = []
-    for index in range(len(names)):
-        stage = resolve_stage(raw, index, run_dir, recipe)
-        stages.append(stage)
-        status = f"[recipe {index + 1}/{len(names)}] {stage.name} ({stage.command})"
-        if stage.done_marker.is_file():
-            print(f"{status}: done earlier, skipped", flush=True)
-            continue
-        print(f"{status}; then: {', '.join(names[index + 1 :]) or 'nothing'}", flush=True)
+    waits_for = {names[i]: dependencies(raw, i) for i in range(len(names))}
+    stages: dict[str, Stage] = {}
+    finished: set[str] = set()
+    running: dict[str, tuple[subprocess.Popen, float, Any]] = {}
+    failed: list[str] = []
+    threads = max(1, (os.cpu_count() or 1) // jobs)
+
+    def status(name: str) -> str:
+        return f"[recipe {names.index(name) + 1}/{len(names)}] {name} ({stages[name].command})"
+
+    def start(name: str) -> None:
+        stage = stages[name]
         cmd = command_line(stage)
+        left = [n for n in names if n not in finished and n not in running and n != name]
+        print(f"{status(name)}; then: {', '.join(left) or 'nothing'}", flush=True)
         if dry_run:
             print("  " + " ".join(cmd[2:]))
-            continue
+            finished.add(name)
+            return
         stage.directory.mkdir(parents=True, exist_ok=True)
-        start = time.time()
-        completed = subprocess.run(cmd)
-        if completed.returncode != 0:
-            raise CapVectorError(
-                f"stage {stage.name!r} failed (exit {completed.returncode}); fix it and rerun the same "
-                "command: finished stages are skipped and an interrupted fit resumes"
-            )
-        marker = {
-            "command": cmd[2:],
-            "seconds": round(time.time() - start, 1),
-            "finished": time.ctime(),
-        }
+        if jobs == 1:
+            running[name] = (subprocess.Popen(cmd), time.time(), None)
+            return
+        log = open(stage.directory / "log.txt", "ab")  # noqa: SIM115 (closed when it ends)
+        env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
+        process = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
+        print(f"  log: {stage.directory / 'log.txt'}", flush=True)
+        running[name] = (process, time.time(), log)
+
+    def reap(name: str, returncode: int) -> None:
+        process, began, log = running.pop(name)
+        if log is not None:
+            log.close()
+        stage = stages[name]
+        if returncode != 0:
+            failed.append(name)
+            print(f"{status(name)} failed (exit {returncode})", flush=True)
+            if log is not None:
+                tail = (stage.directory / "log.txt").read_bytes()[-3000:].decode(errors="replace")
+                print(tail, flush=True)
+            return
+        marker = {"command": process.args[2:], "seconds": round(time.time() - began, 1),
+                  "finished": time.ctime()}  # fmt: skip
         atomic_write_bytes(stage.done_marker, json.dumps(marker, indent=2).encode())
-    return collect_results(stages)
+        finished.add(name)
+        if jobs > 1:
+            print(f"{status(name)} finished in {marker['seconds']:.0f} s", flush=True)
+
+    while len(finished) < len(names) and not failed:
+        for name in names:
+            if name in finished or name in running or len(running) >= jobs:
+                continue
+            if not waits_for[name] <= finished:
+                continue
+            # Resolved only now, so the arguments can use what earlier stages produced.
+            stages[name] = resolve_stage(raw, names.index(name), run_dir, recipe)
+            if stages[name].done_marker.is_file():
+                print(f"{status(name)}: done earlier, skipped", flush=True)
+                finished.add(name)
+            else:
+                start(name)
+        if not running:
+            continue
+        time.sleep(0.2)
+        for name in list(running):
+            returncode = running[name][0].poll()
+            if returncode is not None:
+                reap(name, returncode)
+    for name in list(running):  # a stage failed: let the others finish their work, then stop
+        reap(name, running[name][0].wait())
+    if failed:
+        raise CapVectorError(
+            f"stage(s) {failed} failed; fix and rerun the same command: finished stages are "
+            "skipped and an interrupted fit resumes"
+        )
+    return collect_results([stages[n] for n in names])
 
 
 def collect_results(stages: list[Stage]) -> list[dict]:
@@ -185,9 +273,13 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="capvector recipe", description=__doc__.splitlines()[0])
     parser.add_argument("--config", required=True, help="recipe YAML (configs/recipes/*.yaml)")
     parser.add_argument("--dry-run", action="store_true", help="print the stage commands only")
+    parser.add_argument(
+        "--jobs", type=int, default=None,
+        help="stages run at once when their `after` stages are done (default: the recipe's `jobs`, 1)",
+    )  # fmt: skip
     parser.add_argument("overrides", nargs="*", help="dotlist overrides, e.g. run_dir=runs/x")
     args = parser.parse_args(argv)
-    rows = run(args.config, args.overrides, args.dry_run)
+    rows = run(args.config, args.overrides, args.dry_run, args.jobs)
     if rows:
         print("\nResults\n" + format_results(rows))
     return 0

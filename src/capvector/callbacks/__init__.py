@@ -3,10 +3,12 @@
 from capvector.callbacks.auxiliary import AuxiliaryObjective
 from capvector.callbacks.capability import MergeCapabilityVector, OrthogonalRegularization
 from capvector.callbacks.export import ExportOnFitEnd
+from capvector.callbacks.step_cost import StepCost
 
 __all__ = [
     "AuxiliaryObjective",
     "ExportOnFitEnd",
     "MergeCapabilityVector",
     "OrthogonalRegularization",
+    "StepCost",
 ]

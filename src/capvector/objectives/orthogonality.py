@@ -40,6 +40,8 @@ NORMALIZATIONS = ("squared_projection", "squared_cosine")
 
 _CHUNK = 1 << 22
 """Elements per chunk of the float64-accumulated inner products (bounds their temporary memory)."""
+_BATCHED_MAX = 1 << 16
+"""``full`` terms up to this size share one autograd node (their float64 c copies stay small)."""
 
 
 def _inner64(theta: Tensor, c: Tensor | None, c_b: Tensor | None, c_a: Tensor | None) -> Tensor:
@@ -60,30 +62,6 @@ def _inner64(theta: Tensor, c: Tensor | None, c_b: Tensor | None, c_a: Tensor | 
     for start in range(0, theta.shape[0], rows):
         projected += c_b[start : start + rows].T @ theta[start : start + rows].float()
     return (projected * c_a).sum(dtype=torch.float64)
-
-
-def _sharded_inner(
-    theta: Tensor, c: Tensor | None, c_b: Tensor | None, c_a: Tensor | None
-) -> Tensor:
-    """⟨θ, c⟩ for a parameter that may be an FSDP2 DTensor shard.
-
-    Each rank takes the inner product of its own shard with the matching slice of c and the
-    values are summed across ranks. The gradient reaches the local shard only, as ⟨θ, c⟩'s
-    gradient c restricted to it: exactly the one-process gradient, with no extra communication
-    in the backward pass.
-    """
-    from torch.distributed.tensor import DTensor, distribute_tensor
-
-    if not isinstance(theta, DTensor):
-        return _FrozenInnerProduct.apply(theta, c, c_b, c_a)
-    dense = c if c is not None else c_b @ c_a  # type: ignore[operator]
-    local_c = distribute_tensor(
-        dense.to(theta.to_local().device), theta.device_mesh, theta.placements, src_data_rank=None
-    ).to_local()
-    local = _FrozenInnerProduct.apply(theta.to_local(), local_c, None, None)
-    total = local.detach().clone()
-    torch.distributed.all_reduce(total, group=theta.device_mesh.get_group())
-    return local + (total - local.detach())
 
 
 def _full(tensor: Tensor) -> Tensor:
@@ -112,6 +90,31 @@ class _FrozenInnerProduct(torch.autograd.Function):
         return (grad.float() * dense).to(ctx.theta_dtype), None, None, None
 
 
+class _BatchedFrozenInnerProducts(torch.autograd.Function):
+    """[⟨θ_i, c_i⟩] (float64) for many small tensors behind one autograd node.
+
+    A tiny model has ~150 covered tensors of a few thousand elements: per-tensor autograd nodes
+    and the ops around them cost more than the arithmetic (benchmarks/bench_steps.py). Forward is
+    one float64 dot per tensor; backward is one foreach multiply ``grad_i · c_i``.
+    """
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx: Any, cs64: list[Tensor], grad_cs: list[Tensor], *thetas: Tensor
+    ) -> Tensor:
+        ctx.grad_cs = grad_cs  # constants (c in each θ's dtype): nothing to save for autograd
+        return torch.stack(
+            [
+                torch.dot(t.detach().reshape(-1).double(), c)
+                for t, c in zip(thetas, cs64, strict=True)
+            ]
+        )
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
+        return None, None, *torch._foreach_mul(ctx.grad_cs, grad.tolist())
+
+
 @dataclass
 class _Term:
     index: int
@@ -120,6 +123,8 @@ class _Term:
     """"full" (θ − anchor), "lora" (s·BA) or "olora" (Σ|A_c A_newᵀ|)."""
     param: Tensor | None = None
     layer: nn.Module | None = None
+    local_c: Tensor | None = None
+    """``full`` terms of an FSDP2 parameter: c's slice matching this rank's shard, cut once."""
 
 
 def _is_lora_layer(module: nn.Module | None, adapter: str) -> bool:
@@ -200,6 +205,8 @@ class OrthogonalityLoss(Objective):
         self.register_buffer("anchors", torch.zeros(len(self.keys), dtype=torch.float64))
         self.register_buffer("anchored", torch.zeros(len(self.keys), dtype=torch.bool))
         self._terms: list[_Term] = []
+        self._full_terms: list[_Term] = []
+        self._full_positions: list[int] = []
         self.frozen: list[str] = []
         """Vector keys left out by ``bind``: their parameters are frozen, so Δ = 0 there."""
         self.last_stats: dict[str, Tensor] = {}
@@ -266,18 +273,100 @@ class OrthogonalityLoss(Objective):
                 "squared_projection: their cosine would need a copy of θ_meta",
                 stacklevel=2,
             )
-        with torch.no_grad():
-            for t in terms:
-                if t.kind == "full" and not bool(self.anchored[t.index]):
-                    c, c_b, c_a = self._vector(t.index)
-                    assert t.param is not None
-                    self.anchors[t.index] = _sharded_inner(t.param.detach(), c, c_b, c_a).to(
-                        self.anchors.device
-                    )
-                    self.anchored[t.index] = True
         self._terms = terms
         self.frozen = frozen
+        self._prepare_full_terms()
+        with torch.no_grad():
+            full = [t.index for t in self._full_terms]
+            if full:
+                missing = ~self.anchored[full]
+                inners = self._full_inners().to(self.anchors.device)
+                index = torch.tensor(full, device=self.anchors.device)
+                self.anchors[index] = torch.where(missing, inners, self.anchors[index])
+                self.anchored[index] = True
         return self
+
+    def _prepare_full_terms(self) -> None:
+        """Cut c to each FSDP2 shard once and group the small dense ``full`` terms for batching."""
+        from torch.distributed.tensor import DTensor, distribute_tensor
+
+        self._full_terms = [t for t in self._terms if t.kind == "full"]
+        for t in self._full_terms:
+            c, c_b, c_a = self._vector(t.index)
+            if isinstance(t.param, DTensor):
+                dense = c if c is not None else c_b @ c_a  # type: ignore[operator]
+                t.local_c = distribute_tensor(
+                    dense.to(t.param.to_local().device), t.param.device_mesh, t.param.placements,
+                    src_data_rank=None,
+                ).to_local()  # fmt: skip
+            else:
+                t.local_c = c
+        small = [
+            i for i, t in enumerate(self._full_terms)
+            if t.local_c is not None and t.local_c.numel() <= _BATCHED_MAX
+        ]  # fmt: skip
+        self._batched = [self._full_terms[i] for i in small]
+        self._batched_c64 = [t.local_c.reshape(-1).double() for t in self._batched]  # type: ignore[union-attr]
+        self._batched_grad_c = [t.local_c.to(t.param.dtype) for t in self._batched]  # type: ignore[union-attr]
+        self._single = [t for i, t in enumerate(self._full_terms) if i not in set(small)]
+        # _full_inners computes [batched..., single...]; this puts them back in _full_terms order.
+        order = small + [i for i in range(len(self._full_terms)) if i not in set(small)]
+        device = self.c_norm_sq.device
+        self._unpermute = torch.argsort(torch.tensor(order, dtype=torch.long)).to(device)
+        self._full_positions = [
+            i for i, t in enumerate(self._full_terms) if t.index not in self._zero
+        ]
+        self._full_indices = torch.tensor(
+            [self._full_terms[i].index for i in self._full_positions], dtype=torch.long
+        ).to(device)
+        self._full_c_sq = self.c_norm_sq[self._full_indices].float()
+        self._sharded = torch.tensor(
+            [isinstance(t.param, DTensor) for t in self._full_terms], dtype=torch.bool
+        ).to(device)
+
+    def _full_inners(self) -> Tensor:
+        """⟨θ, c⟩ of every ``full`` term (float64, in ``_full_terms`` order), summed over shards.
+
+        Each rank takes its shard's inner products with the matching slices of c; one all-reduce
+        sums the sharded terms. Gradients reach the local shards only, as c restricted to them:
+        exactly the one-process gradient, with no extra communication in the backward pass.
+        """
+        from torch.distributed.tensor import DTensor
+
+        def local(param: Tensor | None) -> Tensor:
+            assert param is not None
+            return param.to_local() if isinstance(param, DTensor) else param
+
+        device = self.c_norm_sq.device
+        parts = []
+        if self._batched:
+            thetas = [local(t.param) for t in self._batched]
+            parts.append(
+                _BatchedFrozenInnerProducts.apply(self._batched_c64, self._batched_grad_c, *thetas)
+            )
+        if self._single:
+            singles = []
+            for t in self._single:
+                _, c_b, c_a = self._vector(t.index)
+                c_b, c_a = (None, None) if t.local_c is not None else (c_b, c_a)
+                singles.append(_FrozenInnerProduct.apply(local(t.param), t.local_c, c_b, c_a))
+            parts.append(torch.stack(singles).to(device))
+        inners = torch.cat(parts)[self._unpermute] if parts else torch.zeros(0, device=device)
+        if bool(self._sharded.any()):
+            summed = torch.where(self._sharded, inners.detach(), 0.0)
+            torch.distributed.all_reduce(summed, group=self._mesh_group())
+            inners = inners + (summed - torch.where(self._sharded, inners.detach(), 0.0))
+        return inners
+
+    def _mesh_group(self) -> Any:
+        from torch.distributed.tensor import DTensor
+
+        meshes = {t.param.device_mesh for t in self._full_terms if isinstance(t.param, DTensor)}
+        if len(meshes) != 1:
+            raise CapVectorError(
+                "orthogonal regularization needs every sharded parameter on one mesh"
+            )
+        return meshes.pop().get_group()
 
     def reset_anchors(self) -> None:
         """Forget the anchors, so the next ``bind`` takes the current θ as θ_meta."""
@@ -302,36 +391,44 @@ class OrthogonalityLoss(Objective):
             self.bind(backbone)
         device = self.c_norm_sq.device
         total = torch.zeros((), dtype=torch.float32, device=device)
-        projections, cosines = [], []
+        projections: list[Tensor] = []
+        cosines: list[Tensor] = []
+        if self._full_positions:
+            index, c_sq = self._full_indices, self._full_c_sq
+            inner = self._full_inners()
+            if len(self._full_positions) < len(self._full_terms):  # some c_l are zero
+                inner = inner[self._full_positions]
+            inner = (inner - self.anchors[index]).float()
+            total = total + (inner.square() / c_sq).sum()
+            projections.append(inner.detach().abs() / c_sq)
+        lora_projections = []
         for t in self._terms:
-            if t.index in self._zero:
+            if t.index in self._zero or t.kind == "full":
                 continue
             c, c_b, c_a = self._vector(t.index)
             c_sq = self.c_norm_sq[t.index].float()
-            if t.kind == "full":
-                inner = _sharded_inner(t.param, c, c_b, c_a) - self.anchors[t.index]
-                inner = inner.float()
-                term = inner.square() / c_sq
-            else:
-                a, b, s = self._lora_factors(t)
-                if t.kind == "olora":
-                    term = (c_a @ a.T).abs().sum()  # type: ignore[operator]
-                    with torch.no_grad():  # for the stats only
-                        inner = s * _lora_inner(b, a, c, c_b, c_a)
-                else:
+            a, b, s = self._lora_factors(t)
+            if t.kind == "olora":
+                term = (c_a @ a.T).abs().sum()  # type: ignore[operator]
+                with torch.no_grad():  # for the stats only
                     inner = s * _lora_inner(b, a, c, c_b, c_a)
-                    delta_sq = s * s * ((b.T @ b) * (a @ a.T)).sum()
-                    if self.normalization == "squared_cosine":
-                        term = inner.square() / (c_sq * delta_sq + self.eps)
-                    else:
-                        term = inner.square() / c_sq
-                    with torch.no_grad():
-                        cosines.append(inner.abs() / (c_sq * delta_sq + self.eps).sqrt())
+            else:
+                inner = s * _lora_inner(b, a, c, c_b, c_a)
+                delta_sq = s * s * ((b.T @ b) * (a @ a.T)).sum()
+                if self.normalization == "squared_cosine":
+                    term = inner.square() / (c_sq * delta_sq + self.eps)
+                else:
+                    term = inner.square() / c_sq
+                with torch.no_grad():
+                    cosines.append(inner.abs() / (c_sq * delta_sq + self.eps).sqrt())
             total = total + term.to(total.device)
-            projections.append((inner.detach().abs() / c_sq).to(device))
-        stats = {"num_terms": torch.tensor(float(len(projections)), device=device)}
+            lora_projections.append((inner.detach().abs() / c_sq).to(device))
+        if lora_projections:
+            projections.append(torch.stack(lora_projections))
+        every = torch.cat(projections) if projections else torch.zeros(0, device=device)
+        stats = {"num_terms": torch.tensor(float(every.numel()), device=device)}
         if projections:
-            stats["mean_abs_projection"] = torch.stack(projections).mean()
+            stats["mean_abs_projection"] = every.mean()
         if cosines:
             stats["mean_abs_cos"] = torch.stack([x.to(device) for x in cosines]).mean()
         self.last_stats = stats

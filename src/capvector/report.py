@@ -1,0 +1,207 @@
+"""``capvector report``: the downstream comparison of a recipe run as a table and a plot.
+
+Each arm is a set of seeds, i.e. ``fit`` stages of one recipe run whose names match a glob, plus
+the ``evaluate`` stage of their starting weights (step 0). From the fits' CSV logs it reads the
+rollout success and held-out action L1 at every validation, the step time and peak memory
+(``StepCost``); references are evaluate-only arms (e.g. θ_pre + λc with no training). Writes
+``results.json``, ``results.md`` and ``success_vs_steps.png`` to ``--out`` and prints the table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import itertools
+import json
+import statistics
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from capvector.errors import CapVectorError
+from capvector.fileio import atomic_write_bytes
+
+SUCCESS = "val/success_rate"
+HELD_OUT_L1 = "val/action_l1"
+STEP_SECONDS = "perf/step_seconds"
+PEAK_MEMORY = "perf/peak_memory_mib"
+
+
+@dataclass
+class SeedRun:
+    """One fit stage: metrics by training step (steps trained, not the logger's 0-based index)."""
+
+    stage: str
+    success: dict[int, float] = field(default_factory=dict)
+    held_out_l1: dict[int, float] = field(default_factory=dict)
+    step_seconds: list[float] = field(default_factory=list)
+    peak_memory_mib: float | None = None
+
+
+def read_fit(stage_dir: Path) -> SeedRun:
+    """Metrics of a recipe fit stage from ``<stage>/fit/version_0/metrics.csv`` (CSVLogger)."""
+    path = stage_dir / "fit" / "version_0" / "metrics.csv"
+    if not path.is_file():
+        raise CapVectorError(f"{path} does not exist: has the fit stage {stage_dir.name!r} run?")
+    run = SeedRun(stage_dir.name)
+    with path.open() as f:
+        for row in csv.DictReader(f):
+            # Lightning logs the metrics of step k (k optimizer steps done) at row "step" k - 1.
+            step = int(row["step"]) + 1
+            if row.get(SUCCESS):
+                run.success[step] = float(row[SUCCESS])
+            if row.get(HELD_OUT_L1):
+                run.held_out_l1[step] = float(row[HELD_OUT_L1])
+            if row.get(STEP_SECONDS):
+                run.step_seconds.append(float(row[STEP_SECONDS]))
+            if row.get(PEAK_MEMORY):
+                run.peak_memory_mib = max(run.peak_memory_mib or 0.0, float(row[PEAK_MEMORY]))
+    if not run.success:
+        raise CapVectorError(f"{path} has no {SUCCESS}: the fit ran without rollout validation")
+    return run
+
+
+def read_evaluation(stage_dir: Path) -> float:
+    """Success rate over every row of an ``evaluate`` stage's ``results.json``."""
+    path = stage_dir / "results.json"
+    if not path.is_file():
+        raise CapVectorError(f"{path} does not exist: run the evaluate stage with --json {path}")
+    rows = json.loads(path.read_text())
+    return sum(r["successes"] for r in rows) / sum(r["episodes"] for r in rows)
+
+
+def steps_to(success: dict[int, float], threshold: float) -> int | None:
+    """The first evaluated step whose success rate reaches ``threshold`` (None: never)."""
+    return next((s for s in sorted(success) if success[s] >= threshold), None)
+
+
+def summarize_arm(
+    label: str, runs: list[SeedRun], start: float, threshold: float
+) -> dict[str, Any]:
+    steps = sorted(set.intersection(*(set(r.success) for r in runs)))
+    curve = {0: [start] * len(runs)} | {s: [r.success[s] for r in runs] for s in steps}
+    reached = [steps_to({0: start} | r.success, threshold) for r in runs]
+    l1_steps = sorted(set.intersection(*(set(r.held_out_l1) for r in runs)))
+    seconds = [statistics.median(r.step_seconds) for r in runs if r.step_seconds]
+    memory = [r.peak_memory_mib for r in runs if r.peak_memory_mib is not None]
+    return {
+        "arm": label,
+        "seeds": [r.stage for r in runs],
+        "success": {s: _spread(v) for s, v in curve.items()},
+        "held_out_l1": {s: _spread([r.held_out_l1[s] for r in runs]) for s in l1_steps},
+        "steps_to_threshold": reached,
+        "step_seconds": _spread(seconds) if seconds else None,
+        "peak_memory_mib": max(memory) if memory else None,
+    }
+
+
+def _spread(values: list[float]) -> dict[str, Any]:
+    return {
+        "mean": statistics.fmean(values),
+        "std": statistics.stdev(values) if len(values) > 1 else 0.0,
+        "min": min(values),
+        "max": max(values),
+        "values": values,
+    }
+
+
+def format_table(arms: list[dict], references: dict[str, float], threshold: float) -> str:
+    steps = sorted({int(s) for a in arms for s in a["success"]})
+    head = ["arm", *(f"step {s}" for s in steps), f"steps to {threshold:.0%}", "s/step", "peak MiB"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for a in arms:
+        cells = [a["arm"]]
+        for s in steps:
+            v = a["success"].get(s)
+            cells.append(f"{v['mean']:.0%} ± {v['std']:.0%}" if v else "–")
+        reached = [r for r in a["steps_to_threshold"] if r is not None]
+        n = len(a["steps_to_threshold"])
+        cells.append(
+            f"{statistics.median(reached):.0f} ({len(reached)}/{n})" if reached else f"– (0/{n})"
+        )
+        cells.append(f"{a['step_seconds']['mean']:.3f}" if a["step_seconds"] else "–")
+        cells.append(f"{a['peak_memory_mib']:.0f}" if a["peak_memory_mib"] else "–")
+        lines.append("| " + " | ".join(cells) + " |")
+    for label, rate in references.items():
+        lines.append("| " + " | ".join([label, f"{rate:.0%}", *["" for _ in head[2:]]]) + " |")
+    return "\n".join(lines)
+
+
+def plot(arms: list[dict], references: dict[str, float], path: Path) -> None:
+    """Success (mean, band = min..max over seeds) and held-out L1 against training steps."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4))
+    for a in arms:
+        steps = sorted(int(s) for s in a["success"])
+        mean = [a["success"][s]["mean"] for s in steps]
+        line = left.plot(steps, mean, marker="o", label=f"{a['arm']} ({len(a['seeds'])} seeds)")[0]
+        low = [a["success"][s]["min"] for s in steps]
+        high = [a["success"][s]["max"] for s in steps]
+        left.fill_between(steps, low, high, color=line.get_color(), alpha=0.15)
+        if a["held_out_l1"]:
+            l1_steps = sorted(int(s) for s in a["held_out_l1"])
+            l1 = [a["held_out_l1"][s]["mean"] for s in l1_steps]
+            right.plot(l1_steps, l1, marker="o", color=line.get_color(), label=a["arm"])
+    for (label, rate), style in zip(references.items(), itertools.cycle(["--", ":", "-."])):
+        left.axhline(rate, linestyle=style, color="gray", label=f"{label} (no training)")
+    left.set(xlabel="training steps", ylabel="success rate", ylim=(-0.02, 1.02))
+    left.set_title("MuJoCo success (mean; band: min–max over seeds)")
+    left.legend(fontsize=7)
+    right.set(xlabel="training steps", ylabel="held-out action L1")
+    right.set_title("held-out action L1 (mean over seeds)")
+    fig.tight_layout()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=120)
+    plt.close(fig)
+    atomic_write_bytes(path, buffer.getvalue())
+
+
+def report(
+    run_dir: Path,
+    arms: list[tuple[str, str, str]],
+    references: list[tuple[str, str]],
+    out: Path,
+    threshold: float,
+) -> str:
+    summaries = []
+    for label, pattern, start_stage in arms:
+        dirs = sorted(d for d in run_dir.glob(pattern) if d.is_dir())
+        if not dirs:
+            raise CapVectorError(f"arm {label!r}: no stage folder in {run_dir} matches {pattern!r}")
+        runs = [read_fit(d) for d in dirs]
+        start = read_evaluation(run_dir / start_stage)
+        summaries.append(summarize_arm(label, runs, start, threshold))
+    refs = {label: read_evaluation(run_dir / stage) for label, stage in references}
+    table = format_table(summaries, refs, threshold)
+    out.mkdir(parents=True, exist_ok=True)
+    result = {"threshold": threshold, "arms": summaries, "references": refs}
+    atomic_write_bytes(out / "results.json", json.dumps(result, indent=2).encode())
+    atomic_write_bytes(out / "results.md", (table + "\n").encode())
+    plot(summaries, refs, out / "success_vs_steps.png")
+    return table
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="capvector report", description=__doc__.splitlines()[0])
+    parser.add_argument("--run-dir", required=True, type=Path, help="the recipe's run folder")
+    parser.add_argument(
+        "--arm", nargs=3, action="append", required=True, metavar=("LABEL", "GLOB", "START"),
+        help="an arm: its label, a glob of its fit stages (one per seed) and the evaluate stage "
+        "of its starting weights (its step 0)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--reference", nargs=2, action="append", default=[], metavar=("LABEL", "STAGE"),
+        help="an evaluate-only arm (no training), drawn as a horizontal line",
+    )  # fmt: skip
+    parser.add_argument("--threshold", type=float, default=0.5, help="success rate to reach")
+    parser.add_argument("--out", required=True, type=Path, help="folder for the results")
+    args = parser.parse_args(argv)
+    table = report(args.run_dir, args.arm, args.reference, args.out, args.threshold)
+    print(table)
+    print(f"\nplot: {args.out / 'success_vs_steps.png'}")
+    return 0

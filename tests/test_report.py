@@ -1,0 +1,69 @@
+"""`capvector report`: the arms of a recipe run, read back from real CSVLogger files."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from lightning.pytorch.loggers import CSVLogger
+
+from capvector.errors import CapVectorError
+from capvector.report import main, report
+
+
+def write_fit(run_dir: Path, stage: str, success: dict[int, float], l1: dict[int, float]) -> None:
+    """A fit stage's log as the recipe lays it out; steps are optimizer steps done."""
+    logger = CSVLogger(run_dir / stage, name="fit", version="version_0")
+    for step in range(1, max(success) + 1):
+        metrics = {"train/loss": 1.0 / step, "perf/step_seconds": 0.1 + step / 1000,
+                   "perf/peak_memory_mib": 500.0 + step}  # fmt: skip
+        if step in success:
+            metrics |= {"val/success_rate": success[step], "val/action_l1": l1[step]}
+        logger.log_metrics(metrics, step=step - 1)  # Lightning's 0-based row index
+    logger.save()
+
+
+def write_evaluation(run_dir: Path, stage: str, successes: int, episodes: int) -> None:
+    (run_dir / stage).mkdir(parents=True)
+    row = {"task": "Lift", "robot": "Sawyer", "episodes": episodes, "successes": successes}
+    (run_dir / stage / "results.json").write_text(json.dumps([row]))
+
+
+def test_report_reads_every_seed_and_summarizes_the_arms(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    write_evaluation(run, "eval_pre", 3, 30)
+    write_evaluation(run, "eval_meta", 6, 30)
+    write_fit(run, "down_sft_s0", {2: 0.2, 4: 0.6}, {2: 0.30, 4: 0.20})
+    write_fit(run, "down_sft_s1", {2: 0.4, 4: 0.4}, {2: 0.34, 4: 0.24})
+    write_fit(run, "down_cv_s0", {2: 0.7, 4: 0.9}, {2: 0.20, 4: 0.10})
+    arms = [("plain SFT", "down_sft_s*", "eval_pre"), ("CapVector", "down_cv_s*", "eval_meta")]
+    out = tmp_path / "report"
+    table = report(run, arms, [("out of the box", "eval_meta")], out, threshold=0.5)
+
+    result = json.loads((out / "results.json").read_text())
+    sft, cv = result["arms"]
+    assert sft["seeds"] == ["down_sft_s0", "down_sft_s1"]
+    assert sft["success"]["0"]["values"] == [0.1, 0.1]  # step 0: the starting weights' evaluation
+    assert sft["success"]["2"]["mean"] == pytest.approx(0.3)
+    assert sft["success"]["4"]["values"] == [0.6, 0.4]
+    assert sft["held_out_l1"]["4"]["mean"] == pytest.approx(0.22)
+    assert sft["steps_to_threshold"] == [4, None] and cv["steps_to_threshold"] == [2]
+    assert sft["peak_memory_mib"] == 504.0
+    assert sft["step_seconds"]["mean"] == pytest.approx(0.1025)  # median of each seed's steps
+    assert result["references"] == {"out of the box": pytest.approx(0.2)}
+    assert "| plain SFT | 10% ± 0% | 30% ± 14% | 50% ± 14% | 4 (1/2) |" in table
+    assert "| CapVector | 20% ± 0% | 70% ± 0% | 90% ± 0% | 2 (1/1) |" in table
+    assert (out / "results.md").read_text().strip() == table
+    assert (out / "success_vs_steps.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_report_errors_name_the_missing_stage(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    write_evaluation(run, "eval_pre", 3, 30)
+    with pytest.raises(CapVectorError, match="no stage folder in .* matches 'down_x_s\\*'"):
+        report(run, [("x", "down_x_s*", "eval_pre")], [], tmp_path / "out", 0.5)
+    (run / "down_x_s0").mkdir()
+    with pytest.raises(CapVectorError, match="has the fit stage 'down_x_s0' run"):
+        main(["--run-dir", str(run), "--arm", "x", "down_x_s*", "eval_pre", "--out", "o"])
+    assert not (tmp_path / "out").exists()
