@@ -125,7 +125,7 @@ def test_jobs_run_independent_stages_together_and_stop_at_a_failure(tmp_path: Pa
     assert "no-such-preset" in (run / "c/log.txt").read_text()  # the error, shown as well:
     assert "no-such-preset" in completed.stdout
     started = [line.split("] ")[1].split(" ")[0] for line in completed.stdout.splitlines()
-               if line.startswith("[recipe") and "; then:" in line]  # fmt: skip
+               if line.startswith("[recipe") and " started; " in line]  # fmt: skip
     assert started == ["a", "b", "c"]
     a_done = (run / "a/.done").stat().st_mtime
     assert (run / "c/log.txt").stat().st_ctime >= a_done

@@ -182,7 +182,8 @@ def run(
         stage = stages[name]
         cmd = command_line(stage)
         left = [n for n in names if n not in finished and n not in running and n != name]
-        print(f"{status(name)}; then: {', '.join(left) or 'nothing'}", flush=True)
+        more = f": {', '.join(left[:3])}{', ...' if len(left) > 3 else ''}" if left else ""
+        print(f"{status(name)} started; {len(left)} more to run{more}", flush=True)
         if dry_run:
             print("  " + " ".join(cmd[2:]))
             finished.add(name)
