@@ -36,11 +36,19 @@ def setup(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     }
 
 
+# Attention key biases (the DiT heads' ``to_k.bias``): softmax ignores a shift shared by all keys,
+# so the loss does not depend on them and their true gradient is 0. AdamW turns the rounding noise
+# left in it (~1e-10) into steps of lr·g/(|g| + ε), which one and two processes round differently:
+# they drift apart by ~1.5e-5 in 3 steps, while every other weight agrees to < 1e-6.
+LOSS_INVARIANT = ".to_k.bias"
+
+
 def assert_same_weights(a: Path, b: Path) -> None:
     ours, theirs = load_file(a / "model.safetensors"), load_file(b / "model.safetensors")
     assert ours.keys() == theirs.keys()
     for key in theirs:
-        torch.testing.assert_close(ours[key], theirs[key], rtol=1e-4, atol=1e-5, msg=key)
+        atol = 1e-4 if key.endswith(LOSS_INVARIANT) else 1e-5
+        torch.testing.assert_close(ours[key], theirs[key], rtol=1e-4, atol=atol, msg=key)
 
 
 @pytest.mark.distributed
@@ -63,40 +71,76 @@ def test_merge_callback_equals_the_offline_merge(
     assert_same_weights(tmp_path / "export", setup["merged"])
 
 
+def random_vector(preset: str, data: Path, root: Path) -> Path:
+    """A capability vector for ``preset`` on ``data``: small random deltas on its capability
+    parameters. Only its keys and shapes must fit; no donor fit needed."""
+    dm = RobotDataModule(train_files=[str(data)], augment=False)
+    module = VLAModule(backbone=preset, data_spec=dm.spec)
+    module.export(root / "sft")
+    with torch.no_grad():
+        for p in module.parameters():
+            p.add_(1e-3 * torch.randn_like(p))
+    module.export(root / "aux")
+    extract(aux=root / "aux", sft=root / "sft", out=root / "vector")
+    return root / "vector"
+
+
 @pytest.mark.distributed
-def test_lora_merge_and_orthogonality_match_one_process_and_resume_without_merging_twice(
-    setup: dict, tmp_path: Path
+@pytest.mark.parametrize(
+    "preset,resume",
+    [
+        ("openvla-oft-tiny", True),
+        ("pi05-tiny", True),
+        ("starvla-tiny-oft", False),
+        ("starvla-tiny-gr00t", False),
+        ("starvla-tiny-layerwise", False),
+    ],
+)
+def test_lora_merge_and_orthogonality_under_fsdp2_match_one_process(
+    preset: str, resume: bool, setup: dict, tmp_path: Path
 ) -> None:
-    recipe = ["--vector", str(setup["vector"]), "--scale", "0.5", "--orth-weight", "100"]
+    """2 processes under FSDP2 (LoRA + merge at fit start + orthogonal regularization) give the
+    loss curve and the export of 1 process on the same global batch. The flow-matching families
+    agree because their training noise is drawn per sample (``keys.NOISE_SEED``), not per rank.
+
+    Covers every tiny preset: OpenVLA-OFT, Pi0.5, and StarVLA with each of its heads (L1 "oft",
+    flow "gr00t" with 4 noisy copies per sample, flow "layerwise"). With ``resume`` (OpenVLA-OFT
+    and Pi0.5, a flow-matching family): stopped after 6 steps and resumed to 7 under FSDP2, the
+    run still matches, so the vector was not merged twice. The others fit 3 steps, for time."""
+    data = setup["data"]
+    vector = random_vector(preset, data, tmp_path / "vector")
+    recipe = [
+        "--backbone",
+        preset,
+        "--vector",
+        str(vector),
+        "--scale",
+        "0.5",
+        "--orth-weight",
+        "100",
+    ]
+    fsdp2 = ["--devices", "2", "--strategy", "fsdp2", *recipe]
     # 26 samples, global batch 4: an epoch is 6 steps. Stopping at the epoch's end makes the first
     # resumed step see the batch the uninterrupted run saw (Lightning restarts the data loader).
-    single = run(tmp_path / "single", setup["data"], "--steps", "7", *recipe)
-    sharded = run(
-        tmp_path / "fsdp2",
-        setup["data"],
-        "--steps",
-        "7",
-        "--devices",
-        "2",
-        "--strategy",
-        "fsdp2",
-        *recipe,
+    steps = 7 if resume else 3
+    single = run(tmp_path / "single", data, "--steps", str(steps), *recipe)
+    sharded = run(tmp_path / "fsdp2", data, "--steps", str(6 if resume else steps), *fsdp2)
+    torch.testing.assert_close(
+        torch.tensor(sharded), torch.tensor(single[: len(sharded)]), rtol=1e-5, atol=1e-6
     )
-    torch.testing.assert_close(torch.tensor(sharded), torch.tensor(single), rtol=1e-5, atol=1e-6)
-    assert_same_weights(tmp_path / "fsdp2" / "export", tmp_path / "single" / "export")
-    # Stop after 6 steps, resume to 7 under FSDP2: the same loss and weights, so no second merge.
-    fsdp2 = ["--devices", "2", "--strategy", "fsdp2", *recipe]
-    run(tmp_path / "first", setup["data"], "--steps", "6", *fsdp2)
-    saved = torch.load(tmp_path / "first" / "last.ckpt", weights_only=False)
+    if not resume:
+        assert_same_weights(tmp_path / "fsdp2" / "export", tmp_path / "single" / "export")
+        return
+    saved = torch.load(tmp_path / "fsdp2" / "last.ckpt", weights_only=False)
     assert any(state.get("merged") for state in saved["callbacks"].values())
     assert any(k.startswith("objectives.orthogonality.anchors") for k in saved["state_dict"])
     resumed = run(
         tmp_path / "resumed",
-        setup["data"],
+        data,
         "--steps",
         "7",
         "--ckpt-path",
-        str(tmp_path / "first" / "last.ckpt"),
+        str(tmp_path / "fsdp2" / "last.ckpt"),
         *fsdp2,
     )
     torch.testing.assert_close(

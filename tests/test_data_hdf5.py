@@ -6,12 +6,14 @@ import json
 from pathlib import Path
 
 import h5py
+import lightning as L
 import numpy as np
 import pytest
 import torch
+from torch import nn
 
 from capvector.data import keys
-from capvector.data.datamodule import RobotDataModule
+from capvector.data.datamodule import RobotDataModule, noise_seeds
 from capvector.data.hdf5 import DatasetError, HDF5RobotDataset
 from capvector.data.statistics import Normalizer, compute_statistics
 from capvector.data.transforms import ImageTransform
@@ -78,6 +80,55 @@ def test_depth_and_annotations_are_optional_fields(demo_file: Path) -> None:
     assert sample[keys.DEPTH].shape == (2, 64, 64)
     assert sample[keys.INTRINSICS].shape == (2, 3, 3)
     assert sample[keys.ANNOTATION] == "step 0 of demo 0"
+
+
+def test_noise_seeds_are_per_sample_and_change_with_epoch_and_seed() -> None:
+    index = torch.arange(8)
+    seeds = noise_seeds(index, epoch=0, seed=0)
+    assert seeds.dtype == torch.int64 and len(set(seeds.tolist())) == 8
+    torch.testing.assert_close(noise_seeds(index[4:], 0, 0), seeds[4:])  # not a batch property
+    assert not (noise_seeds(index, 1, 0) == seeds).any()
+    assert not (noise_seeds(index, 0, 1) == seeds).any()
+
+
+class SeedRecorder(L.LightningModule):
+    """Records what the datamodule's batches carry in training and validation."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.w = nn.Parameter(torch.zeros(()))
+        self.train_batches: list[tuple[int, dict]] = []
+        self.val_batches: list[dict] = []
+
+    def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
+        self.train_batches.append((self.current_epoch, batch))
+        return self.w**2
+
+    def validation_step(self, batch: dict, batch_idx: int) -> None:
+        self.val_batches.append(batch)
+
+    def configure_optimizers(self) -> torch.optim.Optimizer:
+        return torch.optim.SGD(self.parameters(), lr=0.1)
+
+
+def test_training_batches_carry_their_noise_seeds(demo_file: Path, tmp_path: Path) -> None:
+    """The flow-matching noise of a sample depends on (data.seed, epoch, dataset index) only."""
+    assert dataset(demo_file)[3][keys.INDEX] == 3
+    dm = RobotDataModule(
+        train_files=[str(demo_file)], val_files=[str(demo_file)], batch_size=4, seed=7
+    )
+    module = SeedRecorder()
+    trainer = L.Trainer(
+        max_steps=4, accelerator="cpu", logger=False, enable_progress_bar=False,
+        enable_model_summary=False, enable_checkpointing=False, default_root_dir=tmp_path,
+        limit_val_batches=1, num_sanity_val_steps=0,
+    )  # fmt: skip
+    trainer.fit(module, dm)
+    assert [epoch for epoch, _ in module.train_batches] == [0, 0, 1, 1]  # 8 samples, batch 4
+    for epoch, batch in module.train_batches:
+        expected = noise_seeds(batch[keys.INDEX], epoch, seed=7)
+        torch.testing.assert_close(batch[keys.NOISE_SEED], expected)
+    assert module.val_batches and all(keys.NOISE_SEED not in b for b in module.val_batches)
 
 
 def test_augmentation_is_per_camera_and_eval_crop_is_deterministic() -> None:

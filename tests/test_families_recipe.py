@@ -1,5 +1,6 @@
 """Every family's tiny preset through the whole recipe: SFT and aux-SFT (both objectives) from θ_pre,
-extract, merge, downstream SFT with the orthogonal regularization, with and without LoRA."""
+extract, merge, downstream SFT with the orthogonal regularization, with and without LoRA; and a
+training loss that does not depend on how the batch is split over processes."""
 
 from __future__ import annotations
 
@@ -11,7 +12,8 @@ import torch
 
 from capvector.backbones import from_pretrained
 from capvector.callbacks import AuxiliaryObjective, OrthogonalRegularization
-from capvector.data.datamodule import RobotDataModule
+from capvector.data import keys
+from capvector.data.datamodule import RobotDataModule, noise_seeds
 from capvector.lora import LoraSettings
 from capvector.module import VLAModule
 from capvector.objectives import ReasoningCoTraining, SpatialAlignment
@@ -83,3 +85,20 @@ def test_tiny_preset_runs_the_whole_recipe(preset: str, tmp_path: Path) -> None:
         losses = fit(module, dm, [regularization], tmp_path / f"downstream_{mode}", steps=3)
         assert all(torch.isfinite(torch.tensor(losses)))
         assert regularization.loss.bound and "mean_abs_projection" in regularization.loss.last_stats
+
+
+@pytest.mark.parametrize("preset", PRESETS)
+def test_training_loss_is_the_mean_of_the_halves_of_its_batch(preset: str, tmp_path: Path) -> None:
+    """With per-sample noise seeds, the halves a 2-process run gives each rank average to the
+    loss of the whole batch, flow-matching noise and time included."""
+    data = write_demo_file(tmp_path / "demos.hdf5", lengths=(12, 12))
+    dm = RobotDataModule(train_files=[str(data)], batch_size=4, augment=False)
+    batch = next(iter(torch.utils.data.DataLoader(dm.train_dataset, batch_size=4)))
+    batch[keys.NOISE_SEED] = noise_seeds(batch[keys.INDEX], epoch=0, seed=0)
+    backbone = VLAModule(backbone=preset, data_spec=dm.spec).backbone
+
+    def loss(rows: slice) -> torch.Tensor:
+        with torch.no_grad():
+            return backbone({k: v[rows] for k, v in batch.items()}).loss
+
+    torch.testing.assert_close(loss(slice(None)), (loss(slice(0, 2)) + loss(slice(2, 4))) / 2)

@@ -20,6 +20,7 @@ from capvector.backbones import (
     preset_config,
 )
 from capvector.backbones.action_heads import HeadDims, build_head
+from capvector.backbones.base import draw_flow_noise
 from capvector.backbones.starvla import (
     HALF,
     HEADS,
@@ -188,6 +189,29 @@ def test_flow_time_distribution_and_dropout() -> None:
     assert not torch.allclose(dropped.velocity(*args), dropped.velocity(*args))
     dropped.eval()
     torch.testing.assert_close(dropped.velocity(*args), dropped.velocity(*args))
+
+
+def test_seeded_flow_noise_follows_the_sample() -> None:
+    """With seeds, sample b's noise and t depend on seeds[b] only and its k copies stay with it
+    (rows as ``x.repeat(k, ...)``); the global RNG is left as it was. Without: the global RNG."""
+    dims = HeadDims(vlm_width=16, vlm_layers=2, action_dim=3, chunk_size=4)
+    head = build_head("gr00t", {"width": 16, "num_heads": 2, "hidden_size": 16}, dims)
+    seeds = torch.tensor([11, 12, 13])
+    like = torch.zeros(2 * 3, 4, 3)  # 2 copies of 3 samples
+    state = torch.get_rng_state()
+    noise, t = draw_flow_noise(like, head.sample_time, seeds)
+    assert torch.equal(torch.get_rng_state(), state)
+    for b in range(3):  # one sample alone, as on a rank that holds only it
+        alone = draw_flow_noise(like[:2], head.sample_time, seeds[b : b + 1])
+        torch.testing.assert_close((noise[b::3], t[b::3]), alone, rtol=0, atol=0)
+    assert not torch.equal(noise[0], noise[3]) and t[0] != t[3]  # each copy its own draw
+    torch.manual_seed(0)
+    unseeded = draw_flow_noise(like, head.sample_time)
+    torch.manual_seed(0)
+    upstream = (torch.randn_like(like), head.sample_time(6, torch.device("cpu")))
+    torch.testing.assert_close(unseeded, upstream, rtol=0, atol=0)
+    with pytest.raises(BackboneError, match="4 noise seeds for 6 rows"):
+        draw_flow_noise(like, head.sample_time, torch.arange(4))
 
 
 # -- the Qwen-VL wrapper ---------------------------------------------------------------------------

@@ -31,7 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from capvector.backbones.base import BackboneError
+from capvector.backbones.base import BackboneError, draw_flow_noise
 from capvector.backbones.openvla_oft import MLPResNet
 
 # -- the interface -------------------------------------------------------------------------------
@@ -115,18 +115,29 @@ class ActionHead(nn.Module, ABC):
         return ""
 
     @abstractmethod
-    def loss(self, cond: HeadInput, actions: Tensor, state: Tensor | None = None) -> Tensor:
-        """Scalar training loss for target ``actions`` (B, T, A)."""
+    def loss(
+        self,
+        cond: HeadInput,
+        actions: Tensor,
+        state: Tensor | None = None,
+        noise_seeds: Tensor | None = None,
+    ) -> Tensor:
+        """Scalar training loss for target ``actions`` (B, T, A). Heads that draw noise draw
+        sample b's from ``noise_seeds[b]`` (``keys.NOISE_SEED``), else from the global RNG."""
 
     @abstractmethod
     def sample(self, cond: HeadInput, state: Tensor | None = None) -> Tensor:
         """(B, T, A) predicted actions."""
 
     def loss_and_actions(
-        self, cond: HeadInput, actions: Tensor, state: Tensor | None = None
+        self,
+        cond: HeadInput,
+        actions: Tensor,
+        state: Tensor | None = None,
+        noise_seeds: Tensor | None = None,
     ) -> tuple[Tensor, Tensor]:
         """Loss and predictions from one call; heads whose loss already predicts override this."""
-        loss = self.loss(cond, actions, state)
+        loss = self.loss(cond, actions, state, noise_seeds)
         with torch.no_grad():
             predicted = self.sample(cond, state)
         return loss, predicted
@@ -240,11 +251,21 @@ class OFTHead(ActionHead):
         index = cond.query_positions.unsqueeze(-1).expand(-1, -1, cond.last_hidden.shape[-1])
         return self.model(torch.gather(cond.last_hidden, 1, index))
 
-    def loss(self, cond: HeadInput, actions: Tensor, state: Tensor | None = None) -> Tensor:
+    def loss(
+        self,
+        cond: HeadInput,
+        actions: Tensor,
+        state: Tensor | None = None,
+        noise_seeds: Tensor | None = None,
+    ) -> Tensor:
         return F.l1_loss(self.sample(cond, state), actions)
 
     def loss_and_actions(
-        self, cond: HeadInput, actions: Tensor, state: Tensor | None = None
+        self,
+        cond: HeadInput,
+        actions: Tensor,
+        state: Tensor | None = None,
+        noise_seeds: Tensor | None = None,
     ) -> tuple[Tensor, Tensor]:
         predicted = self.sample(cond, state)
         return F.l1_loss(predicted, actions), predicted
@@ -583,13 +604,19 @@ class FlowMatchingHead(ActionHead):
         u = self._beta.sample((n,)).to(device)
         return self.config.noise_s * (1 - u)
 
-    def loss(self, cond: HeadInput, actions: Tensor, state: Tensor | None = None) -> Tensor:
+    def loss(
+        self,
+        cond: HeadInput,
+        actions: Tensor,
+        state: Tensor | None = None,
+        noise_seeds: Tensor | None = None,
+    ) -> Tensor:
         context, mask = self.prepare(cond)
         k = self.config.repeated_diffusion_steps
         actions = actions.repeat(k, 1, 1)
         state = None if state is None else state.repeat(k, 1)
-        noise = torch.randn_like(actions)
-        t = self.sample_time(actions.shape[0], actions.device).to(actions.dtype)[:, None, None]
+        noise, t = draw_flow_noise(actions, self.sample_time, noise_seeds)
+        t = t.to(actions.dtype)[:, None, None]
         noisy = (1 - t) * noise + t * actions
         timestep = (t[:, 0, 0] * self.config.num_timestep_buckets).long()
         predicted = self.velocity(context, mask, noisy, timestep, state)

@@ -449,3 +449,38 @@ def keep_hidden_states(
     finally:
         for handle in handles:
             handle.remove()
+
+
+def draw_flow_noise(
+    like: Tensor,
+    sample_time: Callable[[int, torch.device], Tensor],
+    seeds: Tensor | None = None,
+) -> tuple[Tensor, Tensor]:
+    """Flow-matching training draws: noise ε (B', ...) shaped like ``like`` and times (B',) from
+    ``sample_time(n, device)``.
+
+    Without ``seeds`` both come from the global RNG, as openpi and StarVLA draw them. With
+    ``seeds`` (B,) (``keys.NOISE_SEED``) sample b's draws come from the CPU generator seeded with
+    ``seeds[b]`` alone; B' must then be k·B laid out as ``x.repeat(k, ...)`` (row c·B + b is copy c
+    of sample b), so the k copies of a flow head's repeated batch stay with their sample. We deviate
+    from upstream here because the global stream differs per rank: only noise tied to the sample
+    makes a run sharded over N processes draw what one process draws on the same global batch, and
+    so gives the same loss curve. The global RNG state is left untouched.
+    """
+    if seeds is None:
+        return torch.randn_like(like), sample_time(like.shape[0], like.device)
+    copies, rest = divmod(like.shape[0], seeds.shape[0])
+    if rest or not copies:
+        raise BackboneError(
+            f"{seeds.shape[0]} noise seeds for {like.shape[0]} rows: the rows must be k copies "
+            "of the batch"
+        )
+    noises, times = [], []
+    cpu = torch.device("cpu")
+    with torch.random.fork_rng(devices=[]):
+        for seed in seeds.tolist():
+            torch.random.default_generator.manual_seed(seed)
+            noises.append(torch.randn((copies, *like.shape[1:])))
+            times.append(sample_time(copies, cpu))
+    noise = torch.stack(noises, dim=1).flatten(0, 1).to(like)
+    return noise, torch.stack(times, dim=1).flatten(0, 1).to(like.device)

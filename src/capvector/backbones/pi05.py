@@ -44,6 +44,7 @@ from capvector.backbones.base import (
     OutputRequest,
     VLABackbone,
     VLAOutput,
+    draw_flow_noise,
     load_state_dict_strictly,
     nested_config,
     register_family,
@@ -657,8 +658,8 @@ class Pi05(VLABackbone):
         loss = None
         if keys.ACTIONS in batch:
             target = self.pad_actions(batch[keys.ACTIONS].to(prefix.embeds.dtype))
-            noise = torch.randn_like(target)
-            time = self.sample_time(target.shape[0], target.device)
+            # ε and t per sample from keys.NOISE_SEED when the batch has it (see draw_flow_noise).
+            noise, time = draw_flow_noise(target, self.sample_time, batch.get(keys.NOISE_SEED))
             x_t, velocity_target = flow_matching_path(target, noise, time)
             velocity, prefix_out = self.velocity(prefix, x_t, time, hidden, request.hidden_layers)
             loss = self.flow_loss(velocity, velocity_target)

@@ -484,7 +484,8 @@ class StarVLA(VLABackbone):
         with torch.autocast(device_type=cond.mask.device.type, enabled=False):
             if keys.ACTIONS in batch:
                 target = batch[keys.ACTIONS].to(head_dtype)
-                loss, actions = head.loss_and_actions(cond, target, state)
+                seeds = batch.get(keys.NOISE_SEED)  # per-sample flow noise, see draw_flow_noise
+                loss, actions = head.loss_and_actions(cond, target, state, seeds)
             else:
                 loss, actions = None, head.sample(cond, state)
         logits = self.vlm.lm_head(encoding.head_input.last_hidden) if request.lm_logits else None

@@ -8,9 +8,11 @@ from pathlib import Path
 from typing import Any
 
 import lightning as L
+import numpy as np
 import torch
 from torch.utils.data import DataLoader, DistributedSampler
 
+from capvector.data import keys
 from capvector.data.episodes import EpisodeDataset, EpisodeItem, EpisodeSampler, EvalTask
 from capvector.data.hdf5 import DatasetError, HDF5RobotDataset
 from capvector.data.lerobot import LeRobotV3Dataset
@@ -59,7 +61,8 @@ class RobotDataModule(L.LightningDataModule):
             dataset_name: the key of the statistics in ``dataset_statistics.json``.
             load_depth: also load ``obs/<camera>_depth`` (geometric teachers need it).
             load_annotations: also load per-step text (the reasoning objective needs it).
-            seed: the shuffling seed.
+            seed: the shuffling seed, also mixed into the flow-matching training noise
+                (``keys.NOISE_SEED``).
             shuffle: shuffle training samples (off gives the same global batches on any number of
                 devices, which parity tests use).
             lerobot_root: a LeRobotDataset v3.0 folder, read instead of ``train_files``. Then
@@ -170,6 +173,16 @@ class RobotDataModule(L.LightningDataModule):
             drop_last=drop_last,
         )
 
+    def on_before_batch_transfer(self, batch: Any, dataloader_idx: int) -> Any:
+        """While training, give each sample its noise seed (``keys.NOISE_SEED``)."""
+        trainer = self.trainer
+        training = trainer is not None and trainer.training
+        if training and isinstance(batch, dict) and keys.INDEX in batch:
+            batch[keys.NOISE_SEED] = noise_seeds(
+                batch[keys.INDEX], trainer.current_epoch, self.hparams.seed
+            )
+        return batch
+
     def transfer_batch_to_device(
         self, batch: Any, device: torch.device, dataloader_idx: int
     ) -> Any:
@@ -199,3 +212,16 @@ class RobotDataModule(L.LightningDataModule):
         if len(loaders) == 1:
             return loaders[0]
         return loaders
+
+
+def noise_seeds(index: torch.Tensor, epoch: int, seed: int) -> torch.Tensor:
+    """(B,) int64 seeds, one per sample, from (``seed``, ``epoch``, dataset index): the same on
+    every rank and after a resume, new each epoch. NumPy's ``SeedSequence`` spreads them over
+    32 bits (the torch CPU generator keeps only the low 32 bits of a seed)."""
+    return torch.tensor(
+        [
+            int(np.random.SeedSequence([seed, epoch, i]).generate_state(1)[0])
+            for i in index.tolist()
+        ],
+        dtype=torch.int64,
+    )

@@ -219,6 +219,7 @@ class HDF5RobotDataset(Dataset):
             ),
             keys.ACTIONS: torch.from_numpy(self.normalizer.normalize("action", actions)),
             keys.INSTRUCTION: episode.instruction,
+            keys.INDEX: i,
         }
         if self.load_depth:
             sample[keys.DEPTH] = torch.stack(depths)

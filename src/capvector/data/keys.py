@@ -24,3 +24,11 @@ INTRINSICS = "intrinsics"
 
 ANNOTATION = "annotation"
 """list[str] of length B: a text answer about the scene at this step (optional, for reasoning)."""
+
+INDEX = "index"
+"""(B,) int64: each sample's position in its dataset (``dataset[i]``)."""
+
+NOISE_SEED = "noise_seed"
+"""(B,) int64: a per-sample seed for the training noise of flow-matching backbones (ε and t).
+``RobotDataModule`` sets it while training, from (``data.seed``, epoch, ``INDEX``), so a sample
+draws the same noise whichever process it lands on; without it backbones use the global RNG."""

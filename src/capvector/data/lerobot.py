@@ -473,6 +473,7 @@ class LeRobotV3Dataset(Dataset):
             ),
             keys.ACTIONS: torch.from_numpy(self.normalizer.normalize("action", actions)),
             keys.INSTRUCTION: self.tasks[int(self._task_index[row])],
+            keys.INDEX: i,
         }
 
 
