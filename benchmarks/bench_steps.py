@@ -1,9 +1,10 @@
 """Training-step cost of each recipe arm on a tiny preset, measured in one run against plain SFT.
 
-Arms: plain SFT; SFT + orthogonal regularization (the downstream CapVector step); aux-SFT with
-spatial alignment, with reasoning co-training, and with both (the costs the capability vector is
-meant to remove). Time is the median over interleaved rounds (each round times every arm once, so
-machine load hits all arms alike); memory is the bytes autograd saves for the backward pass.
+Arms: plain SFT, twice (the second copy's ratio is the measurement's own noise); SFT + orthogonal
+regularization (the downstream CapVector step); aux-SFT with spatial alignment, with reasoning
+co-training, and with both (the costs the capability vector is meant to remove). Time is the median
+over interleaved rounds (each round times every arm once, so machine load hits all arms alike);
+memory is the bytes autograd saves for the backward pass.
 
     python benchmarks/bench_steps.py [--preset openvla-oft-tiny] [--steps 30] [--batch 8]
 """
@@ -59,6 +60,8 @@ def build_arms(
 
     return {
         "plain SFT": module(),
+        # The same arm again: its ratio is the measurement's own noise (an A/A test).
+        "plain SFT (A/A)": module(),
         "SFT + orthogonal reg.": module(OrthogonalityLoss(root / "vector", weight=1.0)),
         "aux: spatial alignment": module(SpatialAlignment()),
         "aux: reasoning": module(ReasoningCoTraining()),
