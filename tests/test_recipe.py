@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from capvector.errors import CapVectorError
-from capvector.recipe import command_line, dependencies, load_recipe
+from capvector.recipe import command_line, dependencies, expand_seeds, load_recipe
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -88,6 +88,35 @@ def test_recipe_errors_are_clear(tmp_path: Path) -> None:
 def test_shipped_recipes_resolve(name: str) -> None:
     run_dir, stages = load_recipe(REPO / "configs/recipes" / name, ["run_dir=/tmp/x"])
     assert str(run_dir) == "/tmp/x" and all("${" not in a for s in stages for a in s.args)
+
+
+def test_seeds_make_one_fit_stage_per_seed_and_after_waits_for_all_of_them(
+    tmp_path: Path,
+) -> None:
+    stages = [
+        {"name": "pre", "command": "fit", "args": ["--trainer.max_steps=2"]},
+        {"name": "down", "command": "fit", "seeds": [0, 2], "after": ["pre"],
+         "args": ["--model.pretrained=${out.pre.export}"]},
+        {"name": "report", "command": "report", "after": ["down"], "args": ["${out.down_s2.dir}"]},
+    ]  # fmt: skip
+    path = tmp_path / "recipe.yaml"
+    path.write_text(json.dumps({"run_dir": str(tmp_path / "run"), "stages": stages}))
+    run_dir, resolved = load_recipe(path)
+    assert [s.name for s in resolved] == ["pre", "down_s0", "down_s2", "report"]
+    pretrained = f"--model.pretrained={run_dir}/pre/fit/version_0/export"
+    assert resolved[1].args == [pretrained, "--seed_everything=0"]
+    assert resolved[2].args == [pretrained, "--seed_everything=2"]
+    assert resolved[3].args == [str(run_dir / "down_s2")]
+    from omegaconf import OmegaConf
+
+    raw = OmegaConf.create({"stages": expand_seeds(OmegaConf.create(stages), path)})
+    assert dependencies(raw, 3) == {"down_s0", "down_s2"}
+    assert dependencies(raw, 2) == {"pre"}
+
+    stages[2]["seeds"] = [0]
+    path.write_text(json.dumps({"run_dir": str(tmp_path / "run"), "stages": stages}))
+    with pytest.raises(CapVectorError, match="`seeds` needs a `fit` stage"):
+        load_recipe(path)
 
 
 def test_a_stage_waits_for_the_one_before_its_after_list_and_the_outputs_it_names() -> None:

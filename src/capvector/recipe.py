@@ -18,6 +18,9 @@ Arguments may refer to other stages' outputs with omegaconf interpolation::
 A stage waits for the stage before it, or for the stages in its ``after:`` list, and always for
 the stages whose outputs it names. With ``jobs: N`` (or ``--jobs N``) up to N stages whose waits
 are over run at once, e.g. the seeds of a downstream comparison.
+
+A ``fit`` stage with ``seeds: [0, 1, 2]`` stands for one stage per seed, ``<name>_s<seed>``, each
+with ``--seed_everything=<seed>``; an ``after:`` list that names ``<name>`` waits for all of them.
 """
 
 from __future__ import annotations
@@ -89,12 +92,41 @@ def _load_raw(path: str | Path, overrides: list[str] | None) -> tuple[Path, Any]
         raw = OmegaConf.merge(raw, OmegaConf.from_dotlist(overrides))
     if "run_dir" not in raw or "stages" not in raw:
         raise CapVectorError(f"{path} needs `run_dir` and a list of `stages` (name, command, args)")
+    raw.stages = expand_seeds(raw.stages, path)
     run_dir = Path(str(raw.run_dir))
     names = [str(s.name) for s in raw.stages]
     if len(set(names)) != len(names):
         raise CapVectorError(f"{path}: stage names must be unique, got {names}")
     raw.out = {name: stage_outputs(run_dir, name) for name in names}
     return run_dir, raw
+
+
+def expand_seeds(stages: Any, path: str | Path) -> list[Any]:
+    """Stages with ``seeds: [...]`` become one stage per seed (``<name>_s<seed>``, with
+    ``--seed_everything=<seed>``); ``after:`` entries naming such a stage name all of its seeds."""
+    from omegaconf import OmegaConf
+
+    expanded: list[Any] = []
+    seeded: dict[str, list[str]] = {}
+    for entry in stages:
+        entry = OmegaConf.to_container(entry, resolve=False)
+        if "after" in entry:
+            entry["after"] = [n for a in entry["after"] for n in seeded.get(str(a), [str(a)])]
+        seeds = entry.pop("seeds", None)
+        if seeds is None:
+            expanded.append(entry)
+            continue
+        if entry.get("command") != "fit" or not seeds:
+            raise CapVectorError(
+                f"stage {entry.get('name')!r} in {path}: `seeds` needs a `fit` stage and a "
+                f"non-empty list of seeds, got command {entry.get('command')!r}, seeds {seeds}"
+            )
+        name = str(entry["name"])
+        seeded[name] = [f"{name}_s{seed}" for seed in seeds]
+        for seed, seed_name in zip(seeds, seeded[name], strict=True):
+            args = [*entry.get("args", []), f"--seed_everything={int(seed)}"]
+            expanded.append({**entry, "name": seed_name, "args": args})
+    return OmegaConf.create(expanded)
 
 
 def resolve_stage(raw: Any, index: int, run_dir: Path, path: str | Path) -> Stage:
