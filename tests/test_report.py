@@ -52,8 +52,8 @@ def test_report_reads_every_seed_and_summarizes_the_arms(tmp_path: Path) -> None
     assert sft["peak_memory_mib"] == 504.0
     assert sft["step_seconds"]["mean"] == pytest.approx(0.1025)  # median of each seed's steps
     assert result["references"] == {"out of the box": pytest.approx(0.2)}
-    assert "| plain SFT | 10% ± 0% | 30% ± 14% | 50% ± 14% | 4 (1/2) |" in table
-    assert "| CapVector | 20% ± 0% | 70% ± 0% | 90% ± 0% | 2 (1/1) |" in table
+    assert "| plain SFT | 10% ± 0% | 30% ± 14% | 50% ± 14% | 4 (1/2) | 0.220 ± 0.028 |" in table
+    assert "| CapVector | 20% ± 0% | 70% ± 0% | 90% ± 0% | 2 (1/1) | 0.100 ± 0.000 |" in table
     assert (out / "results.md").read_text().strip() == table
     assert (out / "success_vs_steps.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 

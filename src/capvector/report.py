@@ -108,7 +108,8 @@ def _spread(values: list[float]) -> dict[str, Any]:
 
 def format_table(arms: list[dict], references: dict[str, float], threshold: float) -> str:
     steps = sorted({int(s) for a in arms for s in a["success"]})
-    head = ["arm", *(f"step {s}" for s in steps), f"steps to {threshold:.0%}", "s/step", "peak MiB"]
+    head = ["arm", *(f"step {s}" for s in steps), f"steps to {threshold:.0%}",
+            "held-out L1 (last)", "s/step", "peak MiB"]  # fmt: skip
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for a in arms:
         cells = [a["arm"]]
@@ -120,6 +121,10 @@ def format_table(arms: list[dict], references: dict[str, float], threshold: floa
         cells.append(
             f"{statistics.median(reached):.0f} ({len(reached)}/{n})" if reached else f"– (0/{n})"
         )
+        # The action L1 on held-out demos at the last validation: it still ranks arms whose
+        # policies do not succeed yet (training L1 does not track closed-loop success).
+        l1 = a["held_out_l1"][max(a["held_out_l1"], key=int)] if a["held_out_l1"] else None
+        cells.append(f"{l1['mean']:.3f} ± {l1['std']:.3f}" if l1 else "–")
         cells.append(f"{a['step_seconds']['mean']:.3f}" if a["step_seconds"] else "–")
         cells.append(f"{a['peak_memory_mib']:.0f}" if a["peak_memory_mib"] else "–")
         lines.append("| " + " | ".join(cells) + " |")
