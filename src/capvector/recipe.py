@@ -101,9 +101,10 @@ def _load_raw(path: str | Path, overrides: list[str] | None) -> tuple[Path, Any]
     return run_dir, raw
 
 
-def expand_seeds(stages: Any, path: str | Path) -> list[Any]:
+def expand_seeds(stages: Any, path: str | Path) -> Any:
     """Stages with ``seeds: [...]`` become one stage per seed (``<name>_s<seed>``, with
-    ``--seed_everything=<seed>``); ``after:`` entries naming such a stage name all of its seeds."""
+    ``--seed_everything=<seed>``), as an omegaconf list; ``after:`` entries naming such a stage
+    name all of its seeds."""
     from omegaconf import OmegaConf
 
     expanded: list[Any] = []
