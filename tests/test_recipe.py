@@ -10,7 +10,13 @@ from pathlib import Path
 import pytest
 
 from capvector.errors import CapVectorError
-from capvector.recipe import command_line, dependencies, expand_seeds, load_recipe
+from capvector.recipe import (
+    command_line,
+    dependencies,
+    expand_seeds,
+    load_recipe,
+    required_stages,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -158,3 +164,31 @@ def test_jobs_run_independent_stages_together_and_stop_at_a_failure(tmp_path: Pa
     assert started == ["a", "b", "c"]
     a_done = (run / "a/.done").stat().st_mtime
     assert (run / "c/log.txt").stat().st_ctime >= a_done
+
+
+def test_only_runs_the_named_stages_and_what_they_wait_for(tmp_path: Path) -> None:
+    stages = [
+        {"name": "a", "command": "backbone-info", "args": ["openvla-oft-tiny"]},
+        {"name": "b", "command": "backbone-info", "after": [], "args": ["openvla-oft-tiny"]},
+        {"name": "c", "command": "fit", "after": ["b"], "args": ["--x=${out.a.export}"]},
+        {"name": "d", "command": "fit", "seeds": [0, 1], "after": ["a"]},
+        {"name": "e", "command": "report", "after": ["d"]},
+    ]
+    path = tmp_path / "recipe.yaml"
+    path.write_text(json.dumps({"run_dir": str(tmp_path / "run"), "stages": stages}))
+    from omegaconf import OmegaConf
+
+    raw = OmegaConf.create({"stages": expand_seeds(OmegaConf.create(stages), path)})
+    waits_for = {str(s.name): dependencies(raw, i) for i, s in enumerate(raw.stages)}
+    assert required_stages(waits_for, ["e"]) == {"a", "d_s0", "d_s1", "e"}
+    assert required_stages(waits_for, ["d"]) == {"a", "d_s0", "d_s1"}  # a seeded stage: all seeds
+    assert required_stages(waits_for, ["c", "d_s1"]) == {"a", "b", "c", "d_s1"}
+    with pytest.raises(CapVectorError, match="--only names 'f', which is no stage"):
+        required_stages(waits_for, ["f"])
+
+    completed = capvector("recipe", "--config", str(path), "--dry-run", "--only", "c")
+    assert completed.returncode == 0, completed.stderr[-3000:]
+    started = [line.split("] ")[1].split(" ")[0] for line in completed.stdout.splitlines()
+               if line.startswith("[recipe") and " started; " in line]  # fmt: skip
+    assert started == ["a", "b", "c"]
+    assert "[recipe 3/3] c (fit)" in completed.stdout

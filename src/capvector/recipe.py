@@ -21,6 +21,9 @@ are over run at once, e.g. the seeds of a downstream comparison.
 
 A ``fit`` stage with ``seeds: [0, 1, 2]`` stands for one stage per seed, ``<name>_s<seed>``, each
 with ``--seed_everything=<seed>``; an ``after:`` list that names ``<name>`` waits for all of them.
+
+``--only STAGE ...`` runs those stages and what they wait for, nothing else (a seeded stage's
+name stands for all of its seeds), e.g. one report of a large recipe.
 """
 
 from __future__ import annotations
@@ -183,13 +186,33 @@ def dependencies(raw: Any, index: int) -> set[str]:
     return set(after) | (set(OUT_REFERENCE.findall(text)) & set(names[:index]))
 
 
+def required_stages(waits_for: dict[str, set[str]], targets: list[str]) -> set[str]:
+    """The ``targets`` and every stage they wait for, directly or not. A target that names a
+    seeded stage (``<name>`` of ``<name>_s0``, ``<name>_s1``, ...) stands for all of its seeds."""
+    wanted: list[str] = []
+    for target in targets:
+        seeded = [n for n in waits_for if re.fullmatch(rf"{re.escape(target)}_s\d+", n)]
+        if target not in waits_for and not seeded:
+            raise CapVectorError(f"--only names {target!r}, which is no stage; stages: {list(waits_for)}")
+        wanted += [target] if target in waits_for else seeded
+    required: set[str] = set()
+    while wanted:
+        name = wanted.pop()
+        if name not in required:
+            required.add(name)
+            wanted += waits_for[name]
+    return required
+
+
 def run(
     recipe: str | Path,
     overrides: list[str] | None = None,
     dry_run: bool = False,
     jobs: int | None = None,
+    only: list[str] | None = None,
 ) -> list[dict]:
-    """Run the stages, up to ``jobs`` at a time once their dependencies have finished.
+    """Run the stages, up to ``jobs`` at a time once their dependencies have finished; with
+    ``only``, just those stages and what they wait for.
 
     With ``jobs > 1`` each stage's output goes to ``<stage>/log.txt`` and its process gets
     ``cpu_count // jobs`` threads (two 1-thread trainings outrun one 2-thread training on small
@@ -202,11 +225,15 @@ def run(
     run_dir.mkdir(parents=True, exist_ok=True)
     names = [str(s.name) for s in raw.stages]
     waits_for = {names[i]: dependencies(raw, i) for i in range(len(names))}
+    if only:
+        required = required_stages(waits_for, only)
+        names = [n for n in names if n in required]
     stages: dict[str, Stage] = {}
     finished: set[str] = set()
     running: dict[str, tuple[subprocess.Popen, float, Any]] = {}
     failed: list[str] = []
     threads = max(1, (os.cpu_count() or 1) // jobs)
+    index = {str(s.name): i for i, s in enumerate(raw.stages)}
 
     def status(name: str) -> str:
         return f"[recipe {names.index(name) + 1}/{len(names)}] {name} ({stages[name].command})"
@@ -257,7 +284,7 @@ def run(
             if not waits_for[name] <= finished:
                 continue
             # Resolved only now, so the arguments can use what earlier stages produced.
-            stages[name] = resolve_stage(raw, names.index(name), run_dir, recipe)
+            stages[name] = resolve_stage(raw, index[name], run_dir, recipe)
             if stages[name].done_marker.is_file():
                 print(f"{status(name)}: done earlier, skipped", flush=True)
                 finished.add(name)
@@ -311,9 +338,13 @@ def main(argv: list[str] | None = None) -> int:
         "--jobs", type=int, default=None,
         help="stages run at once when their `after` stages are done (default: the recipe's `jobs`, 1)",
     )  # fmt: skip
+    parser.add_argument(
+        "--only", nargs="+", metavar="STAGE",
+        help="run only these stages and the stages they wait for",
+    )  # fmt: skip
     parser.add_argument("overrides", nargs="*", help="dotlist overrides, e.g. run_dir=runs/x")
     args = parser.parse_args(argv)
-    rows = run(args.config, args.overrides, args.dry_run, args.jobs)
+    rows = run(args.config, args.overrides, args.dry_run, args.jobs, args.only)
     if rows:
         print("\nResults\n" + format_results(rows))
     return 0
