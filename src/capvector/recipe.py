@@ -193,7 +193,9 @@ def required_stages(waits_for: dict[str, set[str]], targets: list[str]) -> set[s
     for target in targets:
         seeded = [n for n in waits_for if re.fullmatch(rf"{re.escape(target)}_s\d+", n)]
         if target not in waits_for and not seeded:
-            raise CapVectorError(f"--only names {target!r}, which is no stage; stages: {list(waits_for)}")
+            raise CapVectorError(
+                f"--only names {target!r}, which is no stage; stages: {list(waits_for)}"
+            )
         wanted += [target] if target in waits_for else seeded
     required: set[str] = set()
     while wanted:
