@@ -1,9 +1,14 @@
 """Per-device training memory, estimated from a meta-device build (nothing allocated).
 
 Parameters, gradients and AdamW state follow from parameter counts, the precision and how the
-strategy shards them. Activations are measured, not guessed: one forward pass on the ``meta``
-device records every tensor autograd saves for the backward pass (``saved_tensors_hooks``), once
-plainly and once with the backbone's blocks checkpointed.
+strategy shards them. Activations are measured, not guessed: one forward pass with the weights on
+the ``meta`` device records every tensor autograd saves for the backward pass
+(``saved_tensors_hooks``), once plainly and once with the backbone's blocks checkpointed.
+
+The batch stays on the CPU with real values (``HostValuesMetaCompute``): forward passes read values
+to build prompts (Pi0.5's and StarVLA's discretised state), find token positions and multimodal
+RoPE indices (Qwen-VL), which a meta tensor does not have. Only the work that touches weights runs
+on the meta device.
 """
 
 from __future__ import annotations
@@ -15,6 +20,8 @@ from typing import Any
 
 import torch
 from torch import Tensor
+from torch.utils import _pytree as pytree
+from torch.utils._python_dispatch import TorchDispatchMode
 
 from capvector.backbones.base import VLABackbone, build_backbone, list_presets, preset_config
 from capvector.data import keys
@@ -54,7 +61,7 @@ class MemoryEstimate:
         ]
         lines = [f"  {name:<26} {value / GIB:10.3f} GiB" for name, value in rows]
         if self.activations != self.activations:  # NaN
-            lines.append("  (activations could not be traced on the meta device for this family)")
+            lines.append("  (activations could not be traced on the meta device for this backbone)")
         return "\n".join(lines)
 
 
@@ -78,6 +85,38 @@ def saved_activation_bytes(store: list[float]) -> Iterator[None]:
     store.append(float(total))
 
 
+class HostValuesMetaCompute(TorchDispatchMode):
+    """CPU tensors keep their values until an op meets a meta tensor; that op runs on meta.
+
+    So the batch, token ids and masks computed from it stay real (prompts, positions and masks
+    are built as in training), while everything that involves the meta weights costs nothing.
+    A CPU tensor sent to the meta device stays on the CPU (``.to(device)`` of an input); a
+    boolean CPU mask that indexes a meta tensor becomes the integer positions it selects.
+    """
+
+    def __torch_dispatch__(self, func: Any, types: Any, args: Any = (), kwargs: Any = None) -> Any:
+        kwargs = kwargs or {}
+        if func is torch.ops.aten._to_copy.default and not args[0].is_meta:
+            if kwargs.get("device") == torch.device("meta"):
+                kwargs = {k: v for k, v in kwargs.items() if k != "device"}
+            return func(*args, **kwargs)
+        leaves = pytree.tree_leaves((args, kwargs))
+        if not any(isinstance(t, Tensor) and t.is_meta for t in leaves):
+            return func(*args, **kwargs)
+        if func is torch.ops.aten.index.Tensor:  # x[mask]: the mask's values give the shape
+            args = (args[0], [_positions(i) for i in args[1]], *args[2:])
+            args = (args[0], [j for group in args[1] for j in group], *args[2:])
+        args, kwargs = pytree.tree_map_only(Tensor, lambda t: t.to("meta"), (args, kwargs))
+        return func(*args, **kwargs)
+
+
+def _positions(index: Tensor | None) -> list[Tensor | None]:
+    """A boolean CPU mask as the integer index tensors it stands for, one per dimension."""
+    if index is None or index.is_meta or index.dtype != torch.bool:
+        return [index]
+    return list(index.nonzero().unbind(1))
+
+
 def synthetic_batch(
     backbone: VLABackbone, batch_size: int, device: str | torch.device
 ) -> dict[str, Any]:
@@ -93,13 +132,14 @@ def synthetic_batch(
 
 
 def measure_activations(backbone: VLABackbone, batch: dict[str, Any], checkpointed: bool) -> float:
+    """Bytes autograd saves in one forward of ``backbone`` (weights on meta, ``batch`` on the CPU)."""
     if checkpointed:
         from torch.distributed._composable import checkpoint
 
         for unit in backbone.shard_units():
             checkpoint(unit)
     store: list[float] = []
-    with saved_activation_bytes(store):
+    with HostValuesMetaCompute(), saved_activation_bytes(store):
         backbone(batch)
     return store[0]
 
@@ -140,12 +180,12 @@ def estimate_memory(
                 from capvector.lora import LoraSettings, inject_lora
 
                 inject_lora(backbone, LoraSettings(r=lora_rank, alpha=lora_rank))
-            batch = synthetic_batch(backbone, batch_size, "meta")
+        batch = synthetic_batch(backbone, batch_size, "cpu")
         try:
             activations.append(measure_activations(backbone, batch, checkpointed))
         except (NotImplementedError, RuntimeError):
-            # Some forward passes read values (``.item()``, data-dependent shapes) that a meta
-            # tensor does not have; then only the weight-related terms are estimated.
+            # A forward that reads values of meta results (data-dependent shapes downstream of
+            # the weights) cannot be traced; then only the weight-related terms are estimated.
             activations.append(float("nan"))
     total = sum(p.numel() for p in backbone.parameters())
     trainable = sum(p.numel() for p in backbone.parameters() if p.requires_grad)
