@@ -186,9 +186,13 @@ def test_only_runs_the_named_stages_and_what_they_wait_for(tmp_path: Path) -> No
     with pytest.raises(CapVectorError, match="--only names 'f', which is no stage"):
         required_stages(waits_for, ["f"])
 
+    (tmp_path / "run" / "b").mkdir(parents=True)
+    (tmp_path / "run" / "b" / ".done").write_text("{}")  # finished in an earlier run
     completed = capvector("recipe", "--config", str(path), "--dry-run", "--only", "c")
     assert completed.returncode == 0, completed.stderr[-3000:]
     started = [line.split("] ")[1].split(" ")[0] for line in completed.stdout.splitlines()
                if line.startswith("[recipe") and " started; " in line]  # fmt: skip
-    assert started == ["a", "b", "c"]
+    assert started == ["a", "c"]
+    # What is left counts neither stages outside --only nor finished ones.
+    assert "[recipe 1/3] a (backbone-info) started; 1 more to run: c" in completed.stdout
     assert "[recipe 3/3] c (fit)" in completed.stdout

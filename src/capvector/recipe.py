@@ -243,7 +243,8 @@ def run(
     def start(name: str) -> None:
         stage = stages[name]
         cmd = command_line(stage)
-        left = [n for n in names if n not in finished and n not in running and n != name]
+        left = [n for n in names if n not in finished and n not in running and n != name
+                and not (run_dir / n / DONE).is_file()]  # fmt: skip
         more = f": {', '.join(left[:3])}{', ...' if len(left) > 3 else ''}" if left else ""
         print(f"{status(name)} started; {len(left)} more to run{more}", flush=True)
         if dry_run:
