@@ -104,8 +104,8 @@ class HostValuesMetaCompute(TorchDispatchMode):
         if not any(isinstance(t, Tensor) and t.is_meta for t in leaves):
             return func(*args, **kwargs)
         if func is torch.ops.aten.index.Tensor:  # x[mask]: the mask's values give the shape
-            args = (args[0], [_positions(i) for i in args[1]], *args[2:])
-            args = (args[0], [j for group in args[1] for j in group], *args[2:])
+            source, indices = args
+            args = (source, [position for i in indices for position in _positions(i)])
         args, kwargs = pytree.tree_map_only(Tensor, lambda t: t.to("meta"), (args, kwargs))
         return func(*args, **kwargs)
 
