@@ -6,8 +6,14 @@ import pytest
 import torch
 
 from capvector.backbones import build_backbone, list_presets
+from capvector.backbones.starvla import HALF, tiny_qwen_architecture
 from capvector.cli import main
-from capvector.memory import estimate_memory, saved_activation_bytes, synthetic_batch
+from capvector.memory import (
+    estimate_memory,
+    measure_activations,
+    saved_activation_bytes,
+    synthetic_batch,
+)
 
 TINY_PRESETS = [name for name in list_presets() if "tiny" in name]
 
@@ -27,6 +33,24 @@ def test_meta_activation_estimate_is_close_to_a_real_step(preset: str) -> None:
     # so the estimate is an upper bound, but of the right size.
     assert store[0] <= estimate.activations <= 2.0 * store[0]
     assert estimate.activations_checkpointed < 0.25 * estimate.activations
+
+
+def test_qwen3_vl_masks_on_meta_features_trace_too() -> None:
+    """Qwen3-VL indexes hidden states with the visual-token mask (deepstack), on meta features."""
+    qwen3 = dict(
+        qwen_version="qwen3-vl", qwen=tiny_qwen_architecture("qwen3-vl"), image_mean=HALF,
+        image_std=HALF,
+    )  # fmt: skip
+    torch.manual_seed(0)
+    model = build_backbone("starvla-tiny-gr00t", **qwen3)
+    batch = synthetic_batch(model, 2, "cpu")
+    store: list[float] = []
+    with saved_activation_bytes(store):
+        model(batch)
+    with torch.device("meta"):
+        meta_model = build_backbone("starvla-tiny-gr00t", **qwen3)
+    estimate = measure_activations(meta_model, batch, checkpointed=False)
+    assert store[0] <= estimate <= 2.0 * store[0]
 
 
 def test_strategies_shard_what_they_should() -> None:
