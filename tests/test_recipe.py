@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import subprocess
 import sys
@@ -27,6 +28,7 @@ def recipe_file(tmp_path: Path, data: Path) -> Path:
         str(REPO / "configs/debug.yaml"),
         f"--data.train_files=[{data}]",
         "--data.batch_size=4",
+        "--trainer.log_every_n_steps=1",
     ]
     stages = [
         {"name": "pretrain", "command": "fit", "args": [*fit, "--trainer.max_steps=2"]},
@@ -81,6 +83,10 @@ def test_recipe_runs_resumes_and_never_redoes_a_stage(tmp_path: Path, demo_file:
     assert (downstream.directory / ".done").is_file()
     assert "`Trainer.fit` stopped: `max_steps=4` reached" in completed.stdout + completed.stderr
     assert (downstream.directory / "fit" / "version_0" / "export" / "model.safetensors").is_file()
+    # The metrics logged before the interruption are still there, followed by the resumed steps.
+    with (downstream.directory / "fit" / "version_0" / "metrics.csv").open() as f:
+        steps = {int(row["step"]) for row in csv.DictReader(f)}
+    assert steps == {0, 1, 2, 3}
 
 
 def test_recipe_errors_are_clear(tmp_path: Path) -> None:

@@ -152,7 +152,7 @@ def command_line(stage: Stage) -> list[str]:
         outputs = stage_outputs(stage.directory.parent, stage.name)
         args += [
             f"--trainer.default_root_dir={stage.directory}",
-            "--trainer.logger=lightning.pytorch.loggers.CSVLogger",
+            "--trainer.logger=capvector.loggers.CSVLogger",
             f"--trainer.logger.init_args.save_dir={stage.directory}",
             "--trainer.logger.init_args.name=fit",
             f"--trainer.logger.init_args.version={FIT_VERSION}",
