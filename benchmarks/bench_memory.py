@@ -23,8 +23,6 @@ import subprocess
 import sys
 
 MIB = 1024**2
-TINY = ["openvla-oft-tiny", "pi05-tiny", "starvla-tiny-oft", "starvla-tiny-gr00t",
-        "starvla-tiny-layerwise"]  # fmt: skip
 
 
 def rss(field: str) -> float:
@@ -70,12 +68,16 @@ def measure(preset: str, batch_size: int) -> dict[str, float]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--batch", type=int, default=8)
-    parser.add_argument("--presets", nargs="+", default=TINY)
+    parser.add_argument("--presets", nargs="+", help="default: every registered tiny preset")
     parser.add_argument("--one", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
         print(json.dumps(measure(args.one, args.batch)))
         return
+    if not args.presets:
+        from capvector.backbones import list_presets
+
+        args.presets = [name for name in list_presets() if "tiny" in name]
     print(f"activations, fp32, batch {args.batch}, one forward + backward on the CPU\n")
     print("| preset | activations: estimate (MiB) | autograd saved (MiB) | ratio "
           "| activations + gradients: estimate (MiB) | peak RSS growth (MiB) | ratio |")  # fmt: skip
