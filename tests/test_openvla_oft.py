@@ -188,8 +188,9 @@ def write_original_folder(model: OpenVLAOFT, root: Path, step: int = 150000) -> 
 
 def test_from_original_loads_strictly_with_real_key_names(tiny: OpenVLAOFT, tmp_path: Path) -> None:
     root = write_original_folder(tiny, tmp_path / "run--150000_chkpt")
-    loaded, stats = OpenVLAOFT.from_original(root, preset="openvla-oft-tiny")
-    assert "libero_spatial_no_noops" in stats
+    imported = OpenVLAOFT.from_original(root, preset="openvla-oft-tiny")
+    loaded = imported.model
+    assert "libero_spatial_no_noops" in imported.statistics
     batch = make_batch()
     torch.testing.assert_close(loaded.eval().predict_action(batch), tiny.predict_action(batch))
 
@@ -210,16 +211,18 @@ def test_from_original_rejects_another_architecture(tiny: OpenVLAOFT, tmp_path: 
         OpenVLAOFT.from_original(
             root,
             preset="openvla-oft-tiny",
-            head_blocks=2,
-            llm={
-                "hidden_size": 32,
-                "intermediate_size": 64,
-                "num_layers": 4,
-                "num_heads": 4,
-                "num_kv_heads": 4,
-                "vocab_size": 320,
-                "max_position_embeddings": 512,
-            },
+            overrides=dict(
+                head_blocks=2,
+                llm={
+                    "hidden_size": 32,
+                    "intermediate_size": 64,
+                    "num_layers": 4,
+                    "num_heads": 4,
+                    "num_kv_heads": 4,
+                    "vocab_size": 320,
+                    "max_position_embeddings": 512,
+                },
+            ),
         )
 
 
@@ -239,7 +242,9 @@ def test_from_original_merges_a_peft_lora_adapter(tiny: OpenVLAOFT, tmp_path: Pa
                 param.normal_()
     peft_model.save_pretrained(str(root / "lora_adapter"))
     expected = peft_model.merge_and_unload().get_parameter(f"{target}.weight")
-    loaded, _ = OpenVLAOFT.from_original(root, preset="openvla-oft-tiny", apply_lora_adapter=True)
+    loaded = OpenVLAOFT.from_original(
+        root, preset="openvla-oft-tiny", apply_lora_adapter=True
+    ).model
     torch.testing.assert_close(loaded.get_parameter(f"{target}.weight"), expected)
     assert not torch.allclose(expected, tiny.get_parameter(f"{target}.weight"))
 

@@ -631,8 +631,9 @@ def test_from_original_loads_the_pi05_base_layout(
     tiny: Pi05, tmp_path: Path, key_prefix: str
 ) -> None:
     root = write_pi05_base(tiny, tmp_path / "pi05_base", key_prefix)
-    loaded, original = Pi05.from_original(root, preset="pi05-tiny")
-    assert original["type"] == "pi05"
+    imported = Pi05.from_original(root, preset="pi05-tiny")
+    loaded = imported.model
+    assert imported.upstream_config["config.json"]["type"] == "pi05"
     assert loaded.config.num_inference_steps == 5  # config.json applied
     batch = make_batch(2, actions=False)
     noise = noise_like(batch)

@@ -158,9 +158,12 @@ def export_main(argv: list[str]) -> int:
 
 
 def import_original_main(argv: list[str]) -> int:
-    """Convert an original project's checkpoint (OpenVLA-OFT run folder, LeRobot pi05_base folder,
-    StarVLA .pt + Qwen folder) into an export folder usable as ``--model.pretrained`` (θ_pre)."""
-    from capvector.backbones import preset_config
+    """Convert an original project's checkpoint (OpenVLA-OFT run folder, LeRobot pi05 policy folder,
+    StarVLA checkpoint + Qwen folder) into an export folder usable as ``--model.pretrained`` (θ_pre).
+    The architecture comes from the checkpoint's own config files; statistics are always written."""
+    import json
+
+    from capvector.backbones import backbone_class, preset_config
     from capvector.errors import CapVectorError
 
     parser = argparse.ArgumentParser(
@@ -170,40 +173,42 @@ def import_original_main(argv: list[str]) -> int:
         "--preset", required=True, help="the architecture, e.g. openvla-oft-7b, pi05-3b"
     )
     parser.add_argument(
-        "--folder", required=True, help="original checkpoint folder (or StarVLA .pt file)"
+        "--folder", required=True, help="original checkpoint folder (or StarVLA checkpoint file)"
     )
     parser.add_argument("--out", required=True, help="export folder to write (atomically)")
     parser.add_argument(
-        "--qwen-folder", help="StarVLA: the Qwen-VL folder the .pt was trained from"
+        "--override",
+        default="{}",
+        help='JSON of config fields to change, e.g. \'{"featurizer": {"depth": 2}}\' (a nested '
+        "object changes only the fields it names)",
     )
+    parser.add_argument("--qwen-folder", help="StarVLA: the Qwen-VL folder the run started from")
     parser.add_argument(
         "--apply-lora-adapter", action="store_true", help="OpenVLA-OFT: merge lora_adapter/"
     )
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     args = parser.parse_args(argv)
+    try:
+        overrides = json.loads(args.override)
+    except json.JSONDecodeError as exc:
+        raise CapVectorError(f"--override is not JSON ({exc}): {args.override!r}") from exc
+    if not isinstance(overrides, dict):
+        raise CapVectorError(f"--override must be a JSON object, got {args.override!r}")
     family = preset_config(args.preset).family
-    statistics: dict = {}
-    if family == "openvla-oft":
-        from capvector.backbones.openvla_oft import OpenVLAOFT
-
-        model, statistics = OpenVLAOFT.from_original(
-            args.folder, preset=args.preset, apply_lora_adapter=args.apply_lora_adapter
-        )
-    elif family == "pi05":
-        from capvector.backbones.pi05 import Pi05
-
-        model, _ = Pi05.from_original(args.folder, preset=args.preset)
-    elif family == "starvla":
-        from capvector.backbones.starvla import StarVLA
-
-        if args.qwen_folder:
-            model, _ = StarVLA.from_starvla(args.folder, args.qwen_folder, preset=args.preset)
-        else:
-            model = StarVLA.from_qwen(args.folder, preset=args.preset)
-    else:
-        raise CapVectorError(f"no original-checkpoint loader for family {family!r}")
-    extra = {"dataset_statistics.json": statistics} if statistics else {}
-    model.save_pretrained(args.out, extra_json=extra)
-    print(f"wrote {args.out} ({family}, {sum(p.numel() for p in model.parameters()):,} parameters)")
+    options = {
+        "openvla-oft": {"apply_lora_adapter": args.apply_lora_adapter},
+        "starvla": {"qwen_folder": args.qwen_folder},
+    }.get(family, {})
+    imported = backbone_class(family).from_original(
+        args.folder, preset=args.preset, overrides=overrides, **options
+    )
+    imported.model.save_pretrained(
+        args.out,
+        extra_json={"dataset_statistics.json": imported.statistics},
+        overwrite=args.overwrite,
+    )
+    n_params = sum(p.numel() for p in imported.model.parameters())
+    print(f"wrote {args.out} ({family}, {n_params:,} parameters)")
     return 0
 
 

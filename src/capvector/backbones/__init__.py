@@ -3,6 +3,7 @@
 from capvector.backbones.base import (
     BackboneConfig,
     BackboneError,
+    OriginalCheckpoint,
     OutputRequest,
     VLABackbone,
     VLAOutput,
@@ -18,6 +19,7 @@ from capvector.backbones.base import (
 __all__ = [
     "BackboneConfig",
     "BackboneError",
+    "OriginalCheckpoint",
     "OutputRequest",
     "VLABackbone",
     "VLAOutput",

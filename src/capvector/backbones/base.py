@@ -98,6 +98,19 @@ class VLAOutput:
 ConfigT = TypeVar("ConfigT", bound=BackboneConfig)
 
 
+@dataclass
+class OriginalCheckpoint:
+    """What every family's ``VLABackbone.from_original`` returns."""
+
+    model: VLABackbone
+    statistics: dict[str, Any]
+    """Normalisation statistics in capvector's ``dataset_statistics.json`` schema
+    (``capvector.data.statistics``), converted from the upstream files; ``{}`` when the checkpoint
+    carries none."""
+    upstream_config: dict[str, Any] = field(default_factory=dict)
+    """The upstream config files that were read, by file name, kept for provenance."""
+
+
 class VLABackbone(nn.Module, ABC):
     """Base class of every VLA backbone. Subclasses set ``config_class`` and implement the methods."""
 
@@ -225,6 +238,29 @@ class VLABackbone(nn.Module, ABC):
         return Path(folder)
 
     @classmethod
+    def from_original(
+        cls,
+        source: str | Path,
+        preset: str | None = None,
+        overrides: Mapping[str, Any] | None = None,
+        **options: Any,
+    ) -> OriginalCheckpoint:
+        """Load a checkpoint in the original project's own layout, strictly.
+
+        ``source`` is what the upstream code wrote (a run folder or checkpoint file). The
+        architecture comes from the upstream config files that travel with it; ``preset`` names the
+        preset those values start from and ``overrides`` changes named fields (a nested mapping
+        changes only the fields it names). A config field we do not support is an error naming it.
+        ``options`` are the family's loader options (e.g. StarVLA's ``qwen_folder``). Families that
+        read another project's checkpoints override this; their conversion code lives in a module
+        of its own beside the model file (``convert_<family>.py``).
+        """
+        raise BackboneError(
+            f"{cls.__name__} has no loader for an original project's checkpoint; use "
+            "capvector.backbones.from_pretrained for a capvector export folder"
+        )
+
+    @classmethod
     def from_config_dict(cls, config: Mapping[str, Any]) -> VLABackbone:
         known = {f.name for f in dataclasses.fields(cls.config_class)}
         return cls(_config_from_dict(cls.config_class, config, known))
@@ -283,9 +319,20 @@ def preset_config(preset: str, /, **overrides: Any) -> BackboneConfig:
         )
     config = _PRESETS[preset]()
     known = {f.name for f in dataclasses.fields(config)}
-    values = {**config.to_dict(), **overrides}
+    values = merge_nested(config.to_dict(), overrides)
     values["preset"] = values.get("preset") or preset
     return _config_from_dict(type(config), values, known, preset)
+
+
+def merge_nested(base: Mapping[str, Any], overrides: Mapping[str, Any]) -> dict[str, Any]:
+    """``base`` with ``overrides`` applied; a mapping inside ``overrides`` changes only the fields it
+    names (``{"featurizer": {"embed_dim": 32}}`` keeps the featurizer's depth and heads)."""
+    merged = dict(base)
+    for key, value in overrides.items():
+        if isinstance(value, Mapping) and isinstance(merged.get(key), Mapping):
+            value = merge_nested(merged[key], value)
+        merged[key] = value
+    return merged
 
 
 def _config_from_dict(
@@ -364,7 +411,7 @@ def from_pretrained(folder: str | Path, **overrides: Any) -> VLABackbone:
 
     config = load_export_config(folder)
     cls = backbone_class(config["family"])
-    model = cls.from_config_dict({**config["backbone_config"], **overrides})
+    model = cls.from_config_dict(merge_nested(config["backbone_config"], overrides))
     model.load_tokenizer(folder)
     state = (
         load_file(str(Path(folder) / WEIGHTS_FILE))

@@ -25,6 +25,7 @@ from torch import Tensor, nn
 from capvector.backbones.base import (
     BackboneConfig,
     BackboneError,
+    OriginalCheckpoint,
     OutputRequest,
     VLABackbone,
     VLAOutput,
@@ -519,12 +520,12 @@ class OpenVLAOFT(VLABackbone):
     @classmethod
     def from_original(
         cls,
-        folder: str | Path,
-        preset: str = "openvla-oft-7b",
+        source: str | Path,
+        preset: str | None = None,
+        overrides: Mapping[str, Any] | None = None,
         apply_lora_adapter: bool = False,
-        **overrides: Any,
-    ) -> tuple[OpenVLAOFT, dict[str, Any]]:
-        """Load a released OpenVLA-OFT run folder strictly; returns the model and its statistics.
+    ) -> OriginalCheckpoint:
+        """Load a released OpenVLA-OFT run folder strictly, with its statistics.
 
         The folder holds merged safetensors (+ index), ``action_head--*_checkpoint.pt`` and
         ``proprio_projector--*_checkpoint.pt`` (DDP ``module.`` prefixes), ``dataset_statistics.json``
@@ -533,8 +534,9 @@ class OpenVLAOFT(VLABackbone):
         """
         from capvector.backbones.base import preset_config
 
-        root = _resolve_folder(folder)
-        config = preset_config(preset, **overrides)
+        root = _resolve_folder(source)
+        preset = preset or "openvla-oft-7b"
+        config = preset_config(preset, **(overrides or {}))
         if not isinstance(config, OpenVLAOFTConfig):
             raise BackboneError(f"preset {preset!r} is not an OpenVLA-OFT preset")
         if (root / "tokenizer_config.json").is_file():
@@ -549,7 +551,7 @@ class OpenVLAOFT(VLABackbone):
         load_state_dict_strictly(model, state, source=str(root))
         stats_path = root / "dataset_statistics.json"
         stats = json.loads(stats_path.read_text()) if stats_path.is_file() else {}
-        return model, stats
+        return OriginalCheckpoint(model, stats)
 
 
 def _right_pad(rows: list[list[int]], pad: int, device: torch.device) -> tuple[Tensor, Tensor]:

@@ -41,11 +41,13 @@ from torch import Tensor, nn
 from capvector.backbones.base import (
     BackboneConfig,
     BackboneError,
+    OriginalCheckpoint,
     OutputRequest,
     VLABackbone,
     VLAOutput,
     draw_flow_noise,
     load_state_dict_strictly,
+    merge_nested,
     nested_config,
     register_family,
     register_preset,
@@ -997,9 +999,12 @@ class Pi05(VLABackbone):
 
     @classmethod
     def from_original(
-        cls, folder: str | Path, preset: str = "pi05-3b", **overrides: Any
-    ) -> tuple[Pi05, dict[str, Any]]:
-        """Load a LeRobot ``pi05_base``-layout folder strictly; returns the model and its config.json.
+        cls,
+        source: str | Path,
+        preset: str | None = None,
+        overrides: Mapping[str, Any] | None = None,
+    ) -> OriginalCheckpoint:
+        """Load a LeRobot ``pi05_base``-layout folder strictly, with its config.json.
 
         The folder holds ``model.safetensors`` (openpi PyTorch key names, optionally under
         ``model.`` as LeRobot saves them) and ``config.json`` (LeRobot ``PI05Config``). Its flow and
@@ -1014,9 +1019,10 @@ class Pi05(VLABackbone):
 
         from capvector.backbones.base import preset_config
 
-        root = Path(folder)
+        root = Path(source)
+        preset = preset or "pi05-3b"
         if not root.is_dir():
-            raise BackboneError(f"checkpoint folder {folder} does not exist")
+            raise BackboneError(f"checkpoint folder {source} does not exist")
         weights = root / "model.safetensors"
         if not weights.is_file():
             raise BackboneError(f"{root} has no model.safetensors (the LeRobot pi05 layout)")
@@ -1039,8 +1045,7 @@ class Pi05(VLABackbone):
             values["image_size"] = height
         if (root / "tokenizer_config.json").is_file():
             values["tokenizer"] = str(root)
-        values.update(overrides)
-        config = preset_config(preset, **values)
+        config = preset_config(preset, **merge_nested(values, overrides or {}))
         if not isinstance(config, Pi05Config):
             raise BackboneError(f"preset {preset!r} is not a pi05 preset")
         model = cls(config)
@@ -1056,7 +1061,7 @@ class Pi05(VLABackbone):
                 f"{preset!r}?"
             )
         load_state_dict_strictly(model, state, source=str(weights))
-        return model, original
+        return OriginalCheckpoint(model, {}, {"config.json": original})
 
 
 # LeRobot PI05Config fields our config shares, with the same names and meaning.

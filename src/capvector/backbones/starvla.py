@@ -40,6 +40,7 @@ from capvector.backbones.action_heads import HeadDims, HeadInput, build_head, he
 from capvector.backbones.base import (
     BackboneConfig,
     BackboneError,
+    OriginalCheckpoint,
     OutputRequest,
     VLABackbone,
     VLAOutput,
@@ -871,6 +872,22 @@ class StarVLA(VLABackbone):
         if head_weights is not None:
             model.load_head_weights(head_weights)
         return model
+
+    @classmethod
+    def from_original(
+        cls,
+        source: str | Path,
+        preset: str | None = None,
+        overrides: Mapping[str, Any] | None = None,
+        qwen_folder: str | Path | None = None,
+    ) -> OriginalCheckpoint:
+        """A StarVLA run's checkpoint file with ``qwen_folder`` (see ``from_starvla``), or, without
+        it, a plain transformers Qwen-VL folder as the VLM with a fresh head (``from_qwen``)."""
+        preset = preset or "starvla-qwen2.5-vl-3b-oft"
+        if qwen_folder is None:
+            return OriginalCheckpoint(cls.from_qwen(source, preset, **(overrides or {})), {})
+        model, stats = cls.from_starvla(source, qwen_folder, preset, **(overrides or {}))
+        return OriginalCheckpoint(model, stats)
 
     @classmethod
     def from_starvla(
