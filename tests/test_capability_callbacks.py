@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import csv
+import json
+import shutil
 from pathlib import Path
 
 import lightning as L
@@ -132,7 +134,8 @@ def test_lora_merge_and_orthogonality_under_fsdp2_match_one_process(
         assert_same_weights(tmp_path / "fsdp2" / "export", tmp_path / "single" / "export")
         return
     saved = torch.load(tmp_path / "fsdp2" / "last.ckpt", weights_only=False)
-    assert any(state.get("merged") for state in saved["callbacks"].values())
+    (record,) = saved["capvector"]["merged_vectors"]
+    assert (record["scale"], record["by"]) == (0.5, "MergeCapabilityVector")
     assert any(k.startswith("objectives.orthogonality.anchors") for k in saved["state_dict"])
     resumed = run(
         tmp_path / "resumed",
@@ -205,3 +208,105 @@ def test_orthogonality_is_anchored_at_the_merged_weights(setup: dict, tmp_path: 
             total = float(r["train/loss_action"]) + 10.0 * float(r["train/loss_orthogonality"])
             assert float(r["train/loss"]) == pytest.approx(total, rel=1e-5)
     assert any(r.get("orth/mean_abs_projection") for r in rows)
+
+
+def projection_on_vector(weights: dict[str, torch.Tensor], base: Path, vector: Path) -> float:
+    """⟨θ − θ_base, c⟩ / ‖c‖² over the vector's tensors: how many times c the weights hold."""
+    theta0 = load_file(base / "model.safetensors")
+    c = load_file(vector / "capability_vector.safetensors")
+    dot = sum(((weights[k] - theta0[k]).double() * c[k].double()).sum() for k in c)
+    return float(dot / sum(c[k].double().square().sum() for k in c))
+
+
+def merge_fit(
+    pretrained: Path, vector: str, data: Path, steps: int, root: Path, ckpt: Path | None = None,
+    scale: float = 0.7,
+) -> VLAModule:  # fmt: skip
+    """SFT from ``pretrained`` with the vector merged at fit start and orthogonal regularization,
+    as the downstream recipe runs; saves ``root / "last.ckpt"``."""
+    dm = RobotDataModule(train_files=[str(data)], batch_size=4, augment=False)
+    module = VLAModule(pretrained=str(pretrained), data_spec=dm.spec)
+    callbacks = [
+        MergeCapabilityVector(vector, scale=scale),
+        OrthogonalRegularization(vector, weight=100.0),
+    ]
+    trainer = L.Trainer(
+        max_steps=steps, accelerator="cpu", logger=False, enable_progress_bar=False,
+        enable_model_summary=False, limit_val_batches=0, enable_checkpointing=False,
+        default_root_dir=root, callbacks=callbacks,
+    )  # fmt: skip
+    trainer.fit(module, dm, ckpt_path=ckpt)
+    trainer.save_checkpoint(root / "last.ckpt")
+    return module
+
+
+def spell(vector: Path, how: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> str:
+    """The same vector folder, written another way (the ways the issue found merging twice)."""
+    if how == "trailing slash":
+        return f"{vector}/"
+    if how == "relative":
+        monkeypatch.chdir(vector.parent)
+        return f"./{vector.name}"
+    if how == "symlink":
+        link = tmp_path / "link-to-vector"
+        link.symlink_to(vector, target_is_directory=True)
+        return str(link)
+    if how == "moved":
+        moved = tmp_path / "elsewhere" / "vector"
+        moved.parent.mkdir()
+        shutil.copytree(vector, moved)
+        return str(moved)
+    return str(vector)
+
+
+@pytest.mark.parametrize("how", ["same path", "trailing slash", "relative", "symlink", "moved"])
+def test_a_resume_never_merges_again_however_the_vector_is_spelled(
+    how: str, setup: dict, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Fit 2 steps (λ = 0.7 merged at fit start), stop, resume 1 more step with the vector folder
+    spelled another way: the weights still hold c about 0.7 times, not 1.4."""
+    first = merge_fit(setup["initial"], str(setup["vector"]), setup["data"], 2, tmp_path / "a")
+    assert len(first.merged_vectors) == 1
+    vector = spell(setup["vector"], how, tmp_path, monkeypatch)
+    resumed = merge_fit(
+        setup["initial"], vector, setup["data"], 3, tmp_path / "b", ckpt=tmp_path / "a/last.ckpt"
+    )
+    weights = {k: v.detach() for k, v in resumed.backbone.state_dict().items()}
+    assert projection_on_vector(weights, setup["initial"], setup["vector"]) == pytest.approx(
+        0.7, abs=0.01
+    )
+    assert [r.scale for r in resumed.merged_vectors] == [0.7]
+
+
+def test_a_resume_with_another_scale_or_vector_names_both(setup: dict, tmp_path: Path) -> None:
+    merge_fit(setup["initial"], str(setup["vector"]), setup["data"], 1, tmp_path / "a")
+    ckpt = tmp_path / "a" / "last.ckpt"
+    with pytest.raises(CapVectorError, match=r"merged .*x 0\.7.*asks for .*x 0\.5"):
+        merge_fit(
+            setup["initial"], str(setup["vector"]), setup["data"], 2, tmp_path / "b", ckpt, 0.5
+        )
+    other = random_vector("openvla-oft-tiny", setup["data"], tmp_path / "other")
+    with pytest.raises(CapVectorError, match=r"records .*vector x 0\.7.*asks for .*other"):
+        merge_fit(setup["initial"], str(other), setup["data"], 2, tmp_path / "c", ckpt)
+
+
+def test_the_record_travels_into_exports_and_merge_refuses_a_repeat(
+    setup: dict, tmp_path: Path
+) -> None:
+    """θ_meta written by `capvector merge` (or exported after a merge at fit start) records the
+    vector: merging it again, offline or at fit start, is refused unless allowed explicitly."""
+    config = json.loads((setup["merged"] / "config.json").read_text())
+    (entry,) = config["merged_vectors"]
+    assert entry["scale"] == 0.5 and entry["by"] == "capvector merge"
+    with pytest.raises(CapVectorError, match="already holds vector"):
+        merge(setup["merged"], [(setup["vector"], 0.5)], tmp_path / "twice")
+    assert not (tmp_path / "twice").exists()
+    twice = merge(setup["merged"], [(setup["vector"], 0.5)], tmp_path / "twice", allow_repeat=True)
+    assert len(twice["vectors"]) == 1
+    assert len(json.loads((tmp_path / "twice" / "config.json").read_text())["merged_vectors"]) == 2
+    with pytest.raises(CapVectorError, match="pretrained model already holds"):
+        merge_fit(setup["merged"], str(setup["vector"]), setup["data"], 1, tmp_path / "fit")
+    module = merge_fit(setup["initial"], str(setup["vector"]), setup["data"], 1, tmp_path / "ok")
+    module.export(tmp_path / "export")
+    exported = json.loads((tmp_path / "export" / "config.json").read_text())["merged_vectors"]
+    assert [e["by"] for e in exported] == ["MergeCapabilityVector"]

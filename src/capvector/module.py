@@ -32,6 +32,7 @@ from capvector.lora import LoraSettings, inject_lora, merge_lora_state_dict
 from capvector.metrics import SuccessRate
 from capvector.objectives.base import Objective
 from capvector.policy import VLAPolicy
+from capvector.vectors.record import MERGED_VECTORS, MergedVector, read_record, record_dicts
 
 STATISTICS_FILE = "dataset_statistics.json"
 
@@ -109,6 +110,11 @@ class VLAModule(L.LightningModule):
         self.lora_settings = lora
         overrides = {**self.data_spec.backbone_overrides(), **(backbone_overrides or {})}
         self.backbone: VLABackbone = self._build_backbone(backbone, pretrained, overrides)
+        # Vectors merged into these weights (by fingerprint and λ): θ_pre's own record, then what
+        # MergeCapabilityVector adds. Saved in checkpoints and exports so no vector is merged twice.
+        self.merged_vectors: list[MergedVector] = (
+            read_record(load_export_config(pretrained).get(MERGED_VECTORS)) if pretrained else []
+        )
         if lora is not None:
             inject_lora(self.backbone, lora)
         frozen = set(self.backbone.unused_parameter_names()) | set(
@@ -307,10 +313,14 @@ class VLAModule(L.LightningModule):
             else {"r": lora.r, "alpha": lora.alpha, "scaling": lora.scaling},
             "data_spec": dataclasses.asdict(self.data_spec),
             "objectives": sorted(self.objectives),
+            MERGED_VECTORS: record_dicts(self.merged_vectors),
         }
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         checkpoint["capvector"] = self.checkpoint_metadata()
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        self.merged_vectors = read_record(checkpoint.get("capvector", {}).get(MERGED_VECTORS))
 
     def export(self, folder: str | Path, overwrite: bool = False) -> Path:
         """An export folder: ``model.safetensors`` (LoRA merged) + config + statistics + tokenizer.
@@ -330,7 +340,10 @@ class VLAModule(L.LightningModule):
             folder,
             state_dict=state,
             extra_json=extra,
-            config_extra={"objectives": sorted(self.objectives)},
+            config_extra={
+                "objectives": sorted(self.objectives),
+                MERGED_VECTORS: record_dicts(self.merged_vectors),
+            },
             overwrite=overwrite,
         )
 
@@ -395,6 +408,7 @@ def load_module(checkpoint: str | Path, map_location: str = "cpu") -> VLAModule:
     hparams["backbone"] = meta["backbone_config"]["preset"]
     hparams["backbone_overrides"] = dict(meta["backbone_config"])
     module = VLAModule(**hparams)
+    module.on_load_checkpoint(ckpt)
     state = {k: v for k, v in ckpt["state_dict"].items() if not k.startswith("objectives.")}
     missing, unexpected = module.load_state_dict(state, strict=False)
     if missing or unexpected:

@@ -9,48 +9,73 @@ import lightning as L
 from lightning.pytorch.utilities.rank_zero import rank_zero_info
 
 from capvector.objectives.orthogonality import OrthogonalityLoss
-from capvector.vectors import apply_vector_, load_vector, validate_vector
+from capvector.vectors import VectorFolder, apply_vector_, validate_vector
+from capvector.vectors.record import (
+    BY_FIT_START,
+    MERGED_VECTORS,
+    MergedVector,
+    check_not_merged,
+    check_resumed,
+    read_record,
+)
 
 
 class MergeCapabilityVector(L.Callback):
     """θ ← θ + scale·c once, at the start of fit (θ_meta = θ_pre + λ·c).
 
-    The vector is validated in ``setup`` (shapes, dtypes, keys, finite values), so a bad vector
-    stops the run before anything changes. The ``merged`` flag is saved in checkpoints: a resumed
-    run does not merge again. Under FSDP2 each rank adds its own shard of c, no communication.
+    The vector is validated in ``setup`` (shapes, dtypes, keys, finite values, and that θ_pre does
+    not hold it already), so a bad vector stops the run before anything changes. What was merged
+    is recorded in the model itself (``VLAModule.merged_vectors``: the vector's fingerprint and λ,
+    saved in checkpoints and exports), not in this callback's state: a resumed run never merges
+    again, however the vector's path is spelled, and a resume with another vector or λ is an error
+    naming both. Under FSDP2 each rank adds its own shard of c, no communication.
+
+    Args:
+        vector: the vector folder (full, low-rank or PEFT LoRA).
+        scale: λ.
+        allow_repeat: merge even when θ_pre's record says it already holds this vector.
     """
 
-    def __init__(self, vector: str, scale: float = 1.0) -> None:
+    def __init__(self, vector: str, scale: float = 1.0, allow_repeat: bool = False) -> None:
         self.vector = vector
         self.scale = scale
-        self.merged = False
+        self.allow_repeat = allow_repeat
+        self._entry: MergedVector | None = None
         self._loaded: Any = None
-
-    @property
-    def state_key(self) -> str:
-        return self._generate_state_key(vector=self.vector, scale=self.scale)
+        self._resumed = False
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        if stage == "fit" and not self.merged:
-            self._loaded = load_vector(self.vector)
-            validate_vector(pl_module.backbone, self._loaded, self.scale)
+        if stage != "fit":
+            return
+        folder = VectorFolder(self.vector)
+        self._entry = MergedVector.of(folder, self.scale, BY_FIT_START)
+        check_not_merged(
+            pl_module.merged_vectors, self._entry, "the pretrained model", self.allow_repeat
+        )
+        self._loaded = folder.load()
+        validate_vector(pl_module.backbone, self._loaded, self.scale)
+
+    def on_load_checkpoint(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]
+    ) -> None:
+        # Called on every resume whatever this callback's state key; the record is the model's.
+        assert self._entry is not None
+        record = read_record(checkpoint.get("capvector", {}).get(MERGED_VECTORS))
+        check_resumed(record, self._entry, str(trainer.ckpt_path))
+        self._resumed = True
+        self._loaded = None
 
     def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        if self.merged:
-            rank_zero_info(
-                f"capability vector {self.vector} was merged before this resume; not again"
-            )
+        # Strategies that restore after setup (FSDP2, DeepSpeed) reach this before the checkpoint
+        # is read: the merge below is then overwritten by the restored weights and record.
+        assert self._entry is not None
+        if self._resumed:
+            rank_zero_info(f"{self._entry.describe()} was merged before this resume; not again")
             return
-        changed = apply_vector_(pl_module.backbone, self._loaded or self.vector, self.scale)
-        self.merged = True
+        changed = apply_vector_(pl_module.backbone, self._loaded, self.scale)
+        pl_module.merged_vectors.append(self._entry)
         self._loaded = None
         rank_zero_info(f"merged {self.vector} x {self.scale} into {len(changed)} tensors")
-
-    def state_dict(self) -> dict[str, Any]:
-        return {"merged": self.merged, "vector": self.vector, "scale": self.scale}
-
-    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
-        self.merged = bool(state_dict["merged"])
 
 
 class OrthogonalRegularization(L.Callback):

@@ -10,6 +10,7 @@ import argparse
 import re
 import sys
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from capvector.vectors.io import DEFAULT_MAX_SHARD_SIZE, CapVectorError
@@ -143,14 +144,19 @@ def extract_main(argv: list[str] | None = None) -> int:
 
 
 def _vector_arg(text: str) -> tuple[str, float]:
-    """``DIR`` or ``DIR:λ`` (the part after the last colon, when it is a number)."""
+    """``DIR`` or ``DIR:λ``. A colon followed by something that is not a number is part of the
+    path only when that path exists; otherwise it is a mistyped λ and says so."""
     path, sep, scale = text.rpartition(":")
-    if sep and path:
-        try:
-            return path, float(scale)
-        except ValueError:
-            pass
-    return text, 1.0
+    if not (sep and path):
+        return text, 1.0
+    try:
+        return path, float(scale)
+    except ValueError:
+        if Path(text).exists():
+            return text, 1.0
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: λ after the colon must be a number (DIR:0.7), got {scale!r}"
+        ) from None
 
 
 def merge_main(argv: list[str] | None = None) -> int:
@@ -168,13 +174,25 @@ def merge_main(argv: list[str] | None = None) -> int:
         help="a vector folder (full, low-rank or PEFT LoRA) and its scale λ (default 1); repeatable",
     )
     parser.add_argument("--out", required=True, help=_OUT_HELP)
+    parser.add_argument(
+        "--allow-repeat",
+        action="store_true",
+        help="merge a vector the base already holds (its config.json records merged vectors)",
+    )
     _add_common(parser, dtype=False, shards=False)
     args = parser.parse_args(argv)
 
     def job() -> None:
         from capvector.vectors.merge import merge
 
-        record = merge(args.base, args.vector, args.out, overwrite=args.overwrite, progress=True)
+        record = merge(
+            args.base,
+            args.vector,
+            args.out,
+            overwrite=args.overwrite,
+            progress=True,
+            allow_repeat=args.allow_repeat,
+        )
         terms = " + ".join(f"{s:g}·{p}" for p, s in args.vector)
         print(f"wrote {args.out} = {args.base} + {terms}")
         print(f"  base fingerprint {record['base']['fingerprint'][:23]}…; non-weight files copied")

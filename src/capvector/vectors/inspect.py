@@ -13,7 +13,8 @@ from pathlib import Path
 
 from tqdm.auto import tqdm
 
-from capvector.vectors.io import CapVectorError, atomic_write_file, examples, row_chunks
+from capvector.fileio import atomic_write_file
+from capvector.vectors.io import CapVectorError, examples, row_chunks
 from capvector.vectors.vector import VectorFolder
 
 _LAYER = re.compile(r"^(?P<stack>(?:.*\.)?(?:layers|blocks))\.(?P<index>\d+)\.")

@@ -17,7 +17,6 @@ import math
 import os
 import re
 import struct
-import tempfile
 from abc import ABC, abstractmethod
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
@@ -29,7 +28,7 @@ import torch
 from torch import Tensor
 
 from capvector.errors import CapVectorError  # noqa: F401 (re-exported: the vector tools' error)
-from capvector.fileio import atomic_directory
+from capvector.fileio import atomic_directory, check_writable
 
 # File names of an export folder; the writer is ``capvector.backbones.base`` (``VLABackbone.
 # save_pretrained``). Repeated here because ``vectors`` sits below ``backbones`` and imports nothing
@@ -681,8 +680,9 @@ def _fsync_dir(path: Path) -> None:
 
 
 def check_output(out: str | Path, overwrite: bool, inputs: Sequence[str | Path] = ()) -> Path:
-    """Fail before any work when ``out`` exists (without overwrite) or is one of the inputs."""
-    target = Path(out)
+    """Fail before any work when ``out`` exists (without overwrite), is one of the inputs, or could
+    not be written."""
+    target = check_writable(out, "--out")
     if target.exists() and not overwrite:
         raise CapVectorError(f"{target} exists; choose another --out or pass --overwrite")
     for path in inputs:
@@ -710,27 +710,6 @@ def atomic_output(out: str | Path, overwrite: bool = False) -> Iterator[Path]:
                     os.close(fd)
             _fsync_dir(Path(root))
     _fsync_dir(target.resolve().parent)
-
-
-@contextmanager
-def atomic_write_file(path: str | Path) -> Iterator[Path]:
-    """A temporary sibling file path that replaces ``path`` (fsynced, renamed) if the block succeeds."""
-    target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, name = tempfile.mkstemp(prefix=f".{target.name}.tmp-", dir=target.parent)
-    os.close(fd)
-    tmp = Path(name)
-    try:
-        yield tmp
-        fd = os.open(tmp, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.replace(tmp, target)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def dtype_summary(dtypes: Iterable[torch.dtype]) -> str:

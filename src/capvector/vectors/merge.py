@@ -17,6 +17,7 @@ from torch import Tensor, nn
 from tqdm.auto import tqdm
 
 from capvector.vectors.io import (
+    EXPORT_CONFIG,
     CapVectorError,
     SafetensorsFolder,
     SafetensorsWriter,
@@ -34,6 +35,14 @@ from capvector.vectors.io import (
     read_json,
     row_chunks,
     write_json,
+)
+from capvector.vectors.record import (
+    BY_MERGE,
+    MERGED_VECTORS,
+    MergedVector,
+    check_not_merged,
+    read_record,
+    record_dicts,
 )
 from capvector.vectors.vector import CapabilityVector, VectorFolder, load_vector
 
@@ -124,13 +133,16 @@ def merge(
     *,
     overwrite: bool = False,
     progress: bool = False,
+    allow_repeat: bool = False,
 ) -> dict[str, Any]:
     """Write the export folder ``out`` = base + Σ λ_i·vector_i, sharded like the base.
 
     Vectors may be full, low-rank or plain PEFT LoRA folders. Every non-weight file of the base
-    (config, tokenizer, dataset statistics) is copied unchanged; ``capvector_merge.json`` records
-    what was merged. All vectors are checked against the base before anything is written, and a
-    NaN/Inf found while streaming leaves no output.
+    (tokenizer, dataset statistics) is copied unchanged; ``config.json`` gains the merged vectors
+    (``merged_vectors``: fingerprint and λ) and ``capvector_merge.json`` records what was merged.
+    A vector the base already holds is refused unless ``allow_repeat``. All vectors are checked
+    against the base before anything is written, and a NaN/Inf found while streaming leaves no
+    output.
 
     Returns:
         The record written to ``capvector_merge.json``.
@@ -154,23 +166,29 @@ def merge(
             {k: source.info(k) for k in source}, infos, f"the base {base}", f"vector {path}"
         )
         folders.append((folder, float(scale)))
+    record = read_record(source.config.get(MERGED_VECTORS))
+    for folder, scale in folders:
+        entry = MergedVector.of(folder, scale, BY_MERGE)
+        check_not_merged(record, entry, f"the base {base}", allow_repeat)
+        record.append(entry)
 
     layout = ShardLayout(
         [(name, [(k, source.info(k)) for k in keys]) for name, keys in source.files.items()],
         source.index_path.name if source.index_path else None,
     )
     first_meta = next(iter(source.file_metadata.values()), {})
-    record: dict[str, Any] = {
+    provenance: dict[str, Any] = {
         "base": source.describe(),
         "vectors": [{**f.describe(), "scale": s} for f, s in folders],
         "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "capvector_version": capvector_version(),
     }
     if (source.path / MERGE_RECORD).is_file():
-        record["previous"] = read_json(source.path / MERGE_RECORD)
+        provenance["previous"] = read_json(source.path / MERGE_RECORD)
 
     with atomic_output(out, overwrite) as tmp:
-        skip = set(source.weight_files()) | {MERGE_RECORD}
+        skip = set(source.weight_files()) | {MERGE_RECORD, EXPORT_CONFIG}
+        write_json(tmp / EXPORT_CONFIG, {**source.config, MERGED_VECTORS: record_dicts(record)})
         for item in source.path.iterdir():
             if item.name in skip:
                 continue
@@ -193,8 +211,8 @@ def merge(
         except BaseException:
             writer.abort()
             raise
-        write_json(tmp / MERGE_RECORD, record)
-    return record
+        write_json(tmp / MERGE_RECORD, provenance)
+    return provenance
 
 
 def _merge_tensor(
