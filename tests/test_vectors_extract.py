@@ -328,3 +328,52 @@ def test_bf16_inputs_give_a_bf16_vector_computed_in_float32(tmp_path: Path) -> N
     extract(tmp_path / "a", tmp_path / "b", tmp_path / "vec32", dtype="float32")
     got32 = load_file(str(tmp_path / "vec32" / "capability_vector.safetensors"))["language_model.w"]
     assert torch.equal(got32, a["language_model.w"].float() - b["language_model.w"].float())
+
+
+@pytest.mark.parametrize("preset", ["openvla-oft-tiny", "pi05-tiny"])
+def test_default_lowrank_vector_loads_in_plain_peft_like_capvector_merge(
+    preset: str, tmp_path: Path
+) -> None:
+    """The README's snippet: ``PeftModel.from_pretrained(from_pretrained(BASE), DIR)`` then
+    ``merge_and_unload()`` adds exactly the adapter's part of ``capvector merge --base BASE
+    --vector DIR`` (embeddings included, as peft's embedding LoRA) with no peft warning; the
+    tensors stored in full complete it."""
+    import warnings
+
+    from peft import PeftModel
+
+    from capvector.backbones import build_backbone, from_pretrained
+    from capvector.cli import main
+    from capvector.vectors import apply_vector_
+
+    model = build_backbone(preset)
+    model.save_pretrained(tmp_path / "base")
+    model.save_pretrained(tmp_path / "sft")
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(1e-2 * torch.randn_like(p))
+    model.save_pretrained(tmp_path / "aux")
+    folders = {name: str(tmp_path / name) for name in ("base", "sft", "aux", "vec", "merged")}
+    assert main(["extract", "--aux", folders["aux"], "--sft", folders["sft"], "--out", folders["vec"], "--rank", "4"]) == 0  # fmt: skip
+    adapter = load_file(tmp_path / "vec" / "adapter_model.safetensors")
+    assert any(k.endswith("lora_embedding_A") for k in adapter)
+    assert main(["merge", "--base", folders["base"], "--vector", folders["vec"], "--out", folders["merged"]]) == 0  # fmt: skip
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        peft_model = PeftModel.from_pretrained(from_pretrained(folders["base"]), folders["vec"])
+        merged_by_peft = peft_model.merge_and_unload()
+    assert not [w for w in caught if "peft" in w.filename or "lora" in str(w.message).lower()]
+    expected = from_pretrained(folders["merged"]).state_dict()
+    base = from_pretrained(folders["base"]).state_dict()
+    vector = VectorFolder(tmp_path / "vec")
+    in_adapter = {k for k in vector if vector.storage(k) == "lora"}
+    ours = merged_by_peft.state_dict()
+    assert ours.keys() == expected.keys()
+    for key in expected:
+        want = expected[key] if key in in_adapter else base[key]
+        torch.testing.assert_close(ours[key], want, rtol=0, atol=1e-6, msg=key)
+    apply_vector_(merged_by_peft, vector.load_outside_adapter())
+    ours = merged_by_peft.state_dict()
+    worst = max(float((ours[k] - expected[k]).abs().max()) for k in expected)
+    assert worst <= 1e-6, worst

@@ -308,6 +308,7 @@ class VLAModule(L.LightningModule):
             "family": self.backbone.config_class.family,
             "backbone_config": self.backbone.config.to_dict(),
             "capability_parameters": list(self.backbone.capability_parameters),
+            "embedding_parameters": self.backbone.embedding_parameter_names(),
             "lora": None
             if lora is None
             else {"r": lora.r, "alpha": lora.alpha, "scaling": lora.scaling},

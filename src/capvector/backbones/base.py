@@ -32,6 +32,7 @@ from capvector.fileio import atomic_directory
 EXPORT_FORMAT = "capvector-export"
 CONFIG_FILE = "config.json"
 WEIGHTS_FILE = "model.safetensors"
+EMBEDDING_PARAMETERS = "embedding_parameters"
 
 
 class BackboneError(CapVectorError):
@@ -207,7 +208,13 @@ class VLABackbone(nn.Module, ABC):
             "family": self.config_class.family,
             "backbone_config": self.config.to_dict(),
             "capability_parameters": list(self.capability_parameters),
+            EMBEDDING_PARAMETERS: self.embedding_parameter_names(),
         }
+
+    def embedding_parameter_names(self) -> list[str]:
+        """Weights of ``nn.Embedding`` modules: a low-rank vector stores them under peft's
+        embedding-LoRA names (``lora_embedding_A/B``), since peft reads linear names as linear."""
+        return [f"{name}.weight" for name, m in self.named_modules() if isinstance(m, nn.Embedding)]
 
     def save_pretrained(
         self,

@@ -138,7 +138,10 @@ def extract(
     described = {name: src.describe() for name, src in sources.items()}
 
     with atomic_output(out, overwrite) as tmp:
-        writers = [VectorFolderWriter(tmp / o.subdir, full, max_shard_size) for o in outputs]
+        embeddings = sources["aux"].embedding_parameters & lowrank_keys
+        writers = [
+            VectorFolderWriter(tmp / o.subdir, full, max_shard_size, embeddings) for o in outputs
+        ]
         try:
             bar = tqdm(
                 total=sum(i.nbytes for i in infos.values()),

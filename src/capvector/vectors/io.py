@@ -239,6 +239,11 @@ class WeightSource(ABC):
         return list(globs) if globs is not None else None
 
     @property
+    def embedding_parameters(self) -> set[str]:
+        """``nn.Embedding`` weights, as the backbone recorded them (empty for older exports)."""
+        return set(self.config.get("embedding_parameters") or [])
+
+    @property
     def objectives(self) -> list[str] | None:
         names = self.config.get("objectives")
         return list(names) if names is not None else None
@@ -420,7 +425,9 @@ class CheckpointSource(WeightSource):
             )
         meta = checkpoint.get("capvector") or {}
         self.config = {
-            k: v for k, v in meta.items() if k in ("capability_parameters", "family", "preset")
+            k: v
+            for k, v in meta.items()
+            if k in ("capability_parameters", "embedding_parameters", "family", "preset")
         }
         objective_names = sorted(
             {k.split(".")[1] for k in state if k.startswith(CHECKPOINT_OBJECTIVES_PREFIX)}

@@ -6,17 +6,18 @@ peft's scaling is 1 and ``B @ A`` is the delta itself. Ranks may differ per laye
 / ``alpha_pattern``). Unlike mergekit, the rank can also be chosen per layer by an energy fraction
 (the smallest k with Σ_{i≤k} σ_i² ≥ E·Σσ², the rule of peft's ``convert_to_lora``).
 
-Every 2-D ``*.weight`` stored here is treated as an ``nn.Linear`` weight (out, in). peft loads an
-``nn.Embedding``'s adapter under other names (``lora_embedding_A/B``), so embeddings should be kept
-at full rank (``extract(..., full_rank=["*embed_tokens*"])``) when the adapter is meant for
-``PeftModel.from_pretrained``; our own ``merge`` handles either.
+A 2-D ``*.weight`` is written under peft's names for its layer type: ``lora_A/B.weight`` for an
+``nn.Linear`` weight (out, in), ``lora_embedding_A/B`` for an ``nn.Embedding`` weight (peft's delta
+there is (B·A)ᵀ; ``peft/tuners/lora/layer.py: Embedding.get_delta_weight``). Which weights are
+embeddings comes from the export's ``embedding_parameters`` (the backbone records them), so
+``PeftModel.from_pretrained`` loads the adapter exactly.
 """
 
 from __future__ import annotations
 
 import math
 import re
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -115,9 +116,12 @@ def _pattern(path: str) -> str:
     return "^" + re.escape(path)
 
 
-def write_adapter(folder: Path, factors: Mapping[str, LoraFactors]) -> dict[str, Any]:
+def write_adapter(
+    folder: Path, factors: Mapping[str, LoraFactors], embeddings: Collection[str] = ()
+) -> dict[str, Any]:
     """Write ``adapter_config.json`` + ``adapter_model.safetensors`` that ``PeftModel.from_pretrained``
-    loads as-is onto a model whose module names are the vector keys without ``.weight``."""
+    loads as-is onto a model whose module names are the vector keys without ``.weight``.
+    ``embeddings`` names the keys that are ``nn.Embedding`` weights."""
     from safetensors.torch import save_file
 
     from capvector.vectors.io import write_json
@@ -149,8 +153,12 @@ def write_adapter(folder: Path, factors: Mapping[str, LoraFactors]) -> dict[str,
     for key, f in factors.items():
         b, a = f.scaled()
         prefix = PEFT_PREFIX + module_path(key)
-        tensors[f"{prefix}.lora_A.weight"] = a.to(f.dtype).contiguous()
-        tensors[f"{prefix}.lora_B.weight"] = b.to(f.dtype).contiguous()
+        if key in embeddings:  # peft: lora_embedding_A (r, num_embeddings), _B (dim, r)
+            tensors[f"{prefix}.lora_embedding_A"] = b.T.to(f.dtype).contiguous()
+            tensors[f"{prefix}.lora_embedding_B"] = a.T.to(f.dtype).contiguous()
+        else:
+            tensors[f"{prefix}.lora_A.weight"] = a.to(f.dtype).contiguous()
+            tensors[f"{prefix}.lora_B.weight"] = b.to(f.dtype).contiguous()
     save_file(tensors, str(folder / ADAPTER_WEIGHTS), metadata={"format": "pt"})
     write_json(folder / ADAPTER_CONFIG, config)
     return config

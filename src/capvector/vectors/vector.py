@@ -15,7 +15,7 @@ from __future__ import annotations
 import datetime
 import hashlib
 import math
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Collection, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -165,6 +165,13 @@ class VectorFolder:
         dense = {key: self.read(key) for key in self.keys() if key not in self._lowrank}
         return CapabilityVector(dense, dict(self._lowrank), dict(self.metadata))
 
+    def load_outside_adapter(self) -> CapabilityVector:
+        """The tensors stored in full (``capability_vector.safetensors``): what a plain
+        ``PeftModel.from_pretrained`` of this folder does not add, because peft has no delta form
+        for them (norms, biases, tokens, convolutions)."""
+        full = self._full.keys() if self._full else []
+        return CapabilityVector({key: self.read(key) for key in full}, {}, dict(self.metadata))
+
 
 @dataclass
 class CapabilityVector:
@@ -242,9 +249,12 @@ class VectorFolderWriter:
         folder: Path,
         full: Sequence[tuple[str, TensorInfo]],
         max_shard_size: int,
+        embeddings: Collection[str] = (),
     ) -> None:
+        """``embeddings``: keys of ``nn.Embedding`` weights, written under peft's embedding names."""
         folder.mkdir(parents=True, exist_ok=True)
         self.folder = folder
+        self.embeddings = frozenset(embeddings)
         stem = VECTOR_WEIGHTS.removesuffix(".safetensors")
         self._writer = (
             SafetensorsWriter(folder, ShardLayout.plan(full, stem, max_shard_size))
@@ -292,7 +302,7 @@ class VectorFolderWriter:
         if self._writer is not None:
             self._writer.finish()
         if self._lowrank:
-            write_adapter(self.folder, self._lowrank)
+            write_adapter(self.folder, self._lowrank, self.embeddings)
         total_sq = sum(t["norm"] ** 2 for t in self.tensors.values())
         meta = {
             "format": VECTOR_FORMAT,
