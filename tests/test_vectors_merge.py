@@ -72,10 +72,25 @@ def test_merge_equals_state_dict_arithmetic(setup) -> None:
     out_files = sorted(
         p.relative_to(tmp / "meta") for p in (tmp / "meta").rglob("*") if p.is_file()
     )
-    assert out_files == sorted([*base_files, Path(MERGE_RECORD)])
+    assert out_files == sorted({*base_files, Path(MERGE_RECORD), Path("README.md")})
+    rewritten = {"model.safetensors.index.json", "config.json", "README.md"}
     for rel in base_files:
-        if rel.suffix != ".safetensors" and rel.name != "model.safetensors.index.json":
+        if rel.suffix != ".safetensors" and rel.name not in rewritten:
             assert (tmp / "meta" / rel).read_bytes() == (paths["pre"] / rel).read_bytes()
+    # config.json gains the record of merged vectors; the model card says what was merged.
+    config = json.loads((tmp / "meta" / "config.json").read_text())
+    assert config.pop("merged_vectors") == [
+        {
+            **{k: v for k, v in r.items() if k in ("fingerprint", "path")},
+            "scale": s,
+            "by": "capvector merge",
+        }
+        for r, s in zip(record["vectors"], (0.7, -0.3), strict=True)
+    ]
+    assert config == json.loads((paths["pre"] / "config.json").read_text())
+    card = (tmp / "meta" / "README.md").read_text()
+    assert card.startswith("---\nlibrary_name: capvector\n") and "base_model:" in card
+    assert all(v["fingerprint"][:23] in card for v in record["vectors"])
     index = json.loads((tmp / "meta" / "model.safetensors.index.json").read_text())
     assert (
         index["weight_map"]

@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import shlex
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
 
@@ -206,6 +208,11 @@ def import_original_main(argv: list[str]) -> int:
         args.out,
         extra_json={"dataset_statistics.json": imported.statistics},
         overwrite=args.overwrite,
+        card_facts={
+            "imported from": str(Path(args.folder).resolve()),
+            "command": shlex.join(["capvector", "import-original", *argv]),
+        },
+        base_model=str(args.folder),
     )
     n_params = sum(p.numel() for p in imported.model.parameters())
     print(f"wrote {args.out} ({family}, {n_params:,} parameters)")

@@ -331,8 +331,9 @@ class VLAModule(L.LightningModule):
         state = full_state_dict(self.backbone)
         if not is_rank_zero():
             return Path(folder)
-        if self.lora_settings is not None:
-            state = merge_lora_state_dict(state, self.lora_settings.scaling)
+        lora_settings = self.lora_settings
+        if lora_settings is not None:
+            state = merge_lora_state_dict(state, lora_settings.scaling)
         extra = {
             "capvector_data_spec.json": dataclasses.asdict(self.data_spec),
             STATISTICS_FILE: self.data_spec.statistics,
@@ -346,6 +347,14 @@ class VLAModule(L.LightningModule):
                 MERGED_VECTORS: record_dicts(self.merged_vectors),
             },
             overwrite=overwrite,
+            card_facts={
+                "training steps": self.trainer.global_step if self._trainer else None,
+                "objectives": sorted(self.objectives),
+                "LoRA": None if lora_settings is None else dataclasses.asdict(lora_settings),
+                "merged vectors": [m.describe() for m in self.merged_vectors],
+                "datasets": sorted(self.data_spec.statistics),
+            },
+            base_model=self.hparams.get("pretrained"),
         )
 
 

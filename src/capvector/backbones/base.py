@@ -28,6 +28,7 @@ from torch import Tensor, nn
 
 from capvector.errors import CapVectorError
 from capvector.fileio import atomic_directory
+from capvector.modelcard import render_model_card, write_model_card
 
 EXPORT_FORMAT = "capvector-export"
 CONFIG_FILE = "config.json"
@@ -223,12 +224,16 @@ class VLABackbone(nn.Module, ABC):
         extra_json: Mapping[str, Any] | None = None,
         config_extra: Mapping[str, Any] | None = None,
         overwrite: bool = False,
+        card_facts: Mapping[str, Any] | None = None,
+        base_model: str | None = None,
     ) -> Path:
-        """Write ``model.safetensors`` + ``config.json`` (+ tokenizer files) atomically.
+        """Write ``model.safetensors`` + ``config.json`` (+ tokenizer files) + a model card
+        (``README.md``) atomically.
 
         ``state_dict`` defaults to this module's own; pass a LoRA-merged one from the caller.
         ``extra_json`` maps file names to JSON-serialisable content written beside the weights;
-        ``config_extra`` adds fields to ``config.json``.
+        ``config_extra`` adds fields to ``config.json``. ``card_facts`` (what made the weights:
+        steps, objectives, the command) and ``base_model`` go into the model card.
         """
         from safetensors.torch import save_file
 
@@ -242,7 +247,31 @@ class VLABackbone(nn.Module, ABC):
                 (tmp / name).write_text(json.dumps(content, indent=2))
             if self.tokenizer is not None:
                 self.tokenizer.save_pretrained(str(tmp))
+            write_model_card(tmp, self._model_card(tensors, card_facts or {}, base_model))
         return Path(folder)
+
+    def _model_card(
+        self, tensors: Mapping[str, Tensor], facts: Mapping[str, Any], base_model: str | None
+    ) -> str:
+        family = self.config_class.family
+        command = facts.get("command")
+        return render_model_card(
+            f"{family} ({self.config.preset})",
+            f"A {family} vision-language-action model in capvector's export layout "
+            "(`model.safetensors` + `config.json`): load it with "
+            "`capvector.backbones.from_pretrained(folder)` or use it as `--model.pretrained`.",
+            {
+                "family": family,
+                "preset": self.config.preset,
+                "parameters": sum(t.numel() for t in tensors.values()),
+                "chunk × action dim": f"{self.config.chunk_size} × {self.config.action_dim}",
+                "cameras": self.config.num_images,
+                **{k: v for k, v in facts.items() if k != "command"},
+            },
+            base_model=base_model,
+            tags=["vision-language-action", family],
+            command=command,
+        )
 
     @classmethod
     def from_original(

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import re
+import shlex
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -31,6 +32,11 @@ def _run(command: str, job: Callable[[], Any]) -> int:
         print(f"capvector {command}: interrupted; nothing was written", file=sys.stderr)
         return 130
     return 0
+
+
+def command_line(command: str, argv: list[str] | None) -> str:
+    """The shell command that ran this tool, for the metadata and model card it writes."""
+    return shlex.join(["capvector", command, *(sys.argv[1:] if argv is None else argv)])
 
 
 def parse_size(text: str) -> int:
@@ -118,6 +124,7 @@ def extract_main(argv: list[str] | None = None) -> int:
             max_shard_size=args.max_shard_size,
             overwrite=args.overwrite,
             progress=True,
+            command=command_line("extract", argv),
         )
         tensors = meta["tensors"].values()
         lora = [t for t in tensors if t["storage"] == "lora"]
@@ -192,6 +199,7 @@ def merge_main(argv: list[str] | None = None) -> int:
             overwrite=args.overwrite,
             progress=True,
             allow_repeat=args.allow_repeat,
+            command=command_line("merge", argv),
         )
         terms = " + ".join(f"{s:g}·{p}" for p, s in args.vector)
         print(f"wrote {args.out} = {args.base} + {terms}")
@@ -233,6 +241,7 @@ def compose_main(argv: list[str] | None = None) -> int:
             max_shard_size=args.max_shard_size,
             overwrite=args.overwrite,
             progress=True,
+            command=command_line("compose", argv),
         )
         how = (
             f"TIES (density {args.density}, {args.consensus} consensus)"

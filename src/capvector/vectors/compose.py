@@ -51,6 +51,7 @@ def compose(
     max_shard_size: int = DEFAULT_MAX_SHARD_SIZE,
     overwrite: bool = False,
     progress: bool = False,
+    command: str | None = None,
 ) -> dict[str, Any]:
     """Write the composition of ``vectors`` (full, low-rank or PEFT folders) as a full vector folder.
 
@@ -130,6 +131,7 @@ def compose(
                     "consensus": consensus if method == "ties" else None,
                     "dtype": dtype_summary(i.dtype for i in infos.values()),
                     "sources": {"vectors": [f.describe() for f in folders]},
+                    "command": command,
                 }
             )
         except BaseException:

@@ -66,6 +66,7 @@ def extract(
     max_shard_size: int = DEFAULT_MAX_SHARD_SIZE,
     overwrite: bool = False,
     progress: bool = False,
+    command: str | None = None,
 ) -> dict[str, Any]:
     """Write the capability vector c = θ_aux − θ_sft to the vector folder ``out``.
 
@@ -83,6 +84,7 @@ def extract(
         dtype: storage dtype (default: the inputs'). Differences are computed in float32.
         max_shard_size: bytes per ``capability_vector`` shard.
         progress: show a tqdm bar.
+        command: the command line that asked for it, recorded in the metadata and model card.
 
     Returns:
         The metadata written to ``capability_vector.json``.
@@ -134,6 +136,7 @@ def extract(
             {"rank": rank, "energy": energy, "full_rank": list(full_rank)} if lowrank else None
         ),
         "skipped": skipped,
+        "command": command,
     }
     described = {name: src.describe() for name, src in sources.items()}
 

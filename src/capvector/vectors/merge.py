@@ -16,6 +16,7 @@ import torch
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
+from capvector.modelcard import MODEL_CARD, render_model_card, write_model_card
 from capvector.vectors.io import (
     EXPORT_CONFIG,
     CapVectorError,
@@ -134,6 +135,7 @@ def merge(
     overwrite: bool = False,
     progress: bool = False,
     allow_repeat: bool = False,
+    command: str | None = None,
 ) -> dict[str, Any]:
     """Write the export folder ``out`` = base + Σ λ_i·vector_i, sharded like the base.
 
@@ -182,13 +184,15 @@ def merge(
         "vectors": [{**f.describe(), "scale": s} for f, s in folders],
         "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "capvector_version": capvector_version(),
+        "command": command,
     }
     if (source.path / MERGE_RECORD).is_file():
         provenance["previous"] = read_json(source.path / MERGE_RECORD)
 
     with atomic_output(out, overwrite) as tmp:
-        skip = set(source.weight_files()) | {MERGE_RECORD, EXPORT_CONFIG}
+        skip = set(source.weight_files()) | {MERGE_RECORD, EXPORT_CONFIG, MODEL_CARD}
         write_json(tmp / EXPORT_CONFIG, {**source.config, MERGED_VECTORS: record_dicts(record)})
+        write_model_card(tmp, _merged_card(source, provenance))
         for item in source.path.iterdir():
             if item.name in skip:
                 continue
@@ -213,6 +217,26 @@ def merge(
             raise
         write_json(tmp / MERGE_RECORD, provenance)
     return provenance
+
+
+def _merged_card(source: SafetensorsFolder, provenance: Mapping[str, Any]) -> str:
+    terms = " + ".join(f"{v['scale']:g}·c({Path(v['path']).name})" for v in provenance["vectors"])
+    facts: dict[str, Any] = {
+        "family": source.config.get("family"),
+        "preset": (source.config.get("backbone_config") or {}).get("preset"),
+        "base": f"{source.path.resolve()} ({provenance['base']['fingerprint'][:23]}…)",
+    }
+    for i, v in enumerate(provenance["vectors"], 1):
+        facts[f"vector {i}"] = f"{v['path']} x {v['scale']:g} ({v['fingerprint'][:23]}…)"
+    return render_model_card(
+        "θ_meta: pretrained weights with capability vectors merged",
+        f"θ_meta = θ_pre + {terms}, written by `capvector merge` in capvector's export layout; "
+        "use it as `--model.pretrained` for downstream fine-tuning.",
+        facts,
+        base_model=str(source.path.resolve()),
+        tags=["capability-vector", "merge", *[t for t in [source.config.get("family")] if t]],
+        command=provenance.get("command"),
+    )
 
 
 def _merge_tensor(

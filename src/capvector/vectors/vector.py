@@ -23,6 +23,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from capvector.modelcard import render_model_card, write_model_card
 from capvector.vectors.io import (
     ADAPTER_CONFIG,
     ADAPTER_WEIGHTS,
@@ -316,8 +317,66 @@ class VectorFolderWriter:
             "capvector_version": capvector_version(),
         }
         write_json(self.folder / VECTOR_META, meta)
+        write_model_card(self.folder, vector_card(meta))
         return meta
 
     def abort(self) -> None:
         if self._writer is not None:
             self._writer.abort()
+
+
+def vector_card(meta: Mapping[str, Any]) -> str:
+    """The model card of a vector folder, from its ``capability_vector.json``."""
+    sources: dict[str, Any] = {}
+    for name, src in (meta.get("sources") or {}).items():
+        if isinstance(src, list):  # compositions list their vectors
+            sources.update({f"{name} {i}": item for i, item in enumerate(src, 1)})
+        else:
+            sources[name] = src
+    kind = meta.get("kind", "capability_vector")
+    title = "Capability vector" if kind == "capability_vector" else kind.replace("_", " ").title()
+    lowrank = meta.get("storage") == "lowrank"
+    summary = (
+        f"A CapVector {title.lower()}: the parameter difference "
+        f"`{meta.get('definition', 'aux - sft')}`. Merge it into a model with "
+        "`capvector merge --base MODEL --vector THIS_FOLDER:λ` or the `MergeCapabilityVector` "
+        "callback."
+        + (
+            " The 2-D weights are also a PEFT LoRA adapter (`adapter_config.json`): "
+            "`PeftModel.from_pretrained` adds them; the tensors in `capability_vector.safetensors` "
+            "are not part of the adapter."
+            if lowrank
+            else ""
+        )
+    )
+    facts: dict[str, Any] = {
+        f"source {name}": f"{src.get('path')} ({src.get('fingerprint', '')[:23]}…)"
+        for name, src in sources.items()
+        if isinstance(src, Mapping)
+    }
+    facts.update(
+        {
+            "objectives": meta.get("objectives"),
+            "method": meta.get("method"),
+            "include": meta.get("include"),
+            "exclude": meta.get("exclude"),
+            "storage": meta.get("storage"),
+            "norm ‖c‖": meta.get("norm"),
+            "tensors": meta.get("num_tensors"),
+            "parameters": meta.get("num_parameters"),
+            "dtype": meta.get("dtype"),
+        }
+    )
+    families = {src.get("family") for src in sources.values() if isinstance(src, Mapping)}
+    return render_model_card(
+        title,
+        summary,
+        facts,
+        base_model=[str(src.get("path")) for src in sources.values() if isinstance(src, Mapping)],
+        tags=[
+            "capability-vector",
+            *(f for f in families if f),
+            *(["lora", "peft"] if lowrank else []),
+        ],
+        command=meta.get("command"),
+    )
