@@ -24,10 +24,13 @@ def _umask() -> int:
 
 
 def _publish_modes(tmp: Path) -> None:
-    """Give a finished temporary folder or file the mode the umask allows. Only the ``tempfile``
-    object itself is private: what was written inside it already follows the umask."""
+    """Give a finished temporary folder (recursively) or file the modes the umask allows: tempfile
+    and some writers (safetensors) create private files."""
     mask = _umask()
-    os.chmod(tmp, (0o777 if tmp.is_dir() else 0o666) & ~mask)
+    paths = [tmp, *tmp.rglob("*")] if tmp.is_dir() else [tmp]
+    for path in paths:
+        if not path.is_symlink():
+            os.chmod(path, (0o777 if path.is_dir() else 0o666) & ~mask)
 
 
 def check_writable(path: str | Path, what: str = "output") -> Path:
