@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -254,3 +255,20 @@ def test_from_original_reports_an_unreachable_hub_id() -> None:
         OpenVLAOFT.from_original(
             "nonexistent-org-capvector/nonexistent-model", preset="openvla-oft-tiny"
         )
+
+
+def test_a_partial_nested_override_changes_only_the_fields_it_names() -> None:
+    from capvector.backbones import preset_config
+    from capvector.module import VLAModule
+
+    tiny = preset_config("openvla-oft-tiny")
+    changed = preset_config("openvla-oft-tiny", featurizer={"embed_dim": 32})
+    assert changed.featurizer.embed_dim == 32
+    assert (
+        dataclasses.replace(changed.featurizer, embed_dim=tiny.featurizer.embed_dim)
+        == tiny.featurizer
+    )
+    module = VLAModule(
+        backbone="openvla-oft-tiny", backbone_overrides={"featurizer": {"embed_dim": 32}}
+    )
+    assert module.backbone.config.featurizer == changed.featurizer

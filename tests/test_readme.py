@@ -39,3 +39,17 @@ def test_readme_backbone_example_builds_and_trains() -> None:
         optimizer.step()
     assert loss.item() < first
     assert model.capability_parameter_names() == ["body.0.weight", "body.0.bias"]
+
+
+def test_readme_peft_snippet_names_real_functions() -> None:
+    """The peft snippet's imports and calls exist (tests/test_vectors_extract.py runs the same
+    steps on real folders and compares with `capvector merge`)."""
+    block = next(
+        b
+        for b in re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
+        if "PeftModel" in b
+    )
+    namespace: dict = {}
+    exec(compile("\n".join(line for line in block.splitlines() if line.startswith("from")), "README.md", "exec"), namespace)  # fmt: skip
+    assert {"PeftModel", "from_pretrained", "VectorFolder", "apply_vector_"} <= set(namespace)
+    assert hasattr(namespace["VectorFolder"], "load_outside_adapter")
