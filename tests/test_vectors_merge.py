@@ -297,3 +297,40 @@ def test_apply_vector_to_dtensor_parameters(tmp_path: Path) -> None:
         )
     finally:
         dist.destroy_process_group()
+
+
+def test_merge_reports_how_much_of_the_vector_bf16_keeps(tmp_path: Path, capsys) -> None:  # noqa: ANN001
+    """A vector small next to the weights mostly rounds away in bf16: `capvector merge` measures
+    ‖(round(θ+λc) − round(θ)) − λc‖ / ‖λc‖, warns naming the worst tensors, and keeps all of it with
+    --dtype float32. apply_vector_ (the callback's merge) measures the same thing."""
+    from capvector.cli import main
+    from capvector.vectors import apply_vector_
+    from capvector.vectors.precision import MergePrecision
+
+    pre = tiny_state(0)
+    bf16 = {k: v.to(torch.bfloat16) if v.is_floating_point() else v for k, v in pre.items()}
+    write_export(tmp_path / "pre", bf16)
+    write_export(tmp_path / "sft", pre)
+    write_export(tmp_path / "aux", finetune(pre, 1, scale=1e-4))  # |c| ≈ 1e-4 against weights ≈ 0.1
+    assert extract(aux=tmp_path / "aux", sft=tmp_path / "sft", out=tmp_path / "vec")["norm"] > 0
+    base = ["merge", "--base", str(tmp_path / "pre"), "--vector", str(tmp_path / "vec")]
+    assert main([*base, "--out", str(tmp_path / "bf16")]) == 0
+    err = capsys.readouterr().err
+    record = json.loads((tmp_path / "bf16" / MERGE_RECORD).read_text())["precision"]
+    assert record["dtype"] == "bfloat16" and record["relative_error"] > 0.1
+    assert "warning" in err and record["worst"][0]["tensor"] in err and "--dtype float32" in err
+
+    assert main([*base, "--out", str(tmp_path / "fp32"), "--dtype", "float32"]) == 0
+    record = json.loads((tmp_path / "fp32" / MERGE_RECORD).read_text())["precision"]
+    assert record["dtype"] == "float32" and record["relative_error"] < 1e-3
+    assert all(
+        t.dtype == torch.float32
+        for t in load_file(tmp_path / "fp32" / "model.safetensors").values()
+        if t.is_floating_point()
+    )
+    assert "warning" not in capsys.readouterr().err
+
+    in_memory = MergePrecision()
+    apply_vector_(bf16, tmp_path / "vec", 1.0, precision=in_memory)
+    bf16_record = json.loads((tmp_path / "bf16" / MERGE_RECORD).read_text())["precision"]
+    assert in_memory.relative_error() == pytest.approx(bf16_record["relative_error"], rel=1e-6)

@@ -186,11 +186,17 @@ def merge_main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="merge a vector the base already holds (its config.json records merged vectors)",
     )
+    parser.add_argument(
+        "--dtype",
+        choices=("float32", "bfloat16", "float16"),
+        help="dtype of the merged weights (default: the base's); float32 keeps all of Σλc",
+    )
     _add_common(parser, dtype=False, shards=False)
     args = parser.parse_args(argv)
 
     def job() -> None:
         from capvector.vectors.merge import merge
+        from capvector.vectors.precision import precision_warning
 
         record = merge(
             args.base,
@@ -200,10 +206,17 @@ def merge_main(argv: list[str] | None = None) -> int:
             progress=True,
             allow_repeat=args.allow_repeat,
             command=command_line("merge", argv),
+            dtype=args.dtype,
         )
         terms = " + ".join(f"{s:g}·{p}" for p, s in args.vector)
         print(f"wrote {args.out} = {args.base} + {terms}")
         print(f"  base fingerprint {record['base']['fingerprint'][:23]}…; non-weight files copied")
+        kept = record["precision"]
+        print(
+            f"  {kept['dtype']} output keeps Σλc up to a {kept['relative_error']:.2%} relative error"
+        )
+        if warning := precision_warning(kept):
+            print(f"capvector merge: warning: {warning}", file=sys.stderr)
 
     return _run("merge", job)
 

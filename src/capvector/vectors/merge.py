@@ -33,10 +33,12 @@ from capvector.vectors.io import (
     dtype_name,
     examples,
     open_weights,
+    parse_dtype,
     read_json,
     row_chunks,
     write_json,
 )
+from capvector.vectors.precision import MergePrecision
 from capvector.vectors.record import (
     BY_MERGE,
     MERGED_VECTORS,
@@ -136,6 +138,7 @@ def merge(
     progress: bool = False,
     allow_repeat: bool = False,
     command: str | None = None,
+    dtype: torch.dtype | str | None = None,
 ) -> dict[str, Any]:
     """Write the export folder ``out`` = base + Σ λ_i·vector_i, sharded like the base.
 
@@ -144,7 +147,9 @@ def merge(
     (``merged_vectors``: fingerprint and λ) and ``capvector_merge.json`` records what was merged.
     A vector the base already holds is refused unless ``allow_repeat``. All vectors are checked
     against the base before anything is written, and a NaN/Inf found while streaming leaves no
-    output.
+    output. The sum is computed in float32 and written in ``dtype`` (default: the base's); how much
+    of Σλc that dtype kept is measured (``capvector.vectors.precision``) and recorded under
+    ``precision``.
 
     Returns:
         The record written to ``capvector_merge.json``.
@@ -174,10 +179,18 @@ def merge(
         check_not_merged(record, entry, f"the base {base}", allow_repeat)
         record.append(entry)
 
+    out_dtype = parse_dtype(dtype) if isinstance(dtype, str) else dtype
+
+    def out_info(key: str) -> TensorInfo:
+        info = source.info(key)
+        keep = out_dtype is None or not info.dtype.is_floating_point
+        return info if keep else TensorInfo(out_dtype, info.shape)
+
     layout = ShardLayout(
-        [(name, [(k, source.info(k)) for k in keys]) for name, keys in source.files.items()],
+        [(name, [(k, out_info(k)) for k in keys]) for name, keys in source.files.items()],
         source.index_path.name if source.index_path else None,
     )
+    precision = MergePrecision()
     first_meta = next(iter(source.file_metadata.values()), {})
     provenance: dict[str, Any] = {
         "base": source.describe(),
@@ -209,12 +222,13 @@ def merge(
                 scratch = Scratch()
                 for _, items in layout.files:
                     for key, info in items:
-                        _merge_tensor(source, folders, writer, key, info, scratch)
+                        _merge_tensor(source, folders, writer, key, info, scratch, precision)
                         bar.update(info.nbytes)
             writer.finish()
         except BaseException:
             writer.abort()
             raise
+        provenance["precision"] = precision.summary()
         write_json(tmp / MERGE_RECORD, provenance)
     return provenance
 
@@ -246,13 +260,15 @@ def _merge_tensor(
     key: str,
     info: TensorInfo,
     scratch: Scratch,
+    precision: MergePrecision,
 ) -> None:
     touching = [(f, s) for f, s in folders if key in f]
     for rows in row_chunks(info):
-        chunk = source.read(key, rows)
+        chunk = source.read(key, rows).to(info.dtype)
         if touching:
             deltas = [(f.read(key, rows), s) for f, s in touching]
             merged = add_scaled(chunk, deltas, scratch)
+            precision.add(key, chunk, merged, sum(s * d.float() for d, s in deltas))
             if not all_finite(merged):  # after the cast back, which may overflow float16
                 culprits = [
                     str(f.path)
@@ -366,8 +382,11 @@ def apply_vector_(
     target: nn.Module | MutableMapping[str, Tensor],
     vector: str | Path | Mapping[str, Tensor] | CapabilityVector,
     scale: float = 1.0,
+    precision: MergePrecision | None = None,
 ) -> list[str]:
     """In place: θ ← θ + scale·c for every tensor of the vector; validates everything first.
+
+    With ``precision``, how much of scale·c each tensor's dtype kept is measured into it.
 
     ``target`` is a module (parameters and buffers) or a state dict whose tensors are updated in
     place. Nothing changes when validation fails. DTensor parameters (FSDP2) are updated shard by
@@ -383,23 +402,27 @@ def apply_vector_(
     changed = []
     with torch.no_grad():
         for key, (name, tensor) in resolved.items():
-            _add_in_place(tensor, vec.delta(key), scale)
+            _add_in_place(tensor, vec.delta(key), scale, precision, key)
             changed.append(name)
     return changed
 
 
-def _add_in_place(tensor: Tensor, delta: Tensor, scale: float) -> None:
+def _add_in_place(
+    tensor: Tensor, delta: Tensor, scale: float, precision: MergePrecision | None, key: str
+) -> None:
     from torch.distributed.tensor import DTensor, distribute_tensor
 
+    local = tensor
     if isinstance(tensor, DTensor):
         # src_data_rank=None: each rank slices its shard from its own copy, no scatter.
-        local_delta = distribute_tensor(
+        delta = distribute_tensor(
             delta.to(tensor.to_local().device),
             tensor.device_mesh,
             tensor.placements,
             src_data_rank=None,
         ).to_local()
-        local = tensor.to_local()
-        local.copy_(add_scaled(local, [(local_delta, scale)]))
-    else:
-        tensor.copy_(add_scaled(tensor, [(delta, scale)]))
+        local = tensor.to_local()  # this rank's shard: the precision is measured per rank
+    merged = add_scaled(local, [(delta, scale)])
+    if precision is not None:
+        precision.add(key, local, merged, scale * delta.float().to(local.device))
+    local.copy_(merged)
