@@ -55,6 +55,8 @@ def main() -> None:
     parser.add_argument("--scale", type=float, default=1.0)
     parser.add_argument("--orth-weight", type=float, default=0.0, help="orthogonal regularization")
     parser.add_argument("--export-initial", default=None, help="export the weights before training")
+    parser.add_argument("--frozen-dtype", default="float32", help="VLAModule(frozen_dtype=...)")
+    parser.add_argument("--precision", default="32-true", help="Trainer(precision=...)")
     parser.add_argument(
         "--validate-episodes", type=int, default=0, help="only run rollout validation"
     )
@@ -77,6 +79,7 @@ def main() -> None:
         data_spec=dm.spec,
         lora=LoraSettings(r=4, alpha=8),
         activation_checkpointing=args.activation_checkpointing,
+        frozen_dtype=args.frozen_dtype,
     )
     if args.export_initial:
         module.export(args.export_initial)
@@ -108,6 +111,7 @@ def main() -> None:
         devices=args.devices,
         strategy=strategy,
         max_steps=args.steps,
+        precision=args.precision,
         logger=False,
         enable_progress_bar=False,
         enable_model_summary=False,

@@ -6,7 +6,8 @@ import fnmatch
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from torch import Tensor
+import torch
+from torch import Tensor, nn
 
 from capvector.backbones.base import VLABackbone
 
@@ -48,8 +49,8 @@ def inject_lora(backbone: VLABackbone, settings: LoraSettings) -> None:
 def merge_lora_state_dict(state: Mapping[str, Tensor], scaling: float) -> dict[str, Tensor]:
     """A state dict with LoRA merged in and peft's key changes undone.
 
-    ``X.base_layer.weight`` + scaling * B @ A becomes ``X.weight`` (computed in fp32, stored in the
-    base dtype), so exports of LoRA and of full fine-tuning have the same keys and capability
+    ``X.base_layer.weight`` + scaling * B @ A becomes ``X.weight`` (computed and stored in fp32, or
+    float64 for a float64 base), so exports of LoRA and of full fine-tuning have the same keys and capability
     vectors subtract them directly. Works on plain state dicts, so the same code serves a single
     process and a state dict gathered from FSDP2 shards.
     """
@@ -62,5 +63,31 @@ def merge_lora_state_dict(state: Mapping[str, Tensor], scaling: float) -> dict[s
         base_key = f"{prefix}.base_layer.weight"
         lora_b = state[f"{prefix}.lora_B.{ADAPTER}.weight"].float()
         base = merged[base_key]
-        merged[base_key] = (base.float() + scaling * (lora_b @ state[key].float())).to(base.dtype)
+        # A bf16 frozen base keeps its LoRA update in float32: bf16 would round much of it away.
+        dtype = torch.promote_types(base.dtype, torch.float32)
+        merged[base_key] = (base.float() + scaling * (lora_b @ state[key].float())).to(dtype)
     return {k.replace(".base_layer.", "."): v for k, v in merged.items()}
+
+
+FROZEN_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}
+
+
+def frozen_dtype_of(name: str) -> torch.dtype:
+    if name not in FROZEN_DTYPES:
+        raise ValueError(f"model.frozen_dtype {name!r} is not one of {sorted(FROZEN_DTYPES)}")
+    return FROZEN_DTYPES[name]
+
+
+def cast_frozen_parameters(module: nn.Module, dtype: torch.dtype, keep: set[str]) -> list[str]:
+    """Store every parameter that does not train in ``dtype``, except those named in ``keep``
+    (names without wrapper modules such as peft's ``base_layer``). Returns the names cast.
+
+    Follows peft's adapter autocasting and OpenVLA-OFT's recipe: the frozen base in bf16, what
+    trains in float32 (its gradients and AdamW state too)."""
+    cast = []
+    for name, param in module.named_parameters():
+        if param.requires_grad or name.replace(".base_layer.", ".") in keep:
+            continue
+        param.data = param.data.to(dtype)
+        cast.append(name)
+    return cast

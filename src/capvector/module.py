@@ -28,10 +28,17 @@ from capvector.backbones.base import (
 from capvector.data.episodes import EpisodeItem
 from capvector.data.spec import DataSpec
 from capvector.distributed import full_state_dict, is_rank_zero, parallelize
-from capvector.lora import LoraSettings, inject_lora, merge_lora_state_dict
+from capvector.lora import (
+    LoraSettings,
+    cast_frozen_parameters,
+    frozen_dtype_of,
+    inject_lora,
+    merge_lora_state_dict,
+)
 from capvector.metrics import SuccessRate
 from capvector.objectives.base import Objective
 from capvector.policy import VLAPolicy
+from capvector.vectors.io import dtype_name
 from capvector.vectors.record import MERGED_VECTORS, MergedVector, read_record, record_dicts
 
 STATISTICS_FILE = "dataset_statistics.json"
@@ -76,6 +83,7 @@ class VLAModule(L.LightningModule):
         optimizer: OptimizerSettings | None = None,
         activation_checkpointing: bool = False,
         rollout: RolloutSettings | None = None,
+        frozen_dtype: str = "float32",
     ) -> None:
         """
         Args:
@@ -89,6 +97,11 @@ class VLAModule(L.LightningModule):
             activation_checkpointing: recompute the backbone's blocks (``shard_units``) in the
                 backward pass instead of storing their activations.
             rollout: videos and chunk execution of the MuJoCo validation loop.
+            frozen_dtype: storage dtype of every parameter that does not train (``bfloat16`` halves
+                the frozen weights of a LoRA fine-tune, as OpenVLA-OFT's recipe keeps its 7.5 B
+                base in bf16); what trains (LoRA, heads, objective projectors) and what
+                ``MergeCapabilityVector`` merges stay float32. Needs ``trainer.precision:
+                bf16-mixed`` (autocast computes in bf16; float32 inputs meet bf16 weights).
         """
         super().__init__()
         self.save_hyperparameters()
@@ -125,6 +138,10 @@ class VLAModule(L.LightningModule):
                 param.requires_grad_(False)
         self.objectives = nn.ModuleDict()
         self.activation_checkpointing = activation_checkpointing
+        self.frozen_dtype = frozen_dtype_of(frozen_dtype)
+        self.float32_parameters: set[str] = set()
+        """Names (without wrapper modules) kept in float32 even when frozen: callbacks add the
+        parameters a capability vector is merged into, so λc is not rounded away."""
         self.rollout = rollout or RolloutSettings()
         self.success_rates = nn.ModuleDict()
         self.episode_count = SumMetric()
@@ -154,6 +171,9 @@ class VLAModule(L.LightningModule):
         activation checkpointing. Runs after callbacks attached their objectives in ``setup``."""
         if self._parallelized:
             return
+        if self.frozen_dtype != torch.float32:
+            self._check_autocast()
+            cast_frozen_parameters(self.backbone, self.frozen_dtype, keep=self.float32_parameters)
         parallelize(
             self.backbone,
             self.backbone.shard_units(),
@@ -162,6 +182,15 @@ class VLAModule(L.LightningModule):
             self.activation_checkpointing,
         )
         self._parallelized = True
+
+    def _check_autocast(self) -> None:
+        precision = str(self.trainer.precision) if self._trainer is not None else None
+        if precision not in (None, "bf16-mixed", "16-mixed"):
+            raise BackboneError(
+                f"model.frozen_dtype={dtype_name(self.frozen_dtype)} needs trainer.precision: "
+                f"bf16-mixed (autocast), not {precision}: without it float32 activations meet "
+                f"{dtype_name(self.frozen_dtype)} weights. Set both, or model.frozen_dtype=float32"
+            )
 
     # -- objectives ----------------------------------------------------------------------------
 
@@ -345,6 +374,8 @@ class VLAModule(L.LightningModule):
             config_extra={
                 "objectives": sorted(self.objectives),
                 MERGED_VECTORS: record_dicts(self.merged_vectors),
+                # Trained and merged-into weights are float32, the frozen rest this dtype.
+                "frozen_dtype": dtype_name(self.frozen_dtype),
             },
             overwrite=overwrite,
             card_facts={

@@ -6,10 +6,11 @@ from __future__ import annotations
 from typing import Any
 
 import lightning as L
-from lightning.pytorch.utilities.rank_zero import rank_zero_info
+from lightning.pytorch.utilities.rank_zero import rank_zero_info, rank_zero_warn
 
 from capvector.objectives.orthogonality import OrthogonalityLoss
 from capvector.vectors import VectorFolder, apply_vector_, validate_vector
+from capvector.vectors.precision import MergePrecision
 from capvector.vectors.record import (
     BY_FIT_START,
     MERGED_VECTORS,
@@ -54,6 +55,8 @@ class MergeCapabilityVector(L.Callback):
         )
         self._loaded = folder.load()
         validate_vector(pl_module.backbone, self._loaded, self.scale)
+        # Before configure_model casts frozen weights: what c lands in stays float32.
+        pl_module.float32_parameters.update(self._loaded.keys())
 
     def on_load_checkpoint(
         self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]
@@ -72,10 +75,16 @@ class MergeCapabilityVector(L.Callback):
         if self._resumed:
             rank_zero_info(f"{self._entry.describe()} was merged before this resume; not again")
             return
-        changed = apply_vector_(pl_module.backbone, self._loaded, self.scale)
+        precision = MergePrecision()
+        changed = apply_vector_(pl_module.backbone, self._loaded, self.scale, precision)
         pl_module.merged_vectors.append(self._entry)
         self._loaded = None
-        rank_zero_info(f"merged {self.vector} x {self.scale} into {len(changed)} tensors")
+        rank_zero_info(
+            f"merged {self.vector} x {self.scale} into {len(changed)} tensors ({precision.dtype} "
+            f"keeps λc up to a {precision.relative_error():.2%} relative error)"
+        )
+        if warning := precision.warning():
+            rank_zero_warn(warning)
 
 
 class OrthogonalRegularization(L.Callback):
