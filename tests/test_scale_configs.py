@@ -45,6 +45,7 @@ def test_full_size_config_parses_and_its_strategy_instantiates(
     )
     assert type(strategy_object).__name__ == class_name
     assert resolved["trainer"]["precision"] == "bf16-mixed"
+    assert resolved["model"]["frozen_dtype"] == "bfloat16"
     assert (
         resolved["data"]["batch_size"] == 8 and resolved["trainer"]["accumulate_grad_batches"] == 1
     )

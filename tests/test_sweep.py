@@ -40,6 +40,7 @@ def test_exact_difference_vector_is_best_at_scale_one(tmp_path: Path) -> None:
     )
     assert [r["scale"] for r in rows] == [0.0, 0.5, 1.0, 1.5]
     assert best_scale(rows) == 1.0
+    assert all(r["merge_relative_error"] < 1e-5 for r in rows)  # float32 weights keep all of λc
     # Resume: finished scales are read back, only the new one is computed.
     saved = json.loads((tmp_path / "sweep" / "sweep.json").read_text())
     assert main([

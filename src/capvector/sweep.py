@@ -81,6 +81,7 @@ def sweep(
     from capvector.policy import VLAPolicy
     from capvector.sim.rollout import run_episode
     from capvector.vectors import apply_vector_, load_vector
+    from capvector.vectors.precision import MergePrecision
 
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -98,14 +99,15 @@ def sweep(
     for scale in tqdm(scales, desc="λ", unit="scale"):
         if scale in done:
             continue
-        module = load_module(base)
-        apply_vector_(module.backbone, c, scale)
+        module = load_module(base)  # float32 weights: the merge keeps all of λc (recorded)
+        precision = MergePrecision()
+        apply_vector_(module.backbone, c, scale, precision)
         if finetune_steps:
             if demos is None:
                 raise ValueError("--finetune-steps needs --demos (the downstream training demos)")
             finetune(module, vector, demos, finetune_steps, orth_weight)
         module.eval()
-        row: dict[str, Any] = {"scale": scale}
+        row: dict[str, Any] = {"scale": scale, "merge_relative_error": precision.relative_error()}
         if demos:
             row["held_out_l1"] = held_out_l1(module, demos)
         if specs:
