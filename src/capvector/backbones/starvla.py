@@ -566,12 +566,14 @@ class StarVLA(VLABackbone):
         return self.config.prompt_template.replace("{instruction}", text)
 
     def state_bins(self, state: Tensor) -> Tensor:
-        """(P,) state in [-1, 1] -> bin indices, pi0.5's ``np.digitize(s, linspace(-1, 1, n + 1)[:-1]) - 1``.
-
-        Clipped to [0, n - 1]: StarVLA's helper yields -1 for values below -1.
+        """(P,) normalised state -> bin indices, as StarVLA's ``share_tools.state2str_transform``:
+        ``np.digitize(s, linspace(-1, 1, n + 1)[:-1]) - 1``. Values below -1 give bin -1 and values
+        from 1 - 2/n up give n - 1, as there: StarVLA's q99 normaliser clamps states to [-2.2, 2.2]
+        only (``gr00t_lerobot/transform/state_action.py``), so states outside [-1, 1] reach the
+        prompt. Computed in float64, where the bin edges -1 + 2k/n are exact.
         """
         n = self.config.state_bins
-        return ((state.float() + 1) * (n / 2)).floor().clamp(0, n - 1).long()
+        return ((state.double() + 1) * (n / 2)).floor().clamp(-1, n - 1).long()
 
     def tokenize(
         self, texts: Sequence[str], n_images: int, device: torch.device
@@ -785,7 +787,10 @@ class StarVLA(VLABackbone):
     def _add_special_tokens(tok: Any, tokens: Sequence[str]) -> list[int]:
         from tokenizers import AddedToken
 
-        missing = [t for t in tokens if t not in tok.get_vocab()]
+        # A token the tokenizer already encodes as one id is used as it is: StarVLA's emoji query
+        # is an ordinary token of Qwen's vocabulary, and adding it as a special token would change
+        # how its neighbours are split (``>🔍🔍<`` is one pre-token in Qwen's pattern).
+        missing = [t for t in tokens if len(tok.encode(t, add_special_tokens=False)) != 1]
         if missing:
             # Special added tokens: never split, never merged with their neighbours.
             tok.add_tokens(
@@ -881,70 +886,72 @@ class StarVLA(VLABackbone):
         overrides: Mapping[str, Any] | None = None,
         qwen_folder: str | Path | None = None,
     ) -> OriginalCheckpoint:
-        """A StarVLA run's checkpoint file with ``qwen_folder`` (see ``from_starvla``), or, without
-        it, a plain transformers Qwen-VL folder as the VLM with a fresh head (``from_qwen``)."""
-        preset = preset or "starvla-qwen2.5-vl-3b-oft"
-        if qwen_folder is None:
-            return OriginalCheckpoint(cls.from_qwen(source, preset, **(overrides or {})), {})
-        model, stats = cls.from_starvla(source, qwen_folder, preset, **(overrides or {}))
-        return OriginalCheckpoint(model, stats)
+        """A StarVLA run (its folder or ``checkpoints/steps_N_*`` file) with the Qwen-VL folder it
+        started from, read by ``convert_starvla`` (config.yaml -> config, key map, statistics); or,
+        without ``qwen_folder``, a plain transformers Qwen-VL folder as the VLM with a fresh head
+        (``from_qwen``).
 
-    @classmethod
-    def from_starvla(
-        cls,
-        checkpoint: str | Path,
-        qwen_folder: str | Path,
-        preset: str,
-        query_token_source: str | None = "🔍",
-        **overrides: Any,
-    ) -> tuple[StarVLA, dict[str, Any]]:
-        """A StarVLA run's ``checkpoints/steps_N_pytorch_model.pt`` (or ``.safetensors``): the full
-        framework state dict, mapped by ``starvla_key_map`` and loaded strictly. Returns the model
-        and the run's ``dataset_statistics.json`` (empty when absent).
-
-        ``qwen_folder`` is the base VLM the run started from (its ``framework.qwenvl.base_vlm``):
-        it gives the architecture and tokenizer; its weights are not read. For OFT heads the query
-        token's embedding row is copied from ``query_token_source``'s (StarVLA's emoji), so the
-        trained query embedding carries over to the added special token.
+        For a run, ``preset`` defaults to the full-size preset of the run's framework and Qwen
+        version; the run's config.yaml then sets every field it decides, and ``overrides`` last.
         """
-        path = Path(checkpoint)
-        if not path.is_file():
-            raise BackboneError(f"StarVLA checkpoint {path} does not exist")
-        root = _folder(qwen_folder)
-        config = _starvla_config(preset, overrides)
-        version = _qwen_version(config.qwen_version)
-        _check_model_type(root, version, config.qwen_version)
-        config_class, model_class = version.classes()
-        hf_config = config_class.from_pretrained(str(root))
-        config.qwen = _architecture(hf_config)
-        _read_image_statistics(root, config)
-        config.tokenizer = str(root)
-        # fp32 as from_qwen; transformers would otherwise build in the folder's dtype (bf16).
-        vlm = model_class._from_config(
-            hf_config, attn_implementation=config.attn_implementation, dtype=torch.float32
-        )
-        model = cls(config, vlm=vlm, tokenizer=_load_tokenizer(str(root)))
-        state = starvla_key_map(_read_state(path), model)
-        if model.action_head.num_query_tokens and query_token_source is not None:
-            model._copy_query_embedding(state, query_token_source)
-        load_state_dict_strictly(model, state, source=str(path))
-        stats_path = path.parent.parent / "dataset_statistics.json"
-        stats = json.loads(stats_path.read_text()) if stats_path.is_file() else {}
-        return model, stats
+        if qwen_folder is None:
+            preset = preset or "starvla-qwen2.5-vl-3b-oft"
+            model = cls.from_qwen(source, preset, **(overrides or {}))
+            return OriginalCheckpoint(model, {})
+        return _from_starvla_run(cls, source, Path(qwen_folder), preset, overrides)
 
-    def _copy_query_embedding(self, state: dict[str, Tensor], source: str) -> None:
-        ids = self.tokenizer.encode(source, add_special_tokens=False)
-        if len(ids) != 1:
-            raise BackboneError(
-                f"query_token_source {source!r} is {len(ids)} tokens in this tokenizer, so it "
-                "cannot have been StarVLA's query token; pass query_token_source=None"
-            )
-        key = "vlm.model.language_model.embed_tokens.weight"
-        if key not in state:
-            raise BackboneError(f"the StarVLA checkpoint has no {key}")
-        embeddings = state[key].clone()
-        embeddings[self._token_ids.query] = embeddings[ids[0]]
-        state[key] = embeddings
+
+def _from_starvla_run(
+    cls: type[StarVLA],
+    source: str | Path,
+    qwen_folder: Path,
+    preset: str | None,
+    overrides: Mapping[str, Any] | None,
+) -> OriginalCheckpoint:
+    from capvector.backbones import convert_starvla as conv
+
+    run = conv.read_run(source)
+    root = _folder(qwen_folder)
+    model_type = json.loads((root / "config.json").read_text()).get("model_type")
+    versions = [k for k, v in QWEN_VERSIONS.items() if v.model_type == model_type]
+    if not versions:
+        raise BackboneError(
+            f"{root} holds a {model_type!r} model; StarVLA runs on {sorted(QWEN_VERSIONS)} import"
+        )
+    version = QWEN_VERSIONS[versions[0]]
+    config_class, model_class = version.classes()
+    hf_config = config_class.from_pretrained(str(root))
+    vision = hf_config.vision_config
+    derived = conv.config_overrides(
+        run.config, root, vision.patch_size * vision.spatial_merge_size, run.statistics
+    )
+    derived["qwen_version"] = versions[0]
+    head = derived["head"]
+    if preset is None:
+        size = "4b" if versions[0] == "qwen3-vl" else "3b"
+        preset = f"starvla-{versions[0]}-{size}-{head}"
+    config = _starvla_config(preset, conv.merged_overrides(derived, overrides))
+    _check_model_type(root, _qwen_version(config.qwen_version), config.qwen_version)
+    config.qwen = _architecture(hf_config)
+    _read_image_statistics(root, config)
+    config.tokenizer = str(root)
+    # fp32 as from_qwen; transformers would otherwise build in the folder's dtype (bf16).
+    vlm = model_class._from_config(
+        hf_config, attn_implementation=config.attn_implementation, dtype=torch.float32
+    )
+    model = cls(config, vlm=vlm, tokenizer=_load_tokenizer(str(root)))
+    state = conv.starvla_key_map(
+        conv.read_state(run.checkpoint),
+        config.head,
+        getattr(model.action_head, "state_encoder", None) is not None,
+        _tied(model),
+    )
+    load_state_dict_strictly(model, state, source=str(run.checkpoint))
+    return OriginalCheckpoint(
+        model,
+        conv.convert_statistics(run.statistics),
+        {"config.yaml": run.config, "dataset_statistics.json": run.statistics},
+    )
 
 
 @dataclass
@@ -954,52 +961,6 @@ class VLMEncoding:
     head_input: HeadInput
     requested: dict[int, Tensor]
     """Requested layer index -> (B, S, H), contract semantics (pre-norm)."""
-
-
-# -- StarVLA checkpoints -------------------------------------------------------------------------
-
-# StarVLA framework attribute -> ours. transformers >= 4.52 (StarVLA pins 4.57) names the
-# Qwen-VL's submodules model.visual / model.language_model; older runs saved visual.* / model.*.
-_STARVLA_PREFIXES = (
-    ("qwen_vl_interface.model.model.visual.", "vlm.model.visual."),
-    ("qwen_vl_interface.model.model.language_model.", "vlm.model.language_model."),
-    ("qwen_vl_interface.model.visual.", "vlm.model.visual."),
-    ("qwen_vl_interface.model.model.", "vlm.model.language_model."),
-    ("qwen_vl_interface.model.lm_head.", "vlm.lm_head."),
-    ("action_model.", "action_head."),
-    ("project_layers.", "action_head.projectors."),  # QwenPI_v3's per-layer projectors
-)
-
-
-def starvla_key_map(state: Mapping[str, Tensor], model: StarVLA) -> dict[str, Tensor]:
-    """StarVLA framework state dict -> ours. Keys of modules StarVLA builds but never runs are
-    dropped by name; any other unknown key is left for the strict loader to report."""
-    dropped = _starvla_unused_prefixes(model)
-    mapped: dict[str, Tensor] = {}
-    for key, value in state.items():
-        if key.startswith(dropped):
-            continue
-        for old, new in _STARVLA_PREFIXES:
-            if key.startswith(old):
-                key = new + key[len(old) :]
-                break
-        mapped[key] = value
-    if _tied(model):
-        mapped.pop("vlm.lm_head.weight", None)  # the embedding matrix under a second name
-    return mapped
-
-
-def _starvla_unused_prefixes(model: StarVLA) -> tuple[str, ...]:
-    unused = []
-    head = model.action_head
-    if getattr(head, "state_encoder", "absent") is None:
-        # StarVLA builds a state encoder whenever state_dim is set, also when the state goes into
-        # the prompt (QwenPI_v3) or is never given.
-        unused.append("action_model.state_encoder.")
-    if model.config.head == "layerwise":
-        # LayerwiseFM's DiT builds GR00T's output projection but its forward skips it.
-        unused += ["action_model.model.proj_out_1.", "action_model.model.proj_out_2."]
-    return tuple(unused)
 
 
 # -- helpers -------------------------------------------------------------------------------------
@@ -1075,17 +1036,6 @@ def _read_image_statistics(root: Path, config: StarVLAConfig) -> None:
         pre = json.loads(path.read_text())
         config.image_mean = tuple(pre.get("image_mean", config.image_mean))
         config.image_std = tuple(pre.get("image_std", config.image_std))
-
-
-def _read_state(path: Path) -> dict[str, Tensor]:
-    if path.suffix == ".safetensors":
-        from safetensors.torch import load_file
-
-        return load_file(str(path))
-    state = torch.load(path, map_location="cpu", weights_only=True)
-    if not isinstance(state, Mapping):
-        raise BackboneError(f"{path} does not hold a state dict")
-    return dict(state)
 
 
 def _tied(model: StarVLA) -> bool:

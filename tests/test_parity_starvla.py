@@ -1,0 +1,148 @@
+"""Parity with StarVLA itself: runs written by StarVLA's own code, loaded through
+``StarVLA.from_original``, must compute what StarVLA computed.
+
+The fixtures under ``tests/fixtures/upstream/starvla/`` were produced by
+``tools/make_upstream_fixtures_starvla.py`` in a scratch environment with StarVLA's pinned stack
+(see PROVENANCE there); no StarVLA code is needed here. Each ``<variant>/run`` is a run folder as
+StarVLA's trainer writes it; ``reference.safetensors`` holds the fixed batch and StarVLA's outputs.
+All comparisons are in fp32 with ``TOL`` absolute tolerance.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from capvector.backbones.base import BackboneError
+from capvector.backbones.starvla import StarVLA
+from capvector.data import keys
+
+FIXTURES = Path(__file__).parent / "fixtures" / "upstream" / "starvla"
+QWEN = {"qwen2.5-vl": "Qwen2.5-VL-tiny", "qwen3-vl": "Qwen3-VL-tiny"}
+INSTRUCTIONS = ["pick up the red block", "open the top drawer please"]  # as in the tool
+TOL = 1e-5
+VARIANTS = sorted(p.name for p in FIXTURES.glob("*") if (p / "reference.safetensors").is_file())
+
+
+def qwen_folder(variant: str) -> Path:
+    version = "qwen3-vl" if variant.startswith("qwen3-vl") else "qwen2.5-vl"
+    return FIXTURES / "qwen" / version / QWEN[version]
+
+
+def load(variant: str, **overrides: object) -> tuple[StarVLA, dict, dict[str, torch.Tensor]]:
+    imported = StarVLA.from_original(
+        FIXTURES / variant / "run", overrides=overrides, qwen_folder=qwen_folder(variant)
+    )
+    ref = load_file(str(FIXTURES / variant / "reference.safetensors"))
+    return imported.model.eval(), imported.statistics, ref
+
+
+def batch_of(ref: dict[str, torch.Tensor]) -> dict:
+    images = ref["images"].permute(0, 1, 4, 2, 3).float() / 255  # (B, N, 3, H, W) in [0, 1]
+    batch = {keys.IMAGES: images, keys.INSTRUCTION: INSTRUCTIONS}
+    if "states" in ref:
+        batch[keys.PROPRIO] = ref["states"]
+    return batch
+
+
+def max_diff(a: torch.Tensor, b: torch.Tensor) -> float:
+    return (a.double() - b.double()).abs().max().item()
+
+
+@pytest.fixture(scope="module", params=VARIANTS)
+def variant(request: pytest.FixtureRequest) -> str:
+    return request.param
+
+
+def test_fixtures_exist() -> None:
+    assert "qwen2.5-vl-oft" in VARIANTS, f"no StarVLA fixtures under {FIXTURES}"
+
+
+def test_tokens_vision_and_hidden_states_match(variant: str) -> None:
+    model, _, ref = load(variant)
+    batch = batch_of(ref)
+    layers = sorted(int(k.split(".")[1]) for k in ref if k.startswith("hidden_states."))
+    last = max(layers)
+    with torch.no_grad():
+        enc = model.encode(batch, [i for i in layers if i < last])
+        pixel_values, grid = model.pixel_values(batch[keys.IMAGES])
+        vision = model.vlm.model.get_image_features(pixel_values, grid)
+    # The prompt, the chat template and the query tokens tokenise to StarVLA's ids exactly.
+    assert torch.equal(enc.input_ids, ref["input_ids"])
+    assert torch.equal(grid, ref["image_grid_thw"])
+    assert torch.equal(enc.head_input.mask, ref["attention_mask"].bool())
+    torch.testing.assert_close(
+        pixel_values.double().sum(), ref["pixel_values_sum"][0], atol=1e-3, rtol=1e-6
+    )
+    vision = getattr(vision, "pooler_output", vision)
+    vision = torch.cat(list(vision[0] if isinstance(vision, tuple) else vision))
+    assert max_diff(vision, ref["vision_features"]) < TOL
+    mask = enc.head_input.mask
+    for layer in layers:
+        ours = enc.head_input.last_hidden if layer == last else enc.requested[layer]
+        assert max_diff(ours[mask], ref[f"hidden_states.{layer}"][mask]) < TOL, layer
+
+
+def test_loss_and_actions_match(variant: str) -> None:
+    model, _, ref = load(variant)
+    batch = batch_of(ref)
+    head = model.action_head
+    state = batch.get(keys.PROPRIO) if model.config.state_mode == "head" else None
+    with torch.no_grad():
+        cond = model.encode(batch, all_layers=head.uses_all_layers).head_input
+        if "loss_noise" in ref:
+            loss = head.flow_loss(cond, ref["actions"], state, ref["loss_noise"], ref["loss_time"])
+            actions = head.sample(cond, state, noise=ref["predict_noise"])
+        else:
+            loss, actions = head.loss_and_actions(cond, ref["actions"], state)
+    assert abs(loss.item() - ref["loss"].item()) < TOL
+    assert max_diff(actions, ref["actions_pred"]) < TOL
+
+
+def test_statistics_come_back_in_capvector_schema(variant: str) -> None:
+    _, stats, ref = load(variant)
+    (entry,) = stats.values()
+    assert entry["action"]["mask"] == [True] * 6 + [False]
+    assert len(entry["action"]["q99"]) == 7
+    assert bool(entry["proprio"]) == ("states" in ref)
+
+
+def test_run_config_decides_the_architecture() -> None:
+    model, _, _ = load("qwen2.5-vl-oft")
+    assert (model.config.chunk_size, model.config.action_dim, model.config.image_size) == (4, 7, 56)
+    assert model.action_head.query_token == "\U0001f50d"  # StarVLA's own query, one Qwen token
+    # A nested override changes only the field it names.
+    model, _, _ = load("qwen2.5-vl-oft", head_args={"bidirectional_queries": True})
+    assert model.action_head.query_token == "\U0001f50d"
+    assert model.action_head.bidirectional_queries
+
+
+def test_unsupported_config_field_is_named(tmp_path: Path) -> None:
+    import shutil
+
+    import yaml
+
+    run = tmp_path / "run"
+    shutil.copytree(FIXTURES / "qwen2.5-vl-oft" / "run", run)
+    config = yaml.safe_load((run / "config.yaml").read_text())
+    config["framework"]["action_model"]["use_film"] = True
+    (run / "config.yaml").write_text(yaml.safe_dump(config))
+    with pytest.raises(BackboneError, match=r"framework\.action_model\.use_film"):
+        StarVLA.from_original(run, qwen_folder=qwen_folder("qwen2.5-vl-oft"))
+
+
+def test_missing_and_unknown_keys_are_named(tmp_path: Path) -> None:
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(FIXTURES / "qwen2.5-vl-oft" / "run", run)
+    ckpt = next((run / "checkpoints").iterdir())
+    state = torch.load(ckpt, weights_only=True)
+    del state["action_model.model.fc2.weight"]
+    state["action_model.vl_self_attention.weight"] = torch.zeros(1)
+    torch.save(state, ckpt)
+    with pytest.raises(BackboneError, match=r"1 missing key.*fc2\.weight.*1 unexpected"):
+        StarVLA.from_original(run, qwen_folder=qwen_folder("qwen2.5-vl-oft"))
