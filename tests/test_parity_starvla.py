@@ -146,3 +146,49 @@ def test_missing_and_unknown_keys_are_named(tmp_path: Path) -> None:
     torch.save(state, ckpt)
     with pytest.raises(BackboneError, match=r"1 missing key.*fc2\.weight.*1 unexpected"):
         StarVLA.from_original(run, qwen_folder=qwen_folder("qwen2.5-vl-oft"))
+
+
+@pytest.mark.parametrize(
+    ("variant", "wrong"),
+    [
+        # Before the fix: an interleaved PI_v3 run loaded and then always cross-attended.
+        ("qwen2.5-vl-pi-v3-interleave", {"head_args": {"interleave_self_attention": False}}),
+        # Before the fix: a GR00T run trained with state lost its state token.
+        ("qwen2.5-vl-gr00t-state", {"state_mode": "none", "proprio_dim": 0}),
+    ],
+)
+def test_the_fixtures_catch_the_known_differences(variant: str, wrong: dict) -> None:
+    ref = load_file(str(FIXTURES / variant / "reference.safetensors"))
+    run = FIXTURES / variant / "run"
+    # Loading the run as the old importer did: the state encoder's keys are then unexpected.
+    if "state_mode" in wrong:
+        with pytest.raises(BackboneError, match="unexpected key.*state_encoder"):
+            StarVLA.from_original(run, overrides=wrong, qwen_folder=qwen_folder(variant))
+        return
+    model = StarVLA.from_original(run, overrides=wrong, qwen_folder=qwen_folder(variant)).model
+    model.eval()
+    with torch.no_grad():
+        cond = model.encode(batch_of(ref), all_layers=True).head_input
+        actions = model.action_head.sample(cond, None, noise=ref["predict_noise"])
+    assert max_diff(actions, ref["actions_pred"]) > 1e-3
+
+
+def test_query_token_choice_keeps_upstream_tokenisation() -> None:
+    """StarVLA's emoji query sits inside one Qwen pre-token (``>🔍🔍🔍🔍<``); a special token splits
+    the text around it, and ``<action>`` after the queries is then pre-tokenised as ``<action``,
+    which Qwen's BPE merges as ``<a`` + ...: other ids than upstream's. So the importer keeps the
+    emoji (an ordinary single token of Qwen's vocabulary), and the ids equal StarVLA's."""
+    variant = "qwen2.5-vl-oft"
+    ref = load_file(str(FIXTURES / variant / "reference.safetensors"))
+    special = {"head_args": {"query_token": "<|action_query|>"}}
+    model = StarVLA.from_original(
+        FIXTURES / variant / "run", overrides=special, qwen_folder=qwen_folder(variant)
+    ).model
+    ids, _ = model.tokenize([model.prompt_text(t) for t in INSTRUCTIONS], 2, torch.device("cpu"))
+    tok = model.tokenizer
+    emoji_ids = set(tok.encode("\U0001f50d", add_special_tokens=False))
+    rest = [i for i in ids[0].tolist() if i not in (model._token_ids.query, tok.pad_token_id)]
+    upstream = [i for i in ref["input_ids"][0].tolist() if i not in emoji_ids | {tok.pad_token_id}]
+    assert rest != upstream
+    assert "<a" in tok.convert_ids_to_tokens(rest)
+    assert "<a" not in tok.convert_ids_to_tokens(upstream[-12:])

@@ -203,6 +203,10 @@ def qwen_tokenizer():
         merges.append((merged, piece))
         merged += piece
         vocab[merged] = len(vocab)
+    # Qwen's vocabulary has "<a" (HTML): with it, splitting the query tokens out of the text
+    # would change how "<action>" after them is tokenised (see the parity tests).
+    merges.append(("<", "a"))
+    vocab["<a"] = len(vocab)
     backend = Tokenizer(models.BPE(vocab=vocab, merges=merges))
     backend.pre_tokenizer = pre_tokenizers.Sequence(
         [
@@ -257,7 +261,14 @@ def write_qwen_folder(version: str, root: Path) -> Path:
         "vision_end_token_id": ids["<|vision_end|>"],
         "tie_word_embeddings": True,
     }
-    text = {**spec["text"], "vocab_size": vocab, "tie_word_embeddings": True}
+    text = {
+        **spec["text"],
+        "vocab_size": vocab,
+        "tie_word_embeddings": True,
+        "bos_token_id": None,
+        "eos_token_id": ids["<|im_end|>"],
+        "pad_token_id": ids["<|endoftext|>"],
+    }
     if version == "qwen2.5-vl":
         config = transformers.Qwen2_5_VLConfig(
             text_config=text, vision_config=spec["vision"], torch_dtype="float32", **common
@@ -534,7 +545,7 @@ Deviations from a real StarVLA run, all forced by size or the CPU:
   (attn_implementation: sdpa is set in the config).
 - The VLM is a tiny random Qwen-VL (32 wide, 2 layers) with a tiny byte-level BPE tokenizer
   (Qwen's special tokens, pre-tokenizer split pattern and chat template; merges only for the
-  emoji query, so it is one token as in Qwen's vocabulary). The folder keeps no weights file:
+  emoji query, so it is one token as in Qwen's vocabulary, and for "<a", a Qwen token). The folder keeps no weights file:
   the checkpoint holds every weight.
 - Upstream's DiT size table (GR00T_ActionHeader.DiTConfig) has DiT-B/DiT-L only; the script adds a
   'DiT-tiny' row (16 wide, 2 heads x 8) to that dict at run time. No upstream code is changed.

@@ -439,12 +439,12 @@ STARVLA_PREFIXES = (
 
 
 def starvla_key_map(
-    state: Mapping[str, Tensor], head: str, has_state_encoder: bool, tied: bool
+    state: Mapping[str, Tensor], head: str, *, uses_state_encoder: bool, tied: bool
 ) -> dict[str, Tensor]:
     """StarVLA framework state dict -> ours. Keys of modules StarVLA builds but never runs are
     dropped by name; any other unknown key is left for the strict loader to report."""
     dropped: list[str] = []
-    if not has_state_encoder:
+    if not uses_state_encoder:
         # StarVLA builds a state encoder whenever state_dim is set, also when the state goes into
         # the prompt (QwenPI_v3) or is never given.
         dropped.append("action_model.state_encoder.")

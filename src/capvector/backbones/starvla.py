@@ -940,11 +940,14 @@ def _from_starvla_run(
         hf_config, attn_implementation=config.attn_implementation, dtype=torch.float32
     )
     model = cls(config, vlm=vlm, tokenizer=_load_tokenizer(str(root)))
+    # The run's state encoder is dropped only where StarVLA never runs it (decided from the run,
+    # not from the model we built): overriding a state-trained GR00T run to state_mode='none'
+    # then fails on its unexpected state_encoder keys instead of silently losing the state token.
     state = conv.starvla_key_map(
         conv.read_state(run.checkpoint),
         config.head,
-        getattr(model.action_head, "state_encoder", None) is not None,
-        _tied(model),
+        uses_state_encoder=derived.get("state_mode") == "head",
+        tied=_tied(model),
     )
     load_state_dict_strictly(model, state, source=str(run.checkpoint))
     return OriginalCheckpoint(
