@@ -20,10 +20,9 @@ from safetensors.torch import load_file
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from test_parity_starvla import FIXTURES, batch_of, qwen_folder  # noqa: E402
-
 from capvector.backbones.starvla import StarVLA  # noqa: E402
 from capvector.data import keys  # noqa: E402
+from test_parity_starvla import FIXTURES, batch_of, qwen_folder  # noqa: E402
 
 
 def diff(a: torch.Tensor, b: torch.Tensor) -> float:
