@@ -431,8 +431,9 @@ def run_variant(name: str, spec: dict, starvla: Path, out: Path, qwen_folder: Pa
         vision = model.qwen_vl_interface.model.model.get_image_features(
             inputs["pixel_values"], inputs["image_grid_thw"]
         )
-    vision = vision[0] if isinstance(vision, tuple) else vision  # Qwen3-VL: (embeds, deepstack)
-    refs["vision_features"] = torch.cat(list(vision), dim=0)
+    if isinstance(vision[0], (tuple, list)):  # Qwen3-VL: (per-image embeds, deepstack features)
+        vision = vision[0]
+    refs["vision_features"] = torch.cat(list(vision), dim=0)  # per-image embeds, concatenated
     for layer in sorted({0, 1, len(hidden) - 1}):
         refs[f"hidden_states.{layer}"] = hidden[layer]
 

@@ -35,15 +35,14 @@ def report(fixtures: Path, variant: str) -> str:
     ref = load_file(str(fixtures / variant / "reference.safetensors"))
     batch = batch_of(ref)
     layers = sorted(int(k.split(".")[1]) for k in ref if k.startswith("hidden_states."))
-    last = max(layers)
     head = model.action_head
     state = batch.get(keys.PROPRIO) if model.config.state_mode == "head" else None
     with torch.no_grad():
-        enc = model.encode(batch, [i for i in layers if i < last], all_layers=head.uses_all_layers)
+        enc = model.encode(batch, [0], all_layers=True)
         pixel_values, grid = model.pixel_values(batch[keys.IMAGES])
         vision = model.vlm.model.get_image_features(pixel_values, grid)
         vision = getattr(vision, "pooler_output", vision)
-        vision = torch.cat(list(vision[0] if isinstance(vision, tuple) else vision))
+        vision = torch.cat(list(vision))  # per-image embeds (transformers 5: pooler_output)
         cond = enc.head_input
         if "loss_noise" in ref:
             loss = head.flow_loss(cond, ref["actions"], state, ref["loss_noise"], ref["loss_time"])
@@ -51,13 +50,8 @@ def report(fixtures: Path, variant: str) -> str:
         else:
             loss, actions = head.loss_and_actions(cond, ref["actions"], state)
     mask = cond.mask
-    hidden = [
-        diff(
-            (cond.last_hidden if i == last else enc.requested[i])[mask],
-            ref[f"hidden_states.{i}"][mask],
-        )
-        for i in layers
-    ]
+    ours = (enc.requested[0], *cond.layers)  # HF's hidden_states as StarVLA's heads read them
+    hidden = [diff(ours[i][mask], ref[f"hidden_states.{i}"][mask]) for i in layers]
     ids = torch.equal(enc.input_ids, ref["input_ids"])
     return (
         f"| {variant} | {'equal' if ids else 'DIFFER'} | {diff(vision, ref['vision_features']):.1e} | "

@@ -42,12 +42,14 @@ class HeadInput:
     """What a head conditions on. B batch, S sequence, H VLM width, L VLM layers, N query tokens."""
 
     last_hidden: Tensor
-    """(B, S, H) last decoder layer after the final norm (what StarVLA reads as ``hidden_states[-1]``)."""
+    """(B, S, H) the last decoder layer as StarVLA reads it (``hidden_states[-1]``): after the final
+    norm for Qwen2.5-VL, before it for Qwen3-VL (``starvla.QwenVersion.head_reads_final_norm``)."""
     mask: Tensor
     """(B, S) bool: True at real (non-padding) tokens."""
     layers: tuple[Tensor, ...] = ()
-    """L tensors (B, S, H): decoder layers 1..L, the last after the final norm (HF's
-    ``hidden_states[1:]``). Filled only for heads with ``uses_all_layers``."""
+    """L tensors (B, S, H): HF's ``hidden_states[1:]`` as StarVLA reads them (entry k: the input
+    of decoder layer k + 1; the last is ``last_hidden``). Filled only for heads with
+    ``uses_all_layers``."""
     query_positions: Tensor | None = None
     """(B, N) sequence positions of the action query tokens, for heads with query tokens."""
 

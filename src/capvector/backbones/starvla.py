@@ -80,6 +80,12 @@ class QwenVersion:
     """``model_type`` in a transformers ``config.json`` of this version (checked, never sniffed)."""
     config_class: str
     model_class: str
+    head_reads_final_norm: bool = True
+    """Whether the last hidden state StarVLA's heads read (``hidden_states[-1]`` of the
+    ``*ForConditionalGeneration`` output under its pinned transformers 4.57) has the final RMSNorm
+    applied. It has for Qwen2.5-VL; for Qwen3-VL it is the last decoder layer's raw output, and
+    the earlier entries include the DeepStack visual features added after a layer (measured on
+    the upstream fixtures). We follow it so imported heads see what they were trained on."""
 
     def classes(self) -> tuple[Any, Any]:
         import transformers
@@ -91,7 +97,9 @@ QWEN_VERSIONS = {
     "qwen2.5-vl": QwenVersion(
         "qwen2_5_vl", "Qwen2_5_VLConfig", "Qwen2_5_VLForConditionalGeneration"
     ),
-    "qwen3-vl": QwenVersion("qwen3_vl", "Qwen3VLConfig", "Qwen3VLForConditionalGeneration"),
+    "qwen3-vl": QwenVersion(
+        "qwen3_vl", "Qwen3VLConfig", "Qwen3VLForConditionalGeneration", head_reads_final_norm=False
+    ),
 }
 
 
@@ -489,7 +497,7 @@ class StarVLA(VLABackbone):
                 loss, actions = head.loss_and_actions(cond, target, state, seeds)
             else:
                 loss, actions = None, head.sample(cond, state)
-        logits = self.vlm.lm_head(encoding.head_input.last_hidden) if request.lm_logits else None
+        logits = self.vlm.lm_head(encoding.normed_last) if request.lm_logits else None
         return VLAOutput(
             actions=actions,
             loss=loss,
@@ -508,8 +516,8 @@ class StarVLA(VLABackbone):
         """Run the Qwen-VL on a batch: the head's conditioning and the requested hidden states.
 
         ``hidden_layers`` follows the contract (0 = input embeddings, k = decoder layer k before the
-        final norm). ``all_layers`` also returns every layer for the head, as HF's
-        ``hidden_states[1:]`` (the last after the final norm), the layers StarVLA's heads read.
+        final norm). ``all_layers`` also returns every layer for the head, as StarVLA's heads read
+        HF's ``hidden_states[1:]`` (see ``QwenVersion.head_reads_final_norm``).
         """
         images: Tensor = batch[keys.IMAGES]
         n_cam = images.shape[1]
@@ -531,9 +539,14 @@ class StarVLA(VLABackbone):
         if self.action_head.bidirectional_queries:
             attention = self._bidirectional_query_mask(mask, query_positions)
         layer_indices = set(hidden_layers)
-        if all_layers:
-            layer_indices |= set(range(1, self.num_layers))  # the last comes from the final norm
         store: dict[int, Tensor] = {}
+        # What StarVLA's heads read: HF's hidden_states[1:] (transformers 4.57). Entry k < L is
+        # the input of decoder layer k + 1 (layer k's output plus any DeepStack features added
+        # after it); the last is the final layer's output, normed or not by Qwen version.
+        head_store: dict[int, Tensor] = {}
+        layers = model.language_model.layers
+        head_entries = range(1, self.num_layers) if all_layers else range(0)
+        normed = _qwen_version(self.config.qwen_version).head_reads_final_norm
         hooks = []
         if 0 in layer_indices:
 
@@ -541,20 +554,34 @@ class StarVLA(VLABackbone):
                 store[0] = kwargs["inputs_embeds"]
 
             hooks.append(model.language_model.register_forward_pre_hook(grab, with_kwargs=True))
+        for k in head_entries:
+
+            def enter(_module: nn.Module, args: Any, kwargs: dict[str, Any], k: int = k) -> None:
+                head_store[k] = args[0] if args else kwargs["hidden_states"]
+
+            hooks.append(layers[k].register_forward_pre_hook(enter, with_kwargs=True))
+        if not normed:
+
+            def leave(_module: nn.Module, _args: Any, output: Any) -> None:
+                head_store[self.num_layers] = output[0] if isinstance(output, tuple) else output
+
+            hooks.append(layers[-1].register_forward_hook(leave))
         try:
-            with keep_hidden_states(model.language_model.layers, sorted(layer_indices), store):
+            with keep_hidden_states(layers, sorted(layer_indices), store):
                 out = self._run_vlm(ids, mask, images, attention)
         finally:
             for hook in hooks:
                 hook.remove()
-        last = out.last_hidden_state
-        layers = tuple(store[i] for i in range(1, self.num_layers)) + (last,) if all_layers else ()
+        final = out.last_hidden_state
+        last = final if normed else head_store[self.num_layers]
+        head_layers = tuple(head_store[k] for k in head_entries) + (last,) if all_layers else ()
         return VLMEncoding(
             input_ids=ids,
             head_input=HeadInput(
-                last_hidden=last, mask=mask, layers=layers, query_positions=query_positions
+                last_hidden=last, mask=mask, layers=head_layers, query_positions=query_positions
             ),
             requested={i: store[i] for i in hidden_layers},
+            normed_last=final,
         )
 
     def prompt_text(self, instruction: str, state: Tensor | None = None) -> str:
@@ -682,9 +709,7 @@ class StarVLA(VLABackbone):
         flat = images.flatten(0, 1).float()
         size = self.config.image_size
         if flat.shape[-2:] != (size, size):
-            flat = F.interpolate(
-                flat, size=(size, size), mode="bicubic", align_corners=False, antialias=True
-            ).clamp(0, 1)
+            flat = _resize_8bit(flat, size)
         flat = (flat - self.pixel_mean) / self.pixel_std
         n, channels = flat.shape[:2]
         p, m, t = self.patch_size, self.merge_size, self.temporal_patch_size
@@ -964,6 +989,8 @@ class VLMEncoding:
     head_input: HeadInput
     requested: dict[int, Tensor]
     """Requested layer index -> (B, S, H), contract semantics (pre-norm)."""
+    normed_last: Tensor
+    """(B, S, H) the last layer after the final norm (what the LM head reads)."""
 
 
 # -- helpers -------------------------------------------------------------------------------------
@@ -1039,6 +1066,24 @@ def _read_image_statistics(root: Path, config: StarVLAConfig) -> None:
         pre = json.loads(path.read_text())
         config.image_mean = tuple(pre.get("image_mean", config.image_mean))
         config.image_std = tuple(pre.get("image_std", config.image_std))
+
+
+def _resize_8bit(images: Tensor, size: int) -> Tensor:
+    """(N, 3, H, W) in [0, 1] -> (N, 3, size, size), resized as the Qwen processor StarVLA runs
+    (``Qwen2VLImageProcessorFast``, what Qwen3-VL ships): torchvision's bicubic antialiased resize
+    of the 8-bit image, which on CPU is torch's fixed-point uint8 kernel (bit-exact here), giving
+    an 8-bit image again. Elsewhere the float kernel, clamped and rounded to 8 bits, stands in
+    for it (within one grey level)."""
+    pixels = (images * 255).round().clamp(0, 255)
+    if images.device.type == "cpu":
+        resized = F.interpolate(
+            pixels.to(torch.uint8), size=(size, size), mode="bicubic", antialias=True
+        )
+        return resized.float() / 255
+    resized = F.interpolate(
+        pixels, size=(size, size), mode="bicubic", align_corners=False, antialias=True
+    )
+    return resized.clamp(0, 255).round() / 255
 
 
 def _tied(model: StarVLA) -> bool:
