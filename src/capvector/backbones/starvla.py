@@ -7,13 +7,18 @@ prompt; left padding) and the frameworks ``starVLA/model/framework/VLM4A/QwenOFT
 ``QwenGR00T.py``, ``QwenPI_v3.py``. Deviations, each marked where it happens:
 
 - the Qwen class is chosen by ``qwen_version``, not by substring-matching the checkpoint path;
-- OFT's action queries are a real added special token, always one token, with its id taken from the
-  tokenizer (StarVLA uses an emoji that Qwen3.5's tokenizer splits into 3 tokens);
+- OFT's action queries in a new model are a real added special token, always one token, with its
+  id taken from the tokenizer (StarVLA uses an emoji that Qwen3.5's tokenizer splits into 3
+  tokens). A StarVLA run imported by ``from_original`` keeps StarVLA's emoji, an ordinary single
+  Qwen token: splitting a special token out of the text changes how its neighbours tokenise;
 - every id (image pad, vision start/end, queries) comes from the tokenizer, none is hard-coded;
 - the configured attention implementation is honoured (StarVLA's ``QWen3.py`` overrides it with sdpa);
-- the flow heads mask the VLM padding (StarVLA passes no encoder mask);
-- images are normalised and patchified in the model, on the batch's device, exactly as transformers'
-  ``Qwen2VLImageProcessor`` does (tested), instead of a PIL round trip per sample.
+- images are normalised and patchified in the model, on the batch's device, as transformers' Qwen
+  image processors do (tested against StarVLA's outputs), instead of a PIL round trip per sample.
+
+Followed on purpose, though surprising: under StarVLA's transformers 4.57, the heads of a Qwen3-VL
+run read the last decoder layer *before* the final norm (``QwenVersion.head_reads_final_norm``).
+Loading StarVLA runs (config.yaml, statistics, key map) lives in ``convert_starvla.py``.
 
 Sequence layout (one row, left padded)::
 
