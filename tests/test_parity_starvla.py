@@ -125,18 +125,68 @@ def test_run_config_decides_the_architecture() -> None:
     assert model.action_head.bidirectional_queries
 
 
-def test_unsupported_config_field_is_named(tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    ("variant", "path", "value", "message"),
+    [
+        ("qwen2.5-vl-oft", "framework.action_model.use_film", True, r"action_model\.use_film"),
+        ("qwen2.5-vl-oft", "framework.reduce_in_full_precision", True, "reduce_in_full"),
+        ("qwen2.5-vl-oft", "framework.name", "QwenFast", "framework.name='QwenFast'"),
+        (
+            "qwen2.5-vl-gr00t",
+            "framework.action_model.diffusion_model_cfg.positional_embeddings",
+            "sinusoidal",
+            "positional_embeddings='sinusoidal'",
+        ),
+        (
+            "qwen2.5-vl-gr00t",
+            "framework.action_model.diffusion_model_cfg.norm_type",
+            "layer_norm",
+            "norm_type='layer_norm'",
+        ),
+        ("qwen2.5-vl-gr00t", "framework.action_model.add_pos_embed", False, "add_pos_embed"),
+        (
+            "qwen2.5-vl-pi-v3",
+            "framework.action_model.past_action_window_size",
+            2,
+            "past_action_window_size=2",
+        ),
+    ],
+)
+def test_unsupported_config_field_is_named(
+    tmp_path: Path, variant: str, path: str, value: object, message: str
+) -> None:
     import shutil
 
     import yaml
 
     run = tmp_path / "run"
-    shutil.copytree(FIXTURES / "qwen2.5-vl-oft" / "run", run)
+    shutil.copytree(FIXTURES / variant / "run", run)
     config = yaml.safe_load((run / "config.yaml").read_text())
-    config["framework"]["action_model"]["use_film"] = True
+    node = config
+    *parents, leaf = path.split(".")
+    for key in parents:
+        node = node[key]
+    node[leaf] = value
     (run / "config.yaml").write_text(yaml.safe_dump(config))
-    with pytest.raises(BackboneError, match=r"framework\.action_model\.use_film"):
-        StarVLA.from_original(run, qwen_folder=qwen_folder("qwen2.5-vl-oft"))
+    with pytest.raises(BackboneError, match=message):
+        StarVLA.from_original(run, qwen_folder=qwen_folder(variant))
+
+
+def test_run_values_reach_the_model() -> None:
+    """Fields the run's config.yaml decides, per framework (not the preset's defaults)."""
+    gr00t, _, _ = load("qwen2.5-vl-gr00t-state")
+    args = gr00t.config.head_args
+    assert (gr00t.config.state_mode, gr00t.config.proprio_dim) == ("head", 7)
+    assert (args["width"], args["num_heads"], args["num_layers"]) == (16, 2, 2)
+    assert args["interleave_self_attention"] and args["repeated_diffusion_steps"] == 3
+    plain, _, _ = load("qwen2.5-vl-gr00t")
+    assert plain.config.state_mode == "none" and plain.action_head.state_encoder is None
+    pi, _, _ = load("qwen2.5-vl-pi-v3-interleave")
+    args = pi.config.head_args
+    # QwenPI_v3: the state goes into the prompt, its repeats come from the trainer section, its
+    # MLPs are 1024 wide whatever action_model.hidden_size says.
+    assert pi.config.state_mode == "prompt" and args["repeated_diffusion_steps"] == 3
+    assert args["interleave_self_attention"] and args["hidden_size"] == 1024
 
 
 def test_missing_and_unknown_keys_are_named(tmp_path: Path) -> None:
@@ -197,3 +247,23 @@ def test_query_token_choice_keeps_upstream_tokenisation() -> None:
     assert rest != upstream
     assert "<a" in tok.convert_ids_to_tokens(rest)
     assert "<a" not in tok.convert_ids_to_tokens(upstream[-12:])
+
+
+def test_flow_draws_from_the_global_rng_match_upstream(variant: str) -> None:
+    """Without noise seeds, the flow heads draw noise then time from the global RNG in StarVLA's
+    order and with its formulas (GR00T: u clipped at s; layerwise: not), so the same torch seed
+    gives StarVLA's loss and actions: the tool seeded 2 before forward() and 3 before
+    predict_action()."""
+    model, _, ref = load(variant)
+    if "loss_noise" not in ref:
+        pytest.skip("the OFT head draws nothing")
+    batch, head = batch_of(ref), model.action_head
+    state = batch.get(keys.PROPRIO) if model.config.state_mode == "head" else None
+    with torch.no_grad():
+        cond = model.encode(batch, all_layers=head.uses_all_layers).head_input
+        torch.manual_seed(2)
+        loss = head.loss(cond, ref["actions"], state)
+        torch.manual_seed(3)
+        actions = head.sample(cond, state)
+    assert abs(loss.item() - ref["loss"].item()) < TOL
+    assert max_diff(actions, ref["actions_pred"]) < TOL
