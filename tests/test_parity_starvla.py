@@ -179,6 +179,13 @@ def test_run_values_reach_the_model() -> None:
     assert (gr00t.config.state_mode, gr00t.config.proprio_dim) == ("head", 7)
     assert (args["width"], args["num_heads"], args["num_layers"]) == (16, 2, 2)
     assert args["interleave_self_attention"] and args["repeated_diffusion_steps"] == 3
+    # Another head's tiny preset as the base: its head_args do not leak into the run's head.
+    other = StarVLA.from_original(
+        FIXTURES / "qwen2.5-vl-pi-v3" / "run",
+        preset="starvla-tiny-gr00t",
+        qwen_folder=qwen_folder("qwen2.5-vl-pi-v3"),
+    ).model
+    assert other.config.head == "layerwise" and "num_layers" not in other.config.head_args
     plain, _, _ = load("qwen2.5-vl-gr00t")
     assert plain.config.state_mode == "none" and plain.action_head.state_encoder is None
     pi, _, _ = load("qwen2.5-vl-pi-v3-interleave")

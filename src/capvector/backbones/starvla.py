@@ -961,6 +961,11 @@ def _from_starvla_run(
         size = "4b" if versions[0] == "qwen3-vl" else "3b"
         preset = f"starvla-{versions[0]}-{size}-{head}"
     config = _starvla_config(preset, conv.merged_overrides(derived, overrides))
+    # The run decides every head field: the preset's head_args (e.g. a tiny preset's, or another
+    # head's) do not leak in; the caller's head_args still change the fields they name.
+    config.head_args = conv.merged_overrides(
+        derived["head_args"], (overrides or {}).get("head_args") or {}
+    )
     _check_model_type(root, _qwen_version(config.qwen_version), config.qwen_version)
     config.qwen = _architecture(hf_config)
     _read_image_statistics(root, config)
