@@ -202,7 +202,8 @@ def config_overrides(
     if head == "oft":
         _reject_unknown("framework.action_model", am, {"action_model_type", "action_dim",
                         "action_horizon", *_INERT_ACTION_MODEL})  # fmt: skip
-        _check_value("framework.action_model", am, "action_model_type", "MLP")
+        # MLP_ActionHeader.get_action_model reads action_model_type but always builds the
+        # L1RegressionActionHead, so any value (released OFT configs say "DiT-B") means the MLP.
         out["head_args"] = {"query_token": OFT_QUERY_TOKEN}
         if has_state:  # QwenOFT.forward: add_discretized_state_to_instruction
             out.update(state_mode="prompt", proprio_dim=state_dim)
