@@ -40,7 +40,7 @@ ACTION_DIM = 7
 STATE_DIM = 7
 CHUNK = 4
 INSTRUCTIONS = ["pick up the red block", "open the top drawer please"]
-EMOJI = "\U0001f50d"  # StarVLA QwenOFT's action placeholder
+EMOJI = "\U0001f50d"  # QwenOFT's query placeholder: the tiny vocabulary makes it one token
 QWEN_SPECIALS = [
     "<|endoftext|>",
     "<|im_start|>",
@@ -407,18 +407,45 @@ def run_variant(name: str, spec: dict, starvla: Path, out: Path, qwen_folder: Pa
     examples, arrays = fixed_batch(spec)
     refs: dict[str, torch.Tensor] = {k: torch.from_numpy(v) for k, v in arrays.items()}
 
-    # StarVLA's inputs and the VLM's hidden states, through its own wrapper.
-    instructions = [e["lang"] for e in examples]
-    if spec["state"] and spec["framework"] in ("QwenOFT", "QwenPI_v3"):
-        instructions = model.add_discretized_state_to_instruction(
-            instructions, [e["state"] for e in examples]
-        )
-    if spec["framework"] == "QwenOFT":
-        suffix = f" Please predict the next {CHUNK} robot actions: <action>{EMOJI * CHUNK}<action>."
-        instructions = [i + suffix for i in instructions]
-    inputs = model.qwen_vl_interface.build_qwenvl_inputs(
-        images=[e["image"] for e in examples], instructions=instructions
-    )
+    # Training loss on the batch (eval mode), recording the noise and flow times drawn.
+    drawn, original, randn = record_randn()
+    times: list[torch.Tensor] = []
+    head = model.action_model
+    if hasattr(head, "sample_time"):
+        sample_time = head.sample_time
+
+        def recorded_time(*args, **kwargs):
+            t = sample_time(*args, **kwargs)
+            times.append(t.detach().clone())
+            return t
+
+        head.sample_time = recorded_time
+    # The framework's own prompt (state bins, OFT suffix, chat template) as it builds it.
+    built: list = []
+    build = model.qwen_vl_interface.build_qwenvl_inputs
+
+    def recorded_build(*args, **kwargs):
+        built.append(build(*args, **kwargs))
+        return built[-1]
+
+    model.qwen_vl_interface.build_qwenvl_inputs = recorded_build
+    torch.manual_seed(SEED + 2)
+    torch.randn = randn
+    try:
+        with torch.no_grad():
+            loss = model(examples)["action_loss"]
+    finally:
+        torch.randn = original
+        del model.qwen_vl_interface.build_qwenvl_inputs
+        if hasattr(head, "sample_time"):
+            del head.sample_time
+    refs["loss"] = loss.detach().reshape(1)
+    if times:
+        refs["loss_noise"] = drawn[-1]
+        refs["loss_time"] = times[-1]
+
+    # The VLM's hidden states on those inputs, through StarVLA's wrapper (what its heads read).
+    inputs = built[-1]
     with torch.no_grad():
         outputs = model.qwen_vl_interface(**inputs, output_hidden_states=True, return_dict=True)
     hidden = outputs.hidden_states
@@ -436,33 +463,6 @@ def run_variant(name: str, spec: dict, starvla: Path, out: Path, qwen_folder: Pa
     refs["vision_features"] = torch.cat(list(vision), dim=0)  # per-image embeds, concatenated
     for layer in sorted({0, 1, len(hidden) - 1}):
         refs[f"hidden_states.{layer}"] = hidden[layer]
-
-    # Training loss on the batch (eval mode), recording the noise and flow times drawn.
-    drawn, original, randn = record_randn()
-    times: list[torch.Tensor] = []
-    head = model.action_model
-    if hasattr(head, "sample_time"):
-        sample_time = head.sample_time
-
-        def recorded_time(*args, **kwargs):
-            t = sample_time(*args, **kwargs)
-            times.append(t.detach().clone())
-            return t
-
-        head.sample_time = recorded_time
-    torch.manual_seed(SEED + 2)
-    torch.randn = randn
-    try:
-        with torch.no_grad():
-            loss = model(examples)["action_loss"]
-    finally:
-        torch.randn = original
-        if hasattr(head, "sample_time"):
-            del head.sample_time
-    refs["loss"] = loss.detach().reshape(1)
-    if times:
-        refs["loss_noise"] = drawn[-1]
-        refs["loss_time"] = times[-1]
 
     # Predicted actions, recording the initial noise of the flow heads.
     drawn, original, randn = record_randn()
