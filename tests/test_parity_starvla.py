@@ -193,6 +193,12 @@ def test_run_values_reach_the_model() -> None:
     # QwenPI_v3: the state goes into the prompt, its repeats come from the trainer section, its
     # MLPs are 1024 wide whatever action_model.hidden_size says.
     assert pi.config.state_mode == "prompt" and args["repeated_diffusion_steps"] == 3
+    # The fixed states reach below -1 and above 1, so the equal token ids of the PI_v3 variants
+    # also check the state bins at both ends (-1 and 255, as np.digitize).
+    states = load_file(str(FIXTURES / "qwen2.5-vl-pi-v3" / "reference.safetensors"))["states"]
+    assert states.min() < -1 and states.max() > 1
+    bins = pi.state_bins(states[0])
+    assert bins.min() >= -1 and bins.max() <= 255 and (bins == -1).any() == (states[0] < -1).any()
     assert args["interleave_self_attention"] and args["hidden_size"] == 1024
 
 
