@@ -42,12 +42,14 @@ class HeadInput:
     """What a head conditions on. B batch, S sequence, H VLM width, L VLM layers, N query tokens."""
 
     last_hidden: Tensor
-    """(B, S, H) last decoder layer after the final norm (what StarVLA reads as ``hidden_states[-1]``)."""
+    """(B, S, H) the last decoder layer as StarVLA reads it (``hidden_states[-1]``): after the final
+    norm for Qwen2.5-VL, before it for Qwen3-VL (``starvla.QwenVersion.head_reads_final_norm``)."""
     mask: Tensor
     """(B, S) bool: True at real (non-padding) tokens."""
     layers: tuple[Tensor, ...] = ()
-    """L tensors (B, S, H): decoder layers 1..L, the last after the final norm (HF's
-    ``hidden_states[1:]``). Filled only for heads with ``uses_all_layers``."""
+    """L tensors (B, S, H): HF's ``hidden_states[1:]`` as StarVLA reads them (entry k: the input
+    of decoder layer k + 1; the last is ``last_hidden``). Filled only for heads with
+    ``uses_all_layers``."""
     query_positions: Tensor | None = None
     """(B, N) sequence positions of the action query tokens, for heads with query tokens."""
 
@@ -462,10 +464,25 @@ class CrossAttentionDiT(nn.Module):
 
 class LayerwiseDiT(nn.Module):
     """PI_v3's layer-wise DiT: block i cross-attends to (projected) VLM layer i. As StarVLA's
-    ``LayerwiseFlowmatchingActionHead``, the output goes to the decoder without a final projection."""
+    ``LayerwiseFlowmatchingActionHead`` (``DiT.forward(..., return_pre_output=True)``), the output
+    goes to the decoder without a final projection.
 
-    def __init__(self, width: int, num_heads: int, num_layers: int, dropout: float) -> None:
+    ``interleave_self_attention``: odd blocks self-attend and ignore their VLM layer, as
+    ``cross_attention_dit.DiT.forward``. The parameter shapes are the same either way (the context
+    is pre-projected to the DiT width), so only the config tells the two checkpoints apart."""
+
+    def __init__(
+        self,
+        width: int,
+        num_heads: int,
+        num_layers: int,
+        dropout: float,
+        interleave_self_attention: bool = False,
+    ) -> None:
         super().__init__()
+        self.self_attention_blocks = {
+            i for i in range(num_layers) if interleave_self_attention and i % 2 == 1
+        }
         self.timestep_encoder = TimestepEncoder(width)
         self.transformer_blocks = nn.ModuleList(
             DiTBlock(width, num_heads, width, dropout) for _ in range(num_layers)
@@ -475,8 +492,11 @@ class LayerwiseDiT(nn.Module):
         self, x: Tensor, contexts: list[Tensor], context_mask: Tensor, timestep: Tensor
     ) -> Tensor:
         temb = self.timestep_encoder(timestep)
-        for block, context in zip(self.transformer_blocks, contexts, strict=True):
-            x = block(x, temb, context, context_mask)
+        for i, (block, context) in enumerate(zip(self.transformer_blocks, contexts, strict=True)):
+            if i in self.self_attention_blocks:
+                x = block(x, temb)
+            else:
+                x = block(x, temb, context, context_mask)
         return x
 
 
@@ -529,7 +549,8 @@ class FlowHeadConfig:
     noise_beta_alpha: float = 1.5
     noise_beta_beta: float = 1.0
     noise_s: float = 0.999
-    """t = s * (1 - u), u ~ Beta(alpha, beta): more weight on noisy t, and t stays in [0, s]."""
+    """t = (s - u) / s, u ~ Beta(alpha, beta): more weight on noisy t (GR00T's ``sample_time``;
+    the GR00T head clips u at s first, the layerwise head does not, as upstream)."""
     num_timestep_buckets: int = 1000
     num_inference_steps: int = 4
     """Euler steps from noise (t=0) to actions (t=1)."""
@@ -548,6 +569,9 @@ class FlowMatchingHead(ActionHead):
 
     accepts_state = True
     config: FlowHeadConfig
+    clip_time_draw: ClassVar[bool] = True
+    """Clip u at s before t = (s - u) / s (``GR00T_ActionHeader.sample_time``); StarVLA's
+    ``LayerwiseFM_ActionHeader.sample_time`` does not clip, so its t can dip to (s - 1) / s < 0."""
 
     def __init__(self, config: FlowHeadConfig, dims: HeadDims, decoder_in: int) -> None:
         super().__init__(config, dims)
@@ -602,7 +626,12 @@ class FlowMatchingHead(ActionHead):
                 torch.tensor(c.noise_beta_alpha), torch.tensor(c.noise_beta_beta)
             )
         u = self._beta.sample((n,)).to(device)
-        return self.config.noise_s * (1 - u)
+        s = self.config.noise_s
+        if self.clip_time_draw:
+            u = u.clamp(max=s)
+        # Upstream's formula, (s - u) / s, not the algebraically equal s * (1 - u) / s rewritten:
+        # the same float operations give the same bits, so recorded draws replay exactly.
+        return (s - u) / s
 
     def loss(
         self,
@@ -611,29 +640,46 @@ class FlowMatchingHead(ActionHead):
         state: Tensor | None = None,
         noise_seeds: Tensor | None = None,
     ) -> Tensor:
+        k = self.config.repeated_diffusion_steps
+        repeated = actions.repeat(k, 1, 1)
+        noise, t = draw_flow_noise(repeated, self.sample_time, noise_seeds)
+        return self.flow_loss(cond, actions, state, noise, t)
+
+    def flow_loss(
+        self, cond: HeadInput, actions: Tensor, state: Tensor | None, noise: Tensor, t: Tensor
+    ) -> Tensor:
+        """The loss for given draws: ``noise`` (k·B, T, A) and times ``t`` (k·B,), the k copies of
+        the batch laid out as ``actions.repeat(k, 1, 1)`` (StarVLA's ``repeated_diffusion_steps``
+        over one VLM pass, ``QwenGR00T.forward``)."""
         context, mask = self.prepare(cond)
         k = self.config.repeated_diffusion_steps
         actions = actions.repeat(k, 1, 1)
         state = None if state is None else state.repeat(k, 1)
-        noise, t = draw_flow_noise(actions, self.sample_time, noise_seeds)
         t = t.to(actions.dtype)[:, None, None]
         noisy = (1 - t) * noise + t * actions
         timestep = (t[:, 0, 0] * self.config.num_timestep_buckets).long()
         predicted = self.velocity(context, mask, noisy, timestep, state)
         return F.mse_loss(predicted, actions - noise)
 
-    def sample(self, cond: HeadInput, state: Tensor | None = None) -> Tensor:
+    def sample(
+        self, cond: HeadInput, state: Tensor | None = None, noise: Tensor | None = None
+    ) -> Tensor:
+        """Euler integration from ``noise`` (B, T, A; drawn from the global RNG when None) at
+        t = 0, 1/n, ... (``FlowmatchingActionHead.predict_action``)."""
         context, mask = self.prepare(cond)
         batch = mask.shape[0]
         dtype = self.action_encoder.layer1.weight.dtype
-        x = torch.randn(
-            batch, self.dims.chunk_size, self.dims.action_dim, device=mask.device, dtype=dtype
-        )
+        x = noise
+        if x is None:
+            x = torch.randn(
+                batch, self.dims.chunk_size, self.dims.action_dim, device=mask.device, dtype=dtype
+            )
         steps = self.config.num_inference_steps
+        dt = 1.0 / steps
         for i in range(steps):
-            bucket = int(i / steps * self.config.num_timestep_buckets)
+            bucket = int(i / float(steps) * self.config.num_timestep_buckets)
             timestep = torch.full((batch,), bucket, device=mask.device, dtype=torch.long)
-            x = x + self.velocity(context, mask, x, timestep, state) / steps
+            x = x + dt * self.velocity(context, mask, x, timestep, state)
         return x
 
 
@@ -666,8 +712,8 @@ class GR00THead(FlowMatchingHead):
         )
 
     def prepare(self, cond: HeadInput) -> tuple[Tensor, Tensor]:
-        # StarVLA passes no encoder mask at all (QwenGR00T.forward / predict_action), so the DiT
-        # attends to the padding of shorter prompts; we mask it.
+        # The VLM padding is masked, as QwenGR00T passes ``encoder_attention_mask`` (older StarVLA
+        # versions passed none and attended to the padding of shorter prompts).
         return cond.last_hidden, cond.mask
 
     def denoiser(self, tokens: Tensor, context: Tensor, mask: Tensor, timestep: Tensor) -> Tensor:
@@ -681,7 +727,12 @@ class LayerwiseHeadConfig(FlowHeadConfig):
     width: int = 1024
     num_heads: int = 16
     repeated_diffusion_steps: int = 2
-    """QwenPI_v3 hard-codes 2 repeats ("to save memory") instead of GR00T's 8."""
+    """QwenPI_v3 reads ``trainer.repeated_diffusion_steps`` (16 when absent; its framework default
+    ``action_model.repeated_diffusion_steps: 2`` is never read); our preset keeps 2 for memory and
+    the importer sets the run's value."""
+    interleave_self_attention: bool = False
+    """Odd DiT blocks self-attend instead of cross-attending to their VLM layer (PI_v3's
+    ``diffusion_model_cfg.interleave_self_attention``, alias ``use_canonical_forward``)."""
 
 
 @register_head("layerwise")
@@ -693,6 +744,7 @@ class LayerwiseHead(FlowMatchingHead):
     config_class = LayerwiseHeadConfig
     uses_all_layers = True
     config: LayerwiseHeadConfig
+    clip_time_draw = False  # LayerwiseFM_ActionHeader.sample_time has no clamp
 
     def __init__(self, config: LayerwiseHeadConfig, dims: HeadDims) -> None:
         if config.width >= dims.vlm_width:
@@ -706,14 +758,21 @@ class LayerwiseHead(FlowMatchingHead):
             nn.Sequential(nn.LayerNorm(dims.vlm_width), nn.Linear(dims.vlm_width, config.width))
             for _ in range(dims.vlm_layers)
         )
-        self.model = LayerwiseDiT(config.width, config.num_heads, dims.vlm_layers, config.dropout)
+        self.model = LayerwiseDiT(
+            config.width,
+            config.num_heads,
+            dims.vlm_layers,
+            config.dropout,
+            config.interleave_self_attention,
+        )
 
     def prepare(self, cond: HeadInput) -> tuple[list[Tensor], Tensor]:
         if len(cond.layers) != len(self.projectors):
             raise BackboneError(
                 f"the layerwise head needs {len(self.projectors)} VLM layers, got {len(cond.layers)}"
             )
-        # Projected once per VLM pass; StarVLA's LayerwiseFM also passes no encoder mask.
+        # Projected once per VLM pass (QwenPI_v3._encode_vl_hidden_states), padding masked as
+        # QwenPI_v3 passes its ``encoder_attention_mask``.
         return [proj(h) for proj, h in zip(self.projectors, cond.layers, strict=True)], cond.mask
 
     def denoiser(

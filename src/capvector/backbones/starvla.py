@@ -7,13 +7,18 @@ prompt; left padding) and the frameworks ``starVLA/model/framework/VLM4A/QwenOFT
 ``QwenGR00T.py``, ``QwenPI_v3.py``. Deviations, each marked where it happens:
 
 - the Qwen class is chosen by ``qwen_version``, not by substring-matching the checkpoint path;
-- OFT's action queries are a real added special token, always one token, with its id taken from the
-  tokenizer (StarVLA uses an emoji that Qwen3.5's tokenizer splits into 3 tokens);
+- OFT's action queries in a new model are a real added special token, always one token, with its
+  id taken from the tokenizer (StarVLA uses an emoji that Qwen3.5's tokenizer splits into 3
+  tokens). A StarVLA run imported by ``from_original`` keeps StarVLA's emoji, an ordinary single
+  Qwen token: splitting a special token out of the text changes how its neighbours tokenise;
 - every id (image pad, vision start/end, queries) comes from the tokenizer, none is hard-coded;
 - the configured attention implementation is honoured (StarVLA's ``QWen3.py`` overrides it with sdpa);
-- the flow heads mask the VLM padding (StarVLA passes no encoder mask);
-- images are normalised and patchified in the model, on the batch's device, exactly as transformers'
-  ``Qwen2VLImageProcessor`` does (tested), instead of a PIL round trip per sample.
+- images are normalised and patchified in the model, on the batch's device, as transformers' Qwen
+  image processors do (tested against StarVLA's outputs), instead of a PIL round trip per sample.
+
+Followed on purpose, though surprising: under StarVLA's transformers 4.57, the heads of a Qwen3-VL
+run read the last decoder layer *before* the final norm (``QwenVersion.head_reads_final_norm``).
+Loading StarVLA runs (config.yaml, statistics, key map) lives in ``convert_starvla.py``.
 
 Sequence layout (one row, left padded)::
 
@@ -80,6 +85,12 @@ class QwenVersion:
     """``model_type`` in a transformers ``config.json`` of this version (checked, never sniffed)."""
     config_class: str
     model_class: str
+    head_reads_final_norm: bool = True
+    """Whether the last hidden state StarVLA's heads read (``hidden_states[-1]`` of the
+    ``*ForConditionalGeneration`` output under its pinned transformers 4.57) has the final RMSNorm
+    applied. It has for Qwen2.5-VL; for Qwen3-VL it is the last decoder layer's raw output, and
+    the earlier entries include the DeepStack visual features added after a layer (measured on
+    the upstream fixtures). We follow it so imported heads see what they were trained on."""
 
     def classes(self) -> tuple[Any, Any]:
         import transformers
@@ -91,7 +102,9 @@ QWEN_VERSIONS = {
     "qwen2.5-vl": QwenVersion(
         "qwen2_5_vl", "Qwen2_5_VLConfig", "Qwen2_5_VLForConditionalGeneration"
     ),
-    "qwen3-vl": QwenVersion("qwen3_vl", "Qwen3VLConfig", "Qwen3VLForConditionalGeneration"),
+    "qwen3-vl": QwenVersion(
+        "qwen3_vl", "Qwen3VLConfig", "Qwen3VLForConditionalGeneration", head_reads_final_norm=False
+    ),
 }
 
 
@@ -489,7 +502,7 @@ class StarVLA(VLABackbone):
                 loss, actions = head.loss_and_actions(cond, target, state, seeds)
             else:
                 loss, actions = None, head.sample(cond, state)
-        logits = self.vlm.lm_head(encoding.head_input.last_hidden) if request.lm_logits else None
+        logits = self.vlm.lm_head(encoding.normed_last) if request.lm_logits else None
         return VLAOutput(
             actions=actions,
             loss=loss,
@@ -508,8 +521,8 @@ class StarVLA(VLABackbone):
         """Run the Qwen-VL on a batch: the head's conditioning and the requested hidden states.
 
         ``hidden_layers`` follows the contract (0 = input embeddings, k = decoder layer k before the
-        final norm). ``all_layers`` also returns every layer for the head, as HF's
-        ``hidden_states[1:]`` (the last after the final norm), the layers StarVLA's heads read.
+        final norm). ``all_layers`` also returns every layer for the head, as StarVLA's heads read
+        HF's ``hidden_states[1:]`` (see ``QwenVersion.head_reads_final_norm``).
         """
         images: Tensor = batch[keys.IMAGES]
         n_cam = images.shape[1]
@@ -531,9 +544,14 @@ class StarVLA(VLABackbone):
         if self.action_head.bidirectional_queries:
             attention = self._bidirectional_query_mask(mask, query_positions)
         layer_indices = set(hidden_layers)
-        if all_layers:
-            layer_indices |= set(range(1, self.num_layers))  # the last comes from the final norm
         store: dict[int, Tensor] = {}
+        # What StarVLA's heads read: HF's hidden_states[1:] (transformers 4.57). Entry k < L is
+        # the input of decoder layer k + 1 (layer k's output plus any DeepStack features added
+        # after it); the last is the final layer's output, normed or not by Qwen version.
+        head_store: dict[int, Tensor] = {}
+        layers = model.language_model.layers
+        head_entries = range(1, self.num_layers) if all_layers else range(0)
+        normed = _qwen_version(self.config.qwen_version).head_reads_final_norm
         hooks = []
         if 0 in layer_indices:
 
@@ -541,20 +559,34 @@ class StarVLA(VLABackbone):
                 store[0] = kwargs["inputs_embeds"]
 
             hooks.append(model.language_model.register_forward_pre_hook(grab, with_kwargs=True))
+        for k in head_entries:
+
+            def enter(_module: nn.Module, args: Any, kwargs: dict[str, Any], k: int = k) -> None:
+                head_store[k] = args[0] if args else kwargs["hidden_states"]
+
+            hooks.append(layers[k].register_forward_pre_hook(enter, with_kwargs=True))
+        if not normed:
+
+            def leave(_module: nn.Module, _args: Any, output: Any) -> None:
+                head_store[self.num_layers] = output[0] if isinstance(output, tuple) else output
+
+            hooks.append(layers[-1].register_forward_hook(leave))
         try:
-            with keep_hidden_states(model.language_model.layers, sorted(layer_indices), store):
+            with keep_hidden_states(layers, sorted(layer_indices), store):
                 out = self._run_vlm(ids, mask, images, attention)
         finally:
             for hook in hooks:
                 hook.remove()
-        last = out.last_hidden_state
-        layers = tuple(store[i] for i in range(1, self.num_layers)) + (last,) if all_layers else ()
+        final = out.last_hidden_state
+        last = final if normed else head_store[self.num_layers]
+        head_layers = tuple(head_store[k] for k in head_entries) + (last,) if all_layers else ()
         return VLMEncoding(
             input_ids=ids,
             head_input=HeadInput(
-                last_hidden=last, mask=mask, layers=layers, query_positions=query_positions
+                last_hidden=last, mask=mask, layers=head_layers, query_positions=query_positions
             ),
             requested={i: store[i] for i in hidden_layers},
+            normed_last=final,
         )
 
     def prompt_text(self, instruction: str, state: Tensor | None = None) -> str:
@@ -566,12 +598,14 @@ class StarVLA(VLABackbone):
         return self.config.prompt_template.replace("{instruction}", text)
 
     def state_bins(self, state: Tensor) -> Tensor:
-        """(P,) state in [-1, 1] -> bin indices, pi0.5's ``np.digitize(s, linspace(-1, 1, n + 1)[:-1]) - 1``.
-
-        Clipped to [0, n - 1]: StarVLA's helper yields -1 for values below -1.
+        """(P,) normalised state -> bin indices, as StarVLA's ``share_tools.state2str_transform``:
+        ``np.digitize(s, linspace(-1, 1, n + 1)[:-1]) - 1``. Values below -1 give bin -1 and values
+        from 1 - 2/n up give n - 1, as there: StarVLA's q99 normaliser clamps states to [-2.2, 2.2]
+        only (``gr00t_lerobot/transform/state_action.py``), so states outside [-1, 1] reach the
+        prompt. Computed in float64, where the bin edges -1 + 2k/n are exact.
         """
         n = self.config.state_bins
-        return ((state.float() + 1) * (n / 2)).floor().clamp(0, n - 1).long()
+        return ((state.double() + 1) * (n / 2)).floor().clamp(-1, n - 1).long()
 
     def tokenize(
         self, texts: Sequence[str], n_images: int, device: torch.device
@@ -680,9 +714,7 @@ class StarVLA(VLABackbone):
         flat = images.flatten(0, 1).float()
         size = self.config.image_size
         if flat.shape[-2:] != (size, size):
-            flat = F.interpolate(
-                flat, size=(size, size), mode="bicubic", align_corners=False, antialias=True
-            ).clamp(0, 1)
+            flat = _resize_8bit(flat, size)
         flat = (flat - self.pixel_mean) / self.pixel_std
         n, channels = flat.shape[:2]
         p, m, t = self.patch_size, self.merge_size, self.temporal_patch_size
@@ -785,7 +817,10 @@ class StarVLA(VLABackbone):
     def _add_special_tokens(tok: Any, tokens: Sequence[str]) -> list[int]:
         from tokenizers import AddedToken
 
-        missing = [t for t in tokens if t not in tok.get_vocab()]
+        # A token the tokenizer already encodes as one id is used as it is: StarVLA's emoji query
+        # is an ordinary token of Qwen's vocabulary, and adding it as a special token would change
+        # how its neighbours are split (``>🔍🔍<`` is one pre-token in Qwen's pattern).
+        missing = [t for t in tokens if len(tok.encode(t, add_special_tokens=False)) != 1]
         if missing:
             # Special added tokens: never split, never merged with their neighbours.
             tok.add_tokens(
@@ -881,70 +916,80 @@ class StarVLA(VLABackbone):
         overrides: Mapping[str, Any] | None = None,
         qwen_folder: str | Path | None = None,
     ) -> OriginalCheckpoint:
-        """A StarVLA run's checkpoint file with ``qwen_folder`` (see ``from_starvla``), or, without
-        it, a plain transformers Qwen-VL folder as the VLM with a fresh head (``from_qwen``)."""
-        preset = preset or "starvla-qwen2.5-vl-3b-oft"
-        if qwen_folder is None:
-            return OriginalCheckpoint(cls.from_qwen(source, preset, **(overrides or {})), {})
-        model, stats = cls.from_starvla(source, qwen_folder, preset, **(overrides or {}))
-        return OriginalCheckpoint(model, stats)
+        """A StarVLA run (its folder or ``checkpoints/steps_N_*`` file) with the Qwen-VL folder it
+        started from, read by ``convert_starvla`` (config.yaml -> config, key map, statistics); or,
+        without ``qwen_folder``, a plain transformers Qwen-VL folder as the VLM with a fresh head
+        (``from_qwen``).
 
-    @classmethod
-    def from_starvla(
-        cls,
-        checkpoint: str | Path,
-        qwen_folder: str | Path,
-        preset: str,
-        query_token_source: str | None = "🔍",
-        **overrides: Any,
-    ) -> tuple[StarVLA, dict[str, Any]]:
-        """A StarVLA run's ``checkpoints/steps_N_pytorch_model.pt`` (or ``.safetensors``): the full
-        framework state dict, mapped by ``starvla_key_map`` and loaded strictly. Returns the model
-        and the run's ``dataset_statistics.json`` (empty when absent).
-
-        ``qwen_folder`` is the base VLM the run started from (its ``framework.qwenvl.base_vlm``):
-        it gives the architecture and tokenizer; its weights are not read. For OFT heads the query
-        token's embedding row is copied from ``query_token_source``'s (StarVLA's emoji), so the
-        trained query embedding carries over to the added special token.
+        For a run, ``preset`` defaults to the full-size preset of the run's framework and Qwen
+        version; the run's config.yaml then sets every field it decides, and ``overrides`` last.
         """
-        path = Path(checkpoint)
-        if not path.is_file():
-            raise BackboneError(f"StarVLA checkpoint {path} does not exist")
-        root = _folder(qwen_folder)
-        config = _starvla_config(preset, overrides)
-        version = _qwen_version(config.qwen_version)
-        _check_model_type(root, version, config.qwen_version)
-        config_class, model_class = version.classes()
-        hf_config = config_class.from_pretrained(str(root))
-        config.qwen = _architecture(hf_config)
-        _read_image_statistics(root, config)
-        config.tokenizer = str(root)
-        # fp32 as from_qwen; transformers would otherwise build in the folder's dtype (bf16).
-        vlm = model_class._from_config(
-            hf_config, attn_implementation=config.attn_implementation, dtype=torch.float32
-        )
-        model = cls(config, vlm=vlm, tokenizer=_load_tokenizer(str(root)))
-        state = starvla_key_map(_read_state(path), model)
-        if model.action_head.num_query_tokens and query_token_source is not None:
-            model._copy_query_embedding(state, query_token_source)
-        load_state_dict_strictly(model, state, source=str(path))
-        stats_path = path.parent.parent / "dataset_statistics.json"
-        stats = json.loads(stats_path.read_text()) if stats_path.is_file() else {}
-        return model, stats
+        if qwen_folder is None:
+            preset = preset or "starvla-qwen2.5-vl-3b-oft"
+            model = cls.from_qwen(source, preset, **(overrides or {}))
+            return OriginalCheckpoint(model, {})
+        return _from_starvla_run(cls, source, Path(qwen_folder), preset, overrides)
 
-    def _copy_query_embedding(self, state: dict[str, Tensor], source: str) -> None:
-        ids = self.tokenizer.encode(source, add_special_tokens=False)
-        if len(ids) != 1:
-            raise BackboneError(
-                f"query_token_source {source!r} is {len(ids)} tokens in this tokenizer, so it "
-                "cannot have been StarVLA's query token; pass query_token_source=None"
-            )
-        key = "vlm.model.language_model.embed_tokens.weight"
-        if key not in state:
-            raise BackboneError(f"the StarVLA checkpoint has no {key}")
-        embeddings = state[key].clone()
-        embeddings[self._token_ids.query] = embeddings[ids[0]]
-        state[key] = embeddings
+
+def _from_starvla_run(
+    cls: type[StarVLA],
+    source: str | Path,
+    qwen_folder: Path,
+    preset: str | None,
+    overrides: Mapping[str, Any] | None,
+) -> OriginalCheckpoint:
+    from capvector.backbones import convert_starvla as conv
+
+    run = conv.read_run(source)
+    root = _folder(qwen_folder)
+    model_type = json.loads((root / "config.json").read_text()).get("model_type")
+    versions = [k for k, v in QWEN_VERSIONS.items() if v.model_type == model_type]
+    if not versions:
+        raise BackboneError(
+            f"{root} holds a {model_type!r} model; StarVLA runs on {sorted(QWEN_VERSIONS)} import"
+        )
+    version = QWEN_VERSIONS[versions[0]]
+    config_class, model_class = version.classes()
+    hf_config = config_class.from_pretrained(str(root))
+    vision = hf_config.vision_config
+    derived = conv.config_overrides(
+        run.config, root, vision.patch_size * vision.spatial_merge_size, run.statistics
+    )
+    derived["qwen_version"] = versions[0]
+    head = derived["head"]
+    if preset is None:
+        size = "4b" if versions[0] == "qwen3-vl" else "3b"
+        preset = f"starvla-{versions[0]}-{size}-{head}"
+    config = _starvla_config(preset, conv.merged_overrides(derived, overrides))
+    # The run decides every head field: the preset's head_args (e.g. a tiny preset's, or another
+    # head's) do not leak in; the caller's head_args still change the fields they name.
+    config.head_args = conv.merged_overrides(
+        derived["head_args"], (overrides or {}).get("head_args") or {}
+    )
+    _check_model_type(root, _qwen_version(config.qwen_version), config.qwen_version)
+    config.qwen = _architecture(hf_config)
+    _read_image_statistics(root, config)
+    config.tokenizer = str(root)
+    # fp32 as from_qwen; transformers would otherwise build in the folder's dtype (bf16).
+    vlm = model_class._from_config(
+        hf_config, attn_implementation=config.attn_implementation, dtype=torch.float32
+    )
+    model = cls(config, vlm=vlm, tokenizer=_load_tokenizer(str(root)))
+    # The run's state encoder is dropped only where StarVLA never runs it (decided from the run,
+    # not from the model we built): overriding a state-trained GR00T run to state_mode='none'
+    # then fails on its unexpected state_encoder keys instead of silently losing the state token.
+    state = conv.starvla_key_map(
+        conv.read_state(run.checkpoint),
+        config.head,
+        uses_state_encoder=derived.get("state_mode") == "head",
+        tied=_tied(model),
+    )
+    load_state_dict_strictly(model, state, source=str(run.checkpoint))
+    return OriginalCheckpoint(
+        model,
+        conv.convert_statistics(run.statistics),
+        {"config.yaml": run.config, "dataset_statistics.json": run.statistics},
+    )
 
 
 @dataclass
@@ -954,52 +999,8 @@ class VLMEncoding:
     head_input: HeadInput
     requested: dict[int, Tensor]
     """Requested layer index -> (B, S, H), contract semantics (pre-norm)."""
-
-
-# -- StarVLA checkpoints -------------------------------------------------------------------------
-
-# StarVLA framework attribute -> ours. transformers >= 4.52 (StarVLA pins 4.57) names the
-# Qwen-VL's submodules model.visual / model.language_model; older runs saved visual.* / model.*.
-_STARVLA_PREFIXES = (
-    ("qwen_vl_interface.model.model.visual.", "vlm.model.visual."),
-    ("qwen_vl_interface.model.model.language_model.", "vlm.model.language_model."),
-    ("qwen_vl_interface.model.visual.", "vlm.model.visual."),
-    ("qwen_vl_interface.model.model.", "vlm.model.language_model."),
-    ("qwen_vl_interface.model.lm_head.", "vlm.lm_head."),
-    ("action_model.", "action_head."),
-    ("project_layers.", "action_head.projectors."),  # QwenPI_v3's per-layer projectors
-)
-
-
-def starvla_key_map(state: Mapping[str, Tensor], model: StarVLA) -> dict[str, Tensor]:
-    """StarVLA framework state dict -> ours. Keys of modules StarVLA builds but never runs are
-    dropped by name; any other unknown key is left for the strict loader to report."""
-    dropped = _starvla_unused_prefixes(model)
-    mapped: dict[str, Tensor] = {}
-    for key, value in state.items():
-        if key.startswith(dropped):
-            continue
-        for old, new in _STARVLA_PREFIXES:
-            if key.startswith(old):
-                key = new + key[len(old) :]
-                break
-        mapped[key] = value
-    if _tied(model):
-        mapped.pop("vlm.lm_head.weight", None)  # the embedding matrix under a second name
-    return mapped
-
-
-def _starvla_unused_prefixes(model: StarVLA) -> tuple[str, ...]:
-    unused = []
-    head = model.action_head
-    if getattr(head, "state_encoder", "absent") is None:
-        # StarVLA builds a state encoder whenever state_dim is set, also when the state goes into
-        # the prompt (QwenPI_v3) or is never given.
-        unused.append("action_model.state_encoder.")
-    if model.config.head == "layerwise":
-        # LayerwiseFM's DiT builds GR00T's output projection but its forward skips it.
-        unused += ["action_model.model.proj_out_1.", "action_model.model.proj_out_2."]
-    return tuple(unused)
+    normed_last: Tensor
+    """(B, S, H) the last layer after the final norm (what the LM head reads)."""
 
 
 # -- helpers -------------------------------------------------------------------------------------
@@ -1077,15 +1078,22 @@ def _read_image_statistics(root: Path, config: StarVLAConfig) -> None:
         config.image_std = tuple(pre.get("image_std", config.image_std))
 
 
-def _read_state(path: Path) -> dict[str, Tensor]:
-    if path.suffix == ".safetensors":
-        from safetensors.torch import load_file
-
-        return load_file(str(path))
-    state = torch.load(path, map_location="cpu", weights_only=True)
-    if not isinstance(state, Mapping):
-        raise BackboneError(f"{path} does not hold a state dict")
-    return dict(state)
+def _resize_8bit(images: Tensor, size: int) -> Tensor:
+    """(N, 3, H, W) in [0, 1] -> (N, 3, size, size), resized as the Qwen processor StarVLA runs
+    (``Qwen2VLImageProcessorFast``, what Qwen3-VL ships): torchvision's bicubic antialiased resize
+    of the 8-bit image, which on CPU is torch's fixed-point uint8 kernel (bit-exact here), giving
+    an 8-bit image again. Elsewhere the float kernel, clamped and rounded to 8 bits, stands in
+    for it (within one grey level)."""
+    pixels = (images * 255).round().clamp(0, 255)
+    if images.device.type == "cpu":
+        resized = F.interpolate(
+            pixels.to(torch.uint8), size=(size, size), mode="bicubic", antialias=True
+        )
+        return resized.float() / 255
+    resized = F.interpolate(
+        pixels, size=(size, size), mode="bicubic", align_corners=False, antialias=True
+    )
+    return resized.clamp(0, 255).round() / 255
 
 
 def _tied(model: StarVLA) -> bool:
