@@ -236,10 +236,11 @@ def test_embedding_scaling_is_pinned(tiny: Pi05) -> None:
 
 def test_state_is_discretised_unpadded_into_the_prompt(tiny: Pi05) -> None:
     values = torch.tensor([[-1.5, -1.0, -0.99, -0.0078125, 0.0, 0.5, 0.999, 1.0, 2.0]])
-    edges = np.linspace(-1, 1, 256 + 1)[:-1]  # openpi tokenizer.py
-    expected = np.digitize(np.clip(values.numpy().astype(np.float64), -1, 1), edges) - 1
+    edges = np.linspace(-1, 1, 256 + 1)[:-1]  # openpi tokenizer.py, LeRobot processor_pi05.py
+    expected = np.digitize(values.numpy().astype(np.float64), edges) - 1  # no clamp upstream
     assert discretize_state(values).tolist() == expected.tolist()
-    assert discretize_state(values)[0, [1, 4, 7]].tolist() == [0, 128, 255]
+    # Below -1 is bin -1 (written "-1"), as upstream; at or above 1 the last bin.
+    assert discretize_state(values)[0, [0, 1, 4, 7, 8]].tolist() == [-1, 0, 128, 255, 255]
 
     assert build_prompt(" pick_up the\nmug ", [0, 128, 255]) == [
         "Task: pick up the mug, State: 0 128 255;\nAction: "
@@ -253,6 +254,13 @@ def test_state_is_discretised_unpadded_into_the_prompt(tiny: Pi05) -> None:
     text = tok.decode(ids[0, 1:].tolist())
     assert text == "Task: lift cube, State: 0 36 73 109 146 182 219 255;\nAction: "
     assert len(text.split("State: ")[1].split(";")[0].split()) == 8  # the 8 real dims, not 32
+
+
+def test_prompt_state_dim_pads_the_state_as_lerobot_0_4_4() -> None:
+    model = build_backbone("pi05-tiny", prompt_state_dim=12, proprio_dim=2)
+    ids, valid = model.tokenize(["lift"], torch.tensor([[-1.2, 1.0]]), torch.device("cpu"))
+    text = model.tokenizer.decode(ids[0, 1:].tolist())
+    assert text == "Task: lift, State: -1 255" + " 128" * 10 + ";\nAction: "
 
 
 def test_resize_with_pad_keeps_aspect_and_pads_black() -> None:
@@ -441,6 +449,7 @@ def test_euler_integration_schedule(tiny: Pi05, monkeypatch: pytest.MonkeyPatch)
         ("min_period", 0.1),
         ("max_period", 100.0),
         ("state_bins", 8),
+        ("prompt_state_dim", 32),
         ("tokenizer_max_length", 40),
         ("num_inference_steps", 3),
         ("time_sampling_beta_alpha", 4.0),
