@@ -19,7 +19,7 @@ from safetensors import safe_open
 from safetensors.torch import load_file
 
 from capvector.backbones import BackboneError, OutputRequest
-from capvector.backbones.pi05 import Pi05, flow_matching_path, resize_with_pad
+from capvector.backbones.pi05 import IMAGE_MASK, Pi05, flow_matching_path, resize_with_pad
 from capvector.data import keys
 from capvector.data.statistics import QUANTILES, Normalizer
 
@@ -194,3 +194,91 @@ def test_unsupported_config_fields_are_named(
 def test_overrides_win_over_the_checkpoint_config(tmp_path: Path) -> None:
     model = load(FIXTURE, chunk_size=3).model
     assert model.config.chunk_size == 3 and model.config.num_inference_steps == 4
+
+
+# -- openpi's PyTorch model ------------------------------------------------------------------------
+
+OPENPI = FIXTURE.parent / "openpi"
+OPENPI_SIZES = {
+    **{k: v for k, v in UPSTREAM_SIZES.items() if k != "prompt_state_dim"},
+    "vision": {**UPSTREAM_SIZES["vision"], "patch_size": 28},
+}
+
+
+@pytest.fixture(scope="module")
+def openpi_imported():
+    return Pi05.from_original(
+        OPENPI, preset="pi05-tiny", overrides=OPENPI_SIZES, tokenizer=FIXTURE / "tokenizer"
+    )
+
+
+@pytest.fixture(scope="module")
+def openpi_ref() -> dict:
+    refs: dict = load_file(str(OPENPI / "reference.safetensors"))
+    with safe_open(str(OPENPI / "reference.safetensors"), "pt") as f:
+        refs["tasks"] = json.loads(f.metadata()["tasks"])
+    return refs
+
+
+@pytest.fixture(scope="module")
+def openpi_batch(openpi_imported, openpi_ref) -> dict:
+    (entry,) = openpi_imported.statistics.values()
+    state = Normalizer(entry).normalize("proprio", openpi_ref["input.state"].numpy())
+    return {
+        keys.IMAGES: torch.stack([openpi_ref[f"input.image.{i}"] for i in range(3)], dim=1),
+        IMAGE_MASK: openpi_ref["input.image_mask"],
+        keys.PROPRIO: torch.from_numpy(state),
+        keys.INSTRUCTION: openpi_ref["tasks"],
+    }
+
+
+def test_openpi_import_reads_config_and_norm_stats(openpi_imported, openpi_ref) -> None:
+    c = openpi_imported.model.config
+    assert (c.chunk_size, c.max_action_dim, c.action_dim, c.proprio_dim) == (5, 32, 7, 8)
+    assert (c.num_images, c.image_size, c.loss_include_padded_dims) == (3, 224, True)
+    assert list(openpi_imported.statistics) == ["toy_robot"]  # the asset id
+    normalizer = Normalizer(openpi_imported.statistics["toy_robot"])
+    assert normalizer.normalization == QUANTILES
+    # openpi adds 1e-6 to every q99 - q01 where LeRobot (and we) add nothing: ~1e-6 apart.
+    state = normalizer.normalize("proprio", openpi_ref["input.state"].numpy())
+    actions = normalizer.normalize("action", openpi_ref["input.actions"].numpy())
+    assert_close(torch.from_numpy(state), openpi_ref["normalized.state"])
+    assert_close(torch.from_numpy(actions), openpi_ref["normalized.actions"])
+
+
+def test_openpi_outputs_equal_ours(openpi_imported, openpi_batch, openpi_ref) -> None:
+    model = openpi_imported.model.eval()
+    batch, ref = openpi_batch, openpi_ref
+    ids, valid = model.tokenize(batch[keys.INSTRUCTION], batch[keys.PROPRIO], torch.device("cpu"))
+    for row in range(2):  # the state unpadded in the prompt, as openpi's TokenizePrompt
+        assert ids[row][valid[row]].tolist() == ref["tokens"][row][ref["token_mask"][row]].tolist()
+    features, _ = model.embed_images(batch)
+    assert_close(features.reshape(2, 3, -1, 64), ref["image_features"])
+    out = model(batch, OutputRequest(hidden_layers=(0, 1, 2)))
+    length = out.attention_mask.shape[1]
+    for layer in (0, 1, 2):
+        ours = out.hidden_states[layer][..., :8][out.attention_mask]
+        assert_close(ours, ref[f"hidden.{layer}"][:, :length][out.attention_mask])
+    assert_close(model.predict_action(batch, ref["sample.noise"]), ref["sample.actions"][..., :7])
+    cache, _ = model.prefix_cache(model.embed_prefix(batch))
+    with torch.no_grad():
+        assert_close(model.integrate(cache, ref["sample.noise"]), ref["sample.actions"])
+
+
+def test_openpi_training_loss_equals_ours(openpi_imported, openpi_batch, openpi_ref) -> None:
+    model, ref = openpi_imported.model.eval(), openpi_ref
+    target = model.pad_actions(ref["normalized.actions"])
+    x_t, u = flow_matching_path(target, ref["loss.noise"], ref["loss.time"])
+    with torch.no_grad():
+        velocity, _ = model.velocity(model.embed_prefix(openpi_batch), x_t, ref["loss.time"])
+    assert_close((velocity - u) ** 2, ref["loss.elements"])
+    assert_close(model.flow_loss(velocity, u), ref["loss.openpi"])  # all 32 dims
+
+
+def test_openpi_unknown_config_field_is_named(tmp_path: Path) -> None:
+    folder = tmp_path / "openpi"
+    shutil.copytree(OPENPI, folder, ignore=shutil.ignore_patterns("reference.safetensors"))
+    upstream = json.loads((folder / "config.json").read_text())
+    (folder / "config.json").write_text(json.dumps({**upstream, "discrete_state_input": False}))
+    with pytest.raises(BackboneError, match=r"openpi config field\(s\) \['discrete_state_input'\]"):
+        Pi05.from_original(folder, preset="pi05-tiny", overrides=OPENPI_SIZES)

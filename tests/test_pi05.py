@@ -452,6 +452,7 @@ def test_euler_integration_schedule(tiny: Pi05, monkeypatch: pytest.MonkeyPatch)
         ("prompt_state_dim", 32),
         ("tokenizer_max_length", 40),
         ("num_inference_steps", 3),
+        ("accumulate_time", True),
         ("time_sampling_beta_alpha", 4.0),
         ("time_sampling_beta_beta", 3.0),
         ("time_sampling_scale", 0.3),

@@ -69,17 +69,15 @@ def pinned(config, **values):
     return config
 
 
-def patch_sizes() -> None:
-    from lerobot.policies.pi05 import modeling_pi05
+def patch_hf_sizes(module, vision: dict) -> None:
+    """Toy HF configs in ``module`` (LeRobot ``modeling_pi05`` or openpi ``gemma_pytorch``), whose
+    ``PaliGemmaWithExpertModel`` builds them through ``CONFIG_MAPPING`` and then assigns full-size
+    values (vocab 257152, SigLIP MLP 4304, projection 2048) that the pins keep at ours."""
     from transformers import GemmaConfig, PaliGemmaConfig, PaliGemmaForConditionalGeneration
-
-    def gemma_config(variant: str):
-        spec = {"gemma_2b": VLM, "gemma_300m": EXPERT}[variant]
-        return modeling_pi05.GemmaConfig(**spec)
 
     def paligemma(**kwargs):
         config = PaliGemmaConfig(**kwargs)
-        config.vision_config = pinned(config.vision_config, **VISION, projection_dim=VLM["width"])
+        config.vision_config = pinned(config.vision_config, **vision, projection_dim=VLM["width"])
         config.text_config = pinned(config.text_config, vocab_size=VOCAB)
         return config
 
@@ -87,14 +85,24 @@ def patch_sizes() -> None:
         return GemmaConfig(**{**kwargs, "vocab_size": VOCAB})
 
     def build_paligemma(config):
-        # Pinning is over once LeRobot has assigned its values: HF maps config classes to models.
+        # Pinning is over once upstream has assigned its values: HF maps config classes to models.
         for sub in (config.vision_config, config.text_config):
             sub.__class__ = type(sub).__mro__[1]
         return PaliGemmaForConditionalGeneration(config=config)
 
+    module.PaliGemmaForConditionalGeneration = build_paligemma
+    module.CONFIG_MAPPING = {"paligemma": paligemma, "gemma": gemma}
+
+
+def patch_sizes() -> None:
+    from lerobot.policies.pi05 import modeling_pi05
+
+    def gemma_config(variant: str):
+        spec = {"gemma_2b": VLM, "gemma_300m": EXPERT}[variant]
+        return modeling_pi05.GemmaConfig(**spec)
+
     modeling_pi05.get_gemma_config = gemma_config
-    modeling_pi05.PaliGemmaForConditionalGeneration = build_paligemma
-    modeling_pi05.CONFIG_MAPPING = {"paligemma": paligemma, "gemma": gemma}
+    patch_hf_sizes(modeling_pi05, VISION)
 
 
 def write_tokenizer(folder: Path) -> None:
@@ -278,6 +286,207 @@ def make_lerobot(out: Path, openpi: Path) -> None:
     write_provenance(out, openpi, sys.argv)
 
 
+OPENPI_VISION = {**VISION, "patch_size": 28}  # openpi always resizes to 224 px: 8 x 8 patches
+OPENPI_CAMERAS = ("base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb")
+OPENPI_RAW_IMAGE = 56  # square, resized to 224 by openpi's preprocessing
+OPENPI_MAX_TOKEN_LEN = 200  # Pi0Config(pi05=True).__post_init__
+
+
+def import_openpi_pytorch(openpi: Path):
+    """openpi's PyTorch model, tokenizer and normalisation from a checkout, without its JAX model
+    stack: modules only the JAX model, FSQ/FAST tokenizers and GCS downloads use are stubbed (none is
+    called on the paths run here), and ``openpi.models.gemma`` (flax) is replaced by a ``get_config``
+    returning toy sizes, which is what it provides to the PyTorch model."""
+    import types
+    from unittest import mock
+
+    sys.path.insert(0, str(openpi / "src"))
+    sizes = {"gemma_2b": VLM, "gemma_300m": EXPERT}
+    gemma = types.ModuleType("openpi.models.gemma")
+    gemma.get_config = lambda variant: types.SimpleNamespace(**sizes[variant])
+    sys.modules["openpi.models.gemma"] = gemma
+    for name in (
+        "orbax",
+        "orbax.checkpoint",
+        "openpi.models.utils",
+        "openpi.models.utils.fsq_tokenizer",
+        "openpi.shared.download",
+        "openpi_client",
+        "openpi_client.image_tools",
+        "flax",
+        "flax.traverse_util",  # used by Normalize.__call__ only
+    ):
+        sys.modules[name] = mock.MagicMock(name=name)
+    import openpi.shared  # noqa: F401  (the real package, parent of the stubbed download module)
+    from openpi.models import tokenizer
+    from openpi.models_pytorch import gemma_pytorch, pi0_pytorch
+    from openpi.shared import normalize
+
+    patch_hf_sizes(gemma_pytorch, OPENPI_VISION)
+    from openpi import transforms
+
+    return pi0_pytorch, tokenizer, normalize, transforms
+
+
+def make_openpi(out: Path, openpi: Path, tokenizer_dir: Path) -> None:
+    """openpi's PyTorch pi05 (``PI0Pytorch`` with ``pi05=True``) saved in the layout of openpi's
+    ``examples/convert_jax_model_to_pytorch.py`` / ``scripts/train_pytorch.py``: ``model.safetensors``
+    by ``safetensors.torch.save_model`` (no ``model.`` prefix), the converter's ``config.json`` and
+    ``assets/<asset_id>/norm_stats.json`` by ``openpi.shared.normalize.save``."""
+    import types
+
+    import numpy as np
+    from safetensors.torch import save_file, save_model
+    from transformers import AutoTokenizer
+
+    pi0_pytorch, tokenizer_mod, normalize, transforms = import_openpi_pytorch(openpi)
+    out.mkdir(parents=True, exist_ok=True)
+    # Pi0Config(pi05=True, action_horizon=CHUNK) fields PI0Pytorch reads (pi0_config.py imports flax).
+    config = types.SimpleNamespace(
+        pi05=True,
+        action_dim=32,
+        action_horizon=CHUNK,
+        max_token_len=OPENPI_MAX_TOKEN_LEN,
+        paligemma_variant="gemma_2b",
+        action_expert_variant="gemma_300m",
+        dtype="float32",
+        pytorch_compile_mode=None,
+    )
+    torch.manual_seed(SEED)
+    model = pi0_pytorch.PI0Pytorch(config)
+    randomize(model, torch.Generator().manual_seed(SEED + 10))
+    model.eval()
+    save_model(model, str(out / "model.safetensors"))
+    # examples/convert_jax_model_to_pytorch.py writes this config.json
+    (out / "config.json").write_text(
+        json.dumps(
+            {
+                "action_dim": config.action_dim,
+                "action_horizon": config.action_horizon,
+                "paligemma_variant": config.paligemma_variant,
+                "action_expert_variant": config.action_expert_variant,
+                "precision": "float32",
+            },
+            indent=2,
+        )
+    )
+    stats = statistics()
+    norm_stats = {
+        "state": normalize.NormStats(
+            mean=stats["observation.state"]["mean"].numpy(),
+            std=stats["observation.state"]["std"].numpy(),
+            q01=stats["observation.state"]["q01"].numpy(),
+            q99=stats["observation.state"]["q99"].numpy(),
+        ),
+        "actions": normalize.NormStats(
+            mean=stats["action"]["mean"].numpy(),
+            std=stats["action"]["std"].numpy(),
+            q01=stats["action"]["q01"].numpy(),
+            q99=stats["action"]["q99"].numpy(),
+        ),
+    }
+    normalize.save(out / "assets" / "toy_robot", norm_stats)
+
+    # The raw batch through openpi's own Normalize transform (quantiles, as pi05 configs use).
+    raw = raw_batch(stats)
+    g = torch.Generator().manual_seed(SEED + 5)
+    images = {
+        key: torch.rand(2, 3, OPENPI_RAW_IMAGE, OPENPI_RAW_IMAGE, generator=g)
+        for key in OPENPI_CAMERAS
+    }
+    image_masks = {key: torch.tensor([True, True]) for key in OPENPI_CAMERAS}
+    image_masks["right_wrist_0_rgb"] = torch.tensor([True, False])  # a missing camera in row 1
+    # Normalize's per-key method (its __call__ walks the dict with flax.traverse_util, not installed).
+    norm = transforms.Normalize(norm_stats, use_quantiles=True)
+    state = norm._normalize_quantile(raw["observation.state"].numpy(), norm_stats["state"])
+    actions = norm._normalize_quantile(raw["action"].numpy(), norm_stats["actions"])
+
+    # openpi's PaligemmaTokenizer.tokenize (prompt format, state bins, padding), with the byte-level
+    # stand-in in place of the sentencepiece model it downloads from GCS.
+    hf = AutoTokenizer.from_pretrained(str(tokenizer_dir))
+
+    class SentencePieceLike:
+        def encode(self, text: str, add_bos: bool = False) -> list[int]:
+            ids = hf(text, add_special_tokens=False)["input_ids"]
+            return [hf.bos_token_id, *ids] if add_bos else ids
+
+    tok = object.__new__(tokenizer_mod.PaligemmaTokenizer)
+    tok._max_len = OPENPI_MAX_TOKEN_LEN
+    tok._tokenizer = SentencePieceLike()
+    tokenized = [tok.tokenize(task, s) for task, s in zip(TASKS, state, strict=True)]
+    tokens = torch.from_numpy(np.stack([t for t, _ in tokenized])).long()
+    token_mask = torch.from_numpy(np.stack([m for _, m in tokenized])).bool()
+
+    def observation(state_t: torch.Tensor):
+        # openpi Observation.from_dict maps float images to [-1, 1] as x * 2 - 1 (uint8 / 255 first).
+        return types.SimpleNamespace(
+            images={k: v * 2 - 1 for k, v in images.items()},
+            image_masks=image_masks,
+            state=state_t,
+            tokenized_prompt=tokens,
+            tokenized_prompt_mask=token_mask,
+            token_ar_mask=None,
+            token_loss_mask=None,
+        )
+
+    refs: dict[str, torch.Tensor] = {
+        f"input.image.{i}": images[k] for i, k in enumerate(OPENPI_CAMERAS)
+    }
+    refs["input.image_mask"] = torch.stack([image_masks[k] for k in OPENPI_CAMERAS], dim=1)
+    refs["input.state"] = raw["observation.state"]
+    refs["input.actions"] = raw["action"]
+    refs["normalized.state"] = torch.from_numpy(state).float()
+    refs["normalized.actions"] = torch.from_numpy(actions).float()
+    refs["tokens"], refs["token_mask"] = tokens, token_mask
+    state_padded = torch.nn.functional.pad(refs["normalized.state"], (0, 24))  # PadStatesAndActions
+    obs = observation(state_padded)
+    with torch.no_grad():
+        imgs, img_masks, lang_tokens, lang_masks, _ = model._preprocess_observation(
+            obs, train=False
+        )
+        refs["image_features"] = torch.stack(
+            [model.paligemma_with_expert.embed_image(img) for img in imgs], dim=1
+        )
+        prefix, _, _ = model.embed_prefix(imgs, img_masks, lang_tokens, lang_masks)
+        refs["hidden.0"] = prefix[:, :, :8]  # the first 8 channels keep the file small
+        noise = torch.randn(2, CHUNK, 32, generator=torch.Generator().manual_seed(3))
+        refs["sample.noise"] = noise
+        hidden: dict[int, torch.Tensor] = {}
+        layers = model.paligemma_with_expert.paligemma.language_model.layers
+
+        def keep(index: int):
+            def hook(_module, _args, output) -> None:  # returns None: the output is unchanged
+                value = output[0] if isinstance(output, tuple) else output
+                hidden.setdefault(index, value[:, :, :8])
+
+            return hook
+
+        handles = [layer.register_forward_hook(keep(i + 1)) for i, layer in enumerate(layers)]
+        refs["sample.actions"] = model.sample_actions("cpu", obs, noise=noise.clone(), num_steps=10)
+        for handle in handles:
+            handle.remove()
+        for index, value in hidden.items():
+            refs[f"hidden.{index}"] = value
+        loss_noise = torch.randn(2, CHUNK, 32, generator=torch.Generator().manual_seed(4))
+        loss_time = torch.tensor([0.3, 0.85])
+        padded_actions = torch.nn.functional.pad(refs["normalized.actions"], (0, 32 - ACTION_DIM))
+        # PI0Pytorch.forward always preprocesses with train=True (random crops, rotation, colour
+        # jitter); the loss reference is taken without that augmentation, which capvector does not
+        # reproduce (its own augmentation is in capvector.data.transforms).
+        model._preprocess_observation = lambda o, train=True, _f=model._preprocess_observation: _f(
+            o, train=False
+        )
+        losses = model.forward(obs, padded_actions, noise=loss_noise, time=loss_time)
+        refs["loss.noise"], refs["loss.time"] = loss_noise, loss_time
+        refs["loss.elements"] = losses
+        refs["loss.openpi"] = losses.mean()  # pi0.py compute_loss / train_pytorch.py: all 32 dims
+    save_file(
+        {k: v.detach().contiguous() for k, v in refs.items()},
+        str(out / "reference.safetensors"),
+        metadata={"tasks": json.dumps(TASKS), "cameras": json.dumps(OPENPI_CAMERAS)},
+    )
+
+
 def write_provenance(out: Path, openpi: Path, argv: list[str]) -> None:
     def version(name: str) -> str:
         try:
@@ -342,6 +551,67 @@ def write_provenance(out: Path, openpi: Path, argv: list[str]) -> None:
     (out / "PROVENANCE").write_text("\n".join(lines) + "\n")
 
 
+def write_openpi_provenance(out: Path, openpi: Path, argv: list[str]) -> None:
+    lines = [
+        "Pi0.5 parity fixture, variant `openpi`: openpi's PyTorch pi05 model at toy size.",
+        "",
+        f"upstream: Physical-Intelligence/openpi {_commit(openpi)}",
+        "  src/openpi/models_pytorch/{pi0_pytorch,gemma_pytorch,preprocessing_pytorch}.py,",
+        "  src/openpi/models/tokenizer.py (PaligemmaTokenizer.tokenize), src/openpi/transforms.py",
+        "  (Normalize, quantiles), src/openpi/shared/normalize.py (NormStats, save)",
+        f"transformers {_version('transformers')} with openpi's transformers_replace patch applied;",
+        f"torch {torch.__version__}, jax {_version('jax')} (CPU; imported by openpi.shared.image_tools),",
+        f"numpy {_version('numpy')}, python {sys.version.split()[0]}",
+        "",
+        "command (run in the scratch venv, from the capvector repository root):",
+        "  python " + " ".join(argv),
+        "",
+        "layout: model.safetensors written by safetensors.torch.save_model (no `model.` prefix) and",
+        "config.json as examples/convert_jax_model_to_pytorch.py writes them; norm stats in",
+        "assets/toy_robot/norm_stats.json by openpi.shared.normalize.save (train_pytorch.py's place).",
+        "",
+        "deviations:",
+        f"- toy sizes: VLM {VLM}, expert {EXPERT}, SigLIP {OPENPI_VISION}, vocab {VOCAB};",
+        "  openpi.models.gemma (flax) is replaced by a get_config returning these; the HF configs",
+        "  gemma_pytorch builds are pinned to them as for the lerobot variant;",
+        "- Pi0Config (flax import) replaced by a namespace with the fields PI0Pytorch reads:",
+        f"  pi05=True, action_dim 32, action_horizon {CHUNK}, max_token_len {OPENPI_MAX_TOKEN_LEN}, float32;",
+        "- modules used only by the JAX model, FSQ/FAST tokenizers and GCS downloads are stubbed",
+        "  (orbax, flax, fsq_tokenizer, download, openpi_client): none runs on these paths;",
+        "- PaligemmaTokenizer.tokenize runs with the lerobot variant's byte-level stand-in in place",
+        "  of the sentencepiece model (paligemma_tokenizer.model is on GCS, unreachable here);",
+        "- every parameter random from seed 10; CPU, float32, eager attention;",
+        "- 3 cameras (openpi's IMAGE_KEYS), 56 px square raw images resized to 224 by openpi;",
+        "  right_wrist masked in row 1; state 8-d, tokenized unpadded, then padded to 32;",
+        "- the training loss is taken with _preprocess_observation(train=False): PI0Pytorch.forward",
+        "  augments images at random (crop, rotation, colour jitter), which capvector does not copy.",
+        "",
+        "reference.safetensors: inputs, normalised state/actions (openpi Normalize), tokens, image",
+        "features, prefix hidden states hidden.0..2 (first 8 channels), actions sampled in 10 steps",
+        "from sample.noise, loss elements at loss.noise / loss.time and their mean over 32 dims.",
+    ]
+    (out / "PROVENANCE").write_text("\n".join(lines) + "\n")
+
+
+def _version(name: str) -> str:
+    try:
+        return metadata.version(name)
+    except metadata.PackageNotFoundError:
+        return "not installed"
+
+
+def _commit(path: Path) -> str:
+    try:
+        return subprocess.run(
+            ["git", "-C", str(path), "rev-parse", "HEAD"],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+    except (subprocess.CalledProcessError, FileNotFoundError):
+        return (path / "COMMIT").read_text().strip() if (path / "COMMIT").is_file() else "unknown"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument(
@@ -351,6 +621,9 @@ def main() -> None:
     args = parser.parse_args()
     make_lerobot(args.out / "lerobot", args.openpi)
     print(f"wrote {args.out / 'lerobot'}")
+    make_openpi(args.out / "openpi", args.openpi, args.out / "lerobot" / "tokenizer")
+    write_openpi_provenance(args.out / "openpi", args.openpi, sys.argv)
+    print(f"wrote {args.out / 'openpi'}")
 
 
 if __name__ == "__main__":

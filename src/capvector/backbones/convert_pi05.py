@@ -14,6 +14,10 @@ A LeRobot policy folder (``PI05Policy.save_pretrained`` + the processors' ``save
   ``safetensors.torch.save_model``, which keeps one of PaliGemma's tied tensors (``lm_head``).
 - ``policy_preprocessor.json`` + ``policy_preprocessor_step_K_normalizer_processor.safetensors``:
   the dataset statistics (``<feature>.<stat>`` tensors) the normaliser step uses.
+
+An openpi PyTorch folder (``examples/convert_jax_model_to_pytorch.py``, ``scripts/train_pytorch.py``)
+is read by ``load_openpi_checkpoint``: ``model.safetensors`` (the same keys without ``model.``),
+the converter's five-field ``config.json`` and ``assets/<asset_id>/norm_stats.json``.
 """
 
 from __future__ import annotations
@@ -299,17 +303,108 @@ def read_lerobot_statistics(root: Path, action_dim: int, proprio_dim: int) -> di
     return {name: entry}
 
 
+# -- openpi ------------------------------------------------------------------------------------
+
+# config.json of openpi's examples/convert_jax_model_to_pytorch.py: {action_dim, action_horizon,
+# paligemma_variant, action_expert_variant, precision}.
+_OPENPI_REQUIRED = {
+    "paligemma_variant": "gemma_2b",
+    "action_expert_variant": "gemma_300m",
+}
+# openpi's PyTorch preprocessing always feeds these three cameras at 224 px
+# (src/openpi/models_pytorch/preprocessing_pytorch.py IMAGE_KEYS, IMAGE_RESOLUTION).
+_OPENPI_CAMERAS = 3
+_OPENPI_IMAGE_SIZE = 224
+NORM_STATS_FILE = "norm_stats.json"
+
+
+def is_openpi_config(upstream: Mapping[str, Any]) -> bool:
+    """openpi's converter writes ``action_horizon``; LeRobot's PI05Config has ``chunk_size``."""
+    return "action_horizon" in upstream and "type" not in upstream
+
+
+def config_from_openpi(upstream: Mapping[str, Any], source: str) -> dict[str, Any]:
+    """``Pi05Config`` values from the converter's config.json. openpi's ``action_dim`` is the padded
+    model width (``max_action_dim`` here); the real dims come from the norm stats. It does not record
+    ``pi05`` or ``discrete_state_input``: a ``pi05_libero``-style model trained without the state
+    (``discrete_state_input=False``) needs ``overrides={"proprio_dim": 0}``."""
+    unknown = sorted(
+        set(upstream) - {"action_dim", "action_horizon", "precision", *_OPENPI_REQUIRED}
+    )
+    if unknown:
+        raise BackboneError(
+            f"{source} has openpi config field(s) {unknown} the import does not know"
+        )
+    for name, value in _OPENPI_REQUIRED.items():
+        if name in upstream and upstream[name] != value:
+            raise BackboneError(
+                f"{source}: {name}={upstream[name]!r} is not supported (only {value!r})"
+            )
+    values: dict[str, Any] = {
+        "num_images": _OPENPI_CAMERAS,
+        "image_size": _OPENPI_IMAGE_SIZE,
+        # openpi pi0.py compute_loss / train_pytorch.py: the MSE over all action_dim (padded) dims.
+        "loss_include_padded_dims": True,
+        # pi0_pytorch.py sample_actions: `time += dt` on a float32 tensor.
+        "accumulate_time": True,
+    }
+    if "action_horizon" in upstream:
+        values["chunk_size"] = int(upstream["action_horizon"])
+    if "action_dim" in upstream:
+        values["max_action_dim"] = int(upstream["action_dim"])
+    return values
+
+
+def read_openpi_statistics(root: Path) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``assets/<asset_id>/norm_stats.json`` (``openpi.shared.normalize.save``) in capvector's schema,
+    keyed by the asset id, and the norm stats as read; ``({}, {})`` without an assets folder."""
+    files = sorted((root / "assets").glob(f"*/{NORM_STATS_FILE}"))
+    if not files:
+        return {}, {}
+    if len(files) > 1:
+        raise BackboneError(
+            f"{root}/assets holds norm stats of {len(files)} assets "
+            f"({[f.parent.name for f in files]}); keep the one the model was trained with"
+        )
+    raw = json.loads(files[0].read_text())
+    stats = raw.get("norm_stats", {})
+    missing = [k for k in ("actions", "state") if not {"q01", "q99"} <= set(stats.get(k, {}))]
+    if missing:
+        raise BackboneError(f"{files[0]} lacks q01/q99 of {missing}; Pi0.5 normalises by quantiles")
+
+    def convert(entry: Mapping[str, Any]) -> dict[str, list[float]]:
+        return {
+            k: np.asarray(v, np.float64).reshape(-1).tolist()
+            for k, v in entry.items()
+            if v is not None
+        }
+
+    from capvector.data.statistics import QUANTILES
+
+    action = convert(stats["actions"])
+    entry = {
+        # openpi's norm stats have mean/std/q01/q99 (no min/max) and normalise every dimension.
+        "action": {**action, "mask": [True] * len(action["q01"])},
+        "proprio": convert(stats["state"]),
+        "num_transitions": 0,
+        "num_trajectories": 0,
+        "normalization": QUANTILES,
+    }
+    return {files[0].parent.name: entry}, {str(files[0].relative_to(root)): raw}
+
+
 # -- the loader -------------------------------------------------------------------------------
 
 
-def load_lerobot_policy(
+def load_original(
     cls: type[Pi05],
     source: str | Path,
     preset: str | None = None,
     overrides: Mapping[str, Any] | None = None,
     tokenizer: str | None = None,
 ) -> OriginalCheckpoint:
-    """See ``Pi05.from_original``."""
+    """A LeRobot policy folder or an openpi PyTorch checkpoint folder (told apart by config.json);
+    see ``Pi05.from_original``."""
     from safetensors.torch import load_file
 
     from capvector.backbones.pi05 import Pi05Config
@@ -323,8 +418,18 @@ def load_lerobot_policy(
         raise BackboneError(f"{root} has no {WEIGHTS_FILE} (the LeRobot pi05 layout)")
     upstream: dict[str, Any] = {}
     values: dict[str, Any] = {}
+    openpi_stats: dict[str, Any] = {}
+    files: dict[str, Any] = {}
     if (root / CONFIG_FILE).is_file():
         upstream = json.loads((root / CONFIG_FILE).read_text())
+    if is_openpi_config(upstream):
+        values = config_from_openpi(upstream, str(root / CONFIG_FILE))
+        openpi_stats, files = read_openpi_statistics(root)
+        if openpi_stats:  # the real (unpadded) dims the model was trained on
+            (entry,) = openpi_stats.values()
+            values["action_dim"] = len(entry["action"]["q01"])
+            values["proprio_dim"] = len(entry["proprio"]["q01"])
+    elif upstream:
         values = config_from_lerobot(upstream, str(root / CONFIG_FILE))
     if tokenizer is not None:
         values["tokenizer"] = str(tokenizer)
@@ -344,8 +449,10 @@ def load_lerobot_policy(
             f"Is it a complete pi05 checkpoint of the same size as preset {preset!r}?"
         )
     load_state_dict_strictly(model, state, source=str(weights))
-    statistics = read_lerobot_statistics(root, config.action_dim, config.proprio_dim)
-    files = {CONFIG_FILE: upstream}
+    statistics = openpi_stats or read_lerobot_statistics(
+        root, config.action_dim, config.proprio_dim
+    )
+    files[CONFIG_FILE] = upstream
     if (root / PREPROCESSOR_FILE).is_file():
         files[PREPROCESSOR_FILE] = json.loads((root / PREPROCESSOR_FILE).read_text())
     return OriginalCheckpoint(model, statistics, files)

@@ -118,6 +118,10 @@ class Pi05Config(BackboneConfig):
     with LeRobot <= 0.4.4 (its folder does not record which version wrote it)."""
     num_inference_steps: int = 10
     """Euler steps from t = 1 (noise) to t = 0 at inference."""
+    accumulate_time: bool = False
+    """The Euler steps' t as openpi computes it, a float32 running sum of dt (True), or as LeRobot,
+    1 + k·dt (False). They differ by about 1e-7, which the 4e-3 minimum period of the time
+    embedding turns into about 3e-5 in the sampled actions; the openpi import sets it."""
     time_sampling_beta_alpha: float = 1.5
     time_sampling_beta_beta: float = 1.0
     time_sampling_scale: float = 0.999
@@ -752,13 +756,20 @@ class Pi05(VLABackbone):
         """Forward Euler from t = 1 (x = noise) to t = 0 with dt = −1/N: (B, T, max_action_dim).
 
         openpi loops ``while t >= -dt / 2``, which is exactly N steps at t = 1 − k/N; we loop over
-        k so no rounding of t can add or drop a step.
+        k so no rounding of t can add or drop a step. The step's t is 1 + k·dt (LeRobot
+        ``modeling_pi05.py`` ``sample_actions``) or, with ``accumulate_time``, the float32 running
+        sum openpi keeps (``pi0_pytorch.py`` ``time += dt``).
         """
         steps = num_steps or self.config.num_inference_steps
         dt = -1.0 / steps
+        running = torch.tensor(1.0, dtype=torch.float32, device=noise.device)
         x = noise
         for k in range(steps):
-            time = torch.full((x.shape[0],), 1.0 + k * dt, device=x.device, dtype=torch.float32)
+            if self.config.accumulate_time:
+                time = running.expand(x.shape[0])
+                running = running + torch.tensor(dt, dtype=torch.float32, device=noise.device)
+            else:
+                time = torch.full((x.shape[0],), 1.0 + k * dt, device=x.device, dtype=torch.float32)
             x = x + dt * self.denoise_step(cache, x, time)
         return x
 
@@ -1016,7 +1027,8 @@ class Pi05(VLABackbone):
         overrides: Mapping[str, Any] | None = None,
         tokenizer: str | Path | None = None,
     ) -> OriginalCheckpoint:
-        """Load a LeRobot pi05 policy folder strictly, with its config and statistics.
+        """Load a LeRobot pi05 policy folder or an openpi PyTorch checkpoint strictly, with its
+        config and statistics.
 
         The folder is what LeRobot's ``PI05Policy.save_pretrained`` and its processors'
         ``save_pretrained`` write: ``model.safetensors`` (openpi PyTorch key names, optionally under
@@ -1025,14 +1037,18 @@ class Pi05(VLABackbone):
         normalisation mapping) and ``policy_preprocessor*`` (the dataset statistics, returned
         converted to capvector's schema). ``preset`` gives the architecture sizes; ``overrides``
         changes named fields last (e.g. ``{"chunk_size": 10}`` to fine-tune with another horizon,
-        ``{"prompt_state_dim": 32}`` for a LeRobot <= 0.4.4 policy). PaliGemma's tokenizer is not
+        ``{"prompt_state_dim": 32}`` for a LeRobot <= 0.4.4 policy). An openpi folder
+        (``convert_jax_model_to_pytorch.py`` / ``train_pytorch.py``: the same keys without
+        ``model.``, a five-field ``config.json``, ``assets/<asset_id>/norm_stats.json``) gives the
+        horizon, ``max_action_dim`` and, from the norm stats, the action and state dims; openpi always
+        feeds 3 cameras at 224 px. PaliGemma's tokenizer is not
         part of these folders: pass ``tokenizer=<folder>`` (a ``google/paligemma-3b-pt-224``
         download) or keep its files beside the weights. The conversion lives in
         ``capvector.backbones.convert_pi05``.
         """
-        from capvector.backbones.convert_pi05 import load_lerobot_policy
+        from capvector.backbones.convert_pi05 import load_original
 
-        return load_lerobot_policy(
+        return load_original(
             cls, source, preset, overrides, None if tokenizer is None else str(tokenizer)
         )
 

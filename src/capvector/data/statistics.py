@@ -100,6 +100,8 @@ class Normalizer:
         q01 = np.asarray(entry["q01"], dtype=np.float32)
         q99 = np.asarray(entry["q99"], dtype=np.float32)
         mask = np.asarray(entry.get("mask", [True] * len(q01)), dtype=bool)
+        if "min" not in entry:  # openpi's norm stats have no min/max; only bounds_q99 reads them
+            return q01, q99, mask, np.zeros_like(mask)
         constant = np.asarray(entry["min"], dtype=np.float32) == np.asarray(
             entry["max"], dtype=np.float32
         )
