@@ -5,8 +5,9 @@ Follows openpi (``src/openpi/models/pi0.py``, ``gemma.py``, ``tokenizer.py``,
 ``models_pytorch/pi0_pytorch.py``, ``gemma_pytorch.py``) and LeRobot's port
 (``src/lerobot/policies/pi05/{modeling_pi05,processor_pi05,configuration_pi05}.py``); the facts we
 rely on are collected in the project's ``research/pi05_lerobot.md``. Module names follow the
-checkpoint key families, so LeRobot's ``pi05_base`` loads through a small prefix map
-(``_ORIGINAL_PREFIXES``).
+checkpoint key families, so LeRobot's and openpi's checkpoints load through a small prefix map
+(``convert_pi05.py``). Parity with both is tested against fixtures their own code wrote
+(``tests/test_parity_pi05.py``, ``tools/make_upstream_fixtures_pi05.py``).
 
 Sequence layout (one row)::
 
