@@ -677,3 +677,37 @@ def test_from_original_rejects_other_policies_and_extra_keys(tiny: Pi05, tmp_pat
     save_file(state, str(root / "model.safetensors"))
     with pytest.raises(BackboneError, match=r"1 unexpected key.*`state_proj\.weight`"):
         Pi05.from_original(root, preset="pi05-tiny")
+
+
+# -- Pi0.5's normalisation (openpi / LeRobot quantiles) ------------------------------------------------
+
+
+def test_quantile_normalisation_does_not_clip_and_covers_the_gripper() -> None:
+    from capvector.data.statistics import QUANTILES, Normalizer, compute_statistics
+
+    rng = np.random.default_rng(0)
+    actions = rng.normal(size=(500, 3)).astype(np.float32)
+    actions[:, 1] = 0.25  # constant
+    entry = compute_statistics(actions, actions[:, :2], 1, normalization=QUANTILES)
+    assert entry["normalization"] == QUANTILES and entry["action"]["mask"] == [True] * 3
+    norm = Normalizer(entry)
+    out = norm.normalize("action", actions)
+    q01, q99 = np.quantile(actions, [0.01, 0.99], axis=0).astype(np.float32)
+    expected = 2 * (actions[:, [0, 2]] - q01[[0, 2]]) / (q99 - q01)[[0, 2]] - 1  # LeRobot QUANTILES
+    np.testing.assert_allclose(out[:, [0, 2]], expected, atol=1e-6)
+    assert out.min() < -1 and out.max() > 1  # not clipped, the gripper (last dim) included
+    assert (out[:, 1] == -1).all()  # q99 == q01: eps denominator, as LeRobot (OFT would give 0)
+    np.testing.assert_allclose(norm.unnormalize("action", out), actions, atol=1e-5)
+
+
+def test_datamodule_normalization_is_a_per_family_choice(demo_file: Path) -> None:
+    oft = RobotDataModule(train_files=[str(demo_file)], batch_size=2, augment=False)
+    assert "normalization" not in oft.spec.stats_entry  # OFT's bounds_q99, files unchanged
+    assert oft.spec.stats_entry["action"]["mask"][-1] is False
+    pi05 = RobotDataModule(
+        train_files=[str(demo_file)], batch_size=2, augment=False, normalization="quantiles"
+    )
+    assert pi05.spec.stats_entry["normalization"] == "quantiles"
+    assert all(pi05.spec.stats_entry["action"]["mask"])
+    with pytest.raises(ValueError, match="unknown normalization 'minmax'"):
+        RobotDataModule(train_files=[str(demo_file)], normalization="minmax")

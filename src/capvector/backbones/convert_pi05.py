@@ -155,6 +155,8 @@ _INERT_FIELDS = (
     "relative_exclude_joints",
     "action_feature_names",
 )
+# The lists above and below cover every field PI05Config and its PreTrainedConfig base have had in
+# LeRobot's history up to commit 7427f31 (2026-08).
 # Fields that do not describe the model: where it runs and in which precision, how many of the
 # predicted actions a LeRobot rollout executes (capvector's evaluation has its own replanning
 # setting), hub metadata, and LeRobot's training-loop presets (capvector's recipes set these).
@@ -168,6 +170,7 @@ _RUNTIME_FIELDS = (
     "tags",
     "license",
     "pretrained_path",
+    "pretrained_revision",
     "n_action_steps",
     "gradient_checkpointing",
     "compile_model",
