@@ -289,7 +289,7 @@ def read_lerobot_statistics(root: Path, action_dim: int, proprio_dim: int) -> di
         name = json.loads(train_config.read_text()).get("dataset", {}).get("repo_id") or name
     # LeRobot normalises every dimension, the gripper too (no OFT mask), without clipping.
     entry = statistics_from_lerobot(
-        stats, num_trajectories=0, state_key="observation.state", gripper_raw=False
+        stats, num_trajectories=0, state_key="observation.state", normalization=QUANTILES
     )
     if entry is None:
         raise BackboneError(
@@ -302,7 +302,6 @@ def read_lerobot_statistics(root: Path, action_dim: int, proprio_dim: int) -> di
             f"{root / files[0]} describes (action, state) dims {dims} but config.json says "
             f"{(action_dim, proprio_dim)}"
         )
-    entry["normalization"] = QUANTILES
     return {name: entry}
 
 
