@@ -84,21 +84,13 @@ def patch_hf_sizes(module, vision: dict) -> None:
     def gemma(**kwargs):
         return GemmaConfig(**{**kwargs, "vocab_size": VOCAB})
 
-    def build_paligemma(config, cls=PaliGemmaForConditionalGeneration):
+    def build_paligemma(config):
         # Pinning is over once upstream has assigned its values: HF maps config classes to models.
         for sub in (config.vision_config, config.text_config):
             sub.__class__ = type(sub).__mro__[1]
-        return cls(config=config)
+        return PaliGemmaForConditionalGeneration(config=config)
 
-    for name in (
-        "PaliGemmaForConditionalGeneration",
-        "PaliGemmaForConditionalGenerationWithPiGemma",
-    ):
-        if hasattr(
-            module, name
-        ):  # the latter: LeRobot after the transformers v5 bump (pi_gemma.py)
-            cls = getattr(module, name)
-            setattr(module, name, lambda config, cls=cls: build_paligemma(config, cls))
+    module.PaliGemmaForConditionalGeneration = build_paligemma
     module.CONFIG_MAPPING = {"paligemma": paligemma, "gemma": gemma}
 
 
@@ -181,7 +173,7 @@ def raw_batch(stats) -> dict[str, object]:
     return batch
 
 
-def make_lerobot(out: Path, tokenizer_dir: Path, write_tokenizer_files: bool) -> None:
+def make_lerobot(out: Path, openpi: Path) -> None:
     from lerobot.configs.types import FeatureType, PolicyFeature
     from lerobot.policies.pi05.configuration_pi05 import PI05Config
     from lerobot.policies.pi05.modeling_pi05 import PI05Policy
@@ -191,8 +183,8 @@ def make_lerobot(out: Path, tokenizer_dir: Path, write_tokenizer_files: bool) ->
 
     patch_sizes()
     out.mkdir(parents=True, exist_ok=True)
-    if write_tokenizer_files:
-        write_tokenizer(tokenizer_dir)
+    tokenizer_dir = out / "tokenizer"
+    write_tokenizer(tokenizer_dir)
     auto = tokenizer_processor.AutoTokenizer
 
     class StandInTokenizer:
@@ -251,7 +243,7 @@ def make_lerobot(out: Path, tokenizer_dir: Path, write_tokenizer_files: bool) ->
         refs["hidden.0"] = prefix
 
         hidden: dict[int, torch.Tensor] = {}
-        layers = paligemma.model.language_model.layers
+        layers = paligemma.language_model.layers
 
         def keep(index: int):
             def hook(_module, _args, output) -> None:  # returns None: the output is unchanged
@@ -291,6 +283,7 @@ def make_lerobot(out: Path, tokenizer_dir: Path, write_tokenizer_files: bool) ->
         str(out / "reference.safetensors"),
         metadata={"tasks": json.dumps(TASKS), "cameras": json.dumps(CAMERAS)},
     )
+    write_provenance(out, openpi, sys.argv)
 
 
 OPENPI_VISION = {**VISION, "patch_size": 28}  # openpi always resizes to 224 px: 8 x 8 patches
@@ -600,29 +593,6 @@ def write_openpi_provenance(out: Path, openpi: Path, argv: list[str]) -> None:
     (out / "PROVENANCE").write_text("\n".join(lines) + "\n")
 
 
-def write_main_provenance(out: Path, lerobot: Path, argv: list[str]) -> None:
-    lines = [
-        "Pi0.5 parity fixture, variant `lerobot-main`: LeRobot's PyTorch pi05 policy at toy size,",
-        "from LeRobot's main branch after the transformers v5 bump (stock transformers, pi_gemma.py).",
-        "",
-        f"upstream: huggingface/lerobot {_commit(lerobot)} (lerobot {_version('lerobot')}, installed",
-        "  --no-deps from that snapshot), src/lerobot/policies/pi05/*, src/lerobot/policies/pi_gemma.py",
-        f"transformers {_version('transformers')} (unpatched, as LeRobot's `transformers-dep` pins),",
-        f"torch {torch.__version__} although LeRobot pins torch<2.12 (the machine's local build),",
-        f"numpy {_version('numpy')}, python {sys.version.split()[0]}",
-        "",
-        "command (run in a second scratch venv, from the capvector repository root):",
-        "  python " + " ".join(argv),
-        "",
-        "the same toy sizes, seed, batch and stand-in tokenizer (../lerobot/tokenizer) as the",
-        "`lerobot` variant; here the prompt holds the unpadded state (LeRobot since f0d2b37, openpi),",
-        "capvector's default. CPU, float32, eager attention.",
-        "",
-        "reference.safetensors: as in the lerobot variant.",
-    ]
-    (out / "PROVENANCE").write_text("\n".join(lines) + "\n")
-
-
 def _version(name: str) -> str:
     try:
         return metadata.version(name)
@@ -648,29 +618,12 @@ def main() -> None:
         "--openpi", type=Path, required=True, help="openpi checkout (its patch is installed)"
     )
     parser.add_argument("--out", type=Path, default=Path("tests/fixtures/upstream/pi05"))
-    parser.add_argument(
-        "--variant",
-        action="append",
-        choices=["lerobot", "openpi", "lerobot-main"],
-        help="what to write (repeatable; default lerobot and openpi, which need lerobot==0.4.4 "
-        "and the patched transformers; lerobot-main needs a LeRobot checkout installed with "
-        "transformers 5.4/5.5, in another venv)",
-    )
-    parser.add_argument("--lerobot", type=Path, help="the LeRobot checkout (lerobot-main)")
     args = parser.parse_args()
-    tokenizer_dir = args.out / "lerobot" / "tokenizer"
-    for variant in args.variant or ["lerobot", "openpi"]:
-        out = args.out / variant
-        if variant == "lerobot":
-            make_lerobot(out, tokenizer_dir, write_tokenizer_files=True)
-            write_provenance(out, args.openpi, sys.argv)
-        elif variant == "openpi":
-            make_openpi(out, args.openpi, tokenizer_dir)
-            write_openpi_provenance(out, args.openpi, sys.argv)
-        else:
-            make_lerobot(out, tokenizer_dir, write_tokenizer_files=False)
-            write_main_provenance(out, args.lerobot, sys.argv)
-        print(f"wrote {out}")
+    make_lerobot(args.out / "lerobot", args.openpi)
+    print(f"wrote {args.out / 'lerobot'}")
+    make_openpi(args.out / "openpi", args.openpi, args.out / "lerobot" / "tokenizer")
+    write_openpi_provenance(args.out / "openpi", args.openpi, sys.argv)
+    print(f"wrote {args.out / 'openpi'}")
 
 
 if __name__ == "__main__":
