@@ -236,10 +236,11 @@ def test_embedding_scaling_is_pinned(tiny: Pi05) -> None:
 
 def test_state_is_discretised_unpadded_into_the_prompt(tiny: Pi05) -> None:
     values = torch.tensor([[-1.5, -1.0, -0.99, -0.0078125, 0.0, 0.5, 0.999, 1.0, 2.0]])
-    edges = np.linspace(-1, 1, 256 + 1)[:-1]  # openpi tokenizer.py
-    expected = np.digitize(np.clip(values.numpy().astype(np.float64), -1, 1), edges) - 1
+    edges = np.linspace(-1, 1, 256 + 1)[:-1]  # openpi tokenizer.py, LeRobot processor_pi05.py
+    expected = np.digitize(values.numpy().astype(np.float64), edges) - 1  # no clamp upstream
     assert discretize_state(values).tolist() == expected.tolist()
-    assert discretize_state(values)[0, [1, 4, 7]].tolist() == [0, 128, 255]
+    # Below -1 is bin -1 (written "-1"), as upstream; at or above 1 the last bin.
+    assert discretize_state(values)[0, [0, 1, 4, 7, 8]].tolist() == [-1, 0, 128, 255, 255]
 
     assert build_prompt(" pick_up the\nmug ", [0, 128, 255]) == [
         "Task: pick up the mug, State: 0 128 255;\nAction: "
@@ -253,6 +254,13 @@ def test_state_is_discretised_unpadded_into_the_prompt(tiny: Pi05) -> None:
     text = tok.decode(ids[0, 1:].tolist())
     assert text == "Task: lift cube, State: 0 36 73 109 146 182 219 255;\nAction: "
     assert len(text.split("State: ")[1].split(";")[0].split()) == 8  # the 8 real dims, not 32
+
+
+def test_prompt_state_dim_pads_the_state_as_lerobot_0_4_4() -> None:
+    model = build_backbone("pi05-tiny", prompt_state_dim=12, proprio_dim=2)
+    ids, valid = model.tokenize(["lift"], torch.tensor([[-1.2, 1.0]]), torch.device("cpu"))
+    text = model.tokenizer.decode(ids[0, 1:].tolist())
+    assert text == "Task: lift, State: -1 255" + " 128" * 10 + ";\nAction: "
 
 
 def test_resize_with_pad_keeps_aspect_and_pads_black() -> None:
@@ -441,8 +449,10 @@ def test_euler_integration_schedule(tiny: Pi05, monkeypatch: pytest.MonkeyPatch)
         ("min_period", 0.1),
         ("max_period", 100.0),
         ("state_bins", 8),
+        ("prompt_state_dim", 32),
         ("tokenizer_max_length", 40),
         ("num_inference_steps", 3),
+        ("accumulate_time", True),
         ("time_sampling_beta_alpha", 4.0),
         ("time_sampling_beta_beta", 3.0),
         ("time_sampling_scale", 0.3),
@@ -667,3 +677,37 @@ def test_from_original_rejects_other_policies_and_extra_keys(tiny: Pi05, tmp_pat
     save_file(state, str(root / "model.safetensors"))
     with pytest.raises(BackboneError, match=r"1 unexpected key.*`state_proj\.weight`"):
         Pi05.from_original(root, preset="pi05-tiny")
+
+
+# -- Pi0.5's normalisation (openpi / LeRobot quantiles) ------------------------------------------------
+
+
+def test_quantile_normalisation_does_not_clip_and_covers_the_gripper() -> None:
+    from capvector.data.statistics import QUANTILES, Normalizer, compute_statistics
+
+    rng = np.random.default_rng(0)
+    actions = rng.normal(size=(500, 3)).astype(np.float32)
+    actions[:, 1] = 0.25  # constant
+    entry = compute_statistics(actions, actions[:, :2], 1, normalization=QUANTILES)
+    assert entry["normalization"] == QUANTILES and entry["action"]["mask"] == [True] * 3
+    norm = Normalizer(entry)
+    out = norm.normalize("action", actions)
+    q01, q99 = np.quantile(actions, [0.01, 0.99], axis=0).astype(np.float32)
+    expected = 2 * (actions[:, [0, 2]] - q01[[0, 2]]) / (q99 - q01)[[0, 2]] - 1  # LeRobot QUANTILES
+    np.testing.assert_allclose(out[:, [0, 2]], expected, atol=1e-6)
+    assert out.min() < -1 and out.max() > 1  # not clipped, the gripper (last dim) included
+    assert (out[:, 1] == -1).all()  # q99 == q01: eps denominator, as LeRobot (OFT would give 0)
+    np.testing.assert_allclose(norm.unnormalize("action", out), actions, atol=1e-5)
+
+
+def test_datamodule_normalization_is_a_per_family_choice(demo_file: Path) -> None:
+    oft = RobotDataModule(train_files=[str(demo_file)], batch_size=2, augment=False)
+    assert "normalization" not in oft.spec.stats_entry  # OFT's bounds_q99, files unchanged
+    assert oft.spec.stats_entry["action"]["mask"][-1] is False
+    pi05 = RobotDataModule(
+        train_files=[str(demo_file)], batch_size=2, augment=False, normalization="quantiles"
+    )
+    assert pi05.spec.stats_entry["normalization"] == "quantiles"
+    assert all(pi05.spec.stats_entry["action"]["mask"])
+    with pytest.raises(ValueError, match="unknown normalization 'minmax'"):
+        RobotDataModule(train_files=[str(demo_file)], normalization="minmax")

@@ -5,8 +5,9 @@ Follows openpi (``src/openpi/models/pi0.py``, ``gemma.py``, ``tokenizer.py``,
 ``models_pytorch/pi0_pytorch.py``, ``gemma_pytorch.py``) and LeRobot's port
 (``src/lerobot/policies/pi05/{modeling_pi05,processor_pi05,configuration_pi05}.py``); the facts we
 rely on are collected in the project's ``research/pi05_lerobot.md``. Module names follow the
-checkpoint key families, so LeRobot's ``pi05_base`` loads through a small prefix map
-(``_ORIGINAL_PREFIXES``).
+checkpoint key families, so LeRobot's and openpi's checkpoints load through a small prefix map
+(``convert_pi05.py``). Parity with both is tested against fixtures their own code wrote
+(``tests/test_parity_pi05.py``, ``tools/make_upstream_fixtures_pi05.py``).
 
 Sequence layout (one row)::
 
@@ -26,7 +27,6 @@ expert only.
 
 from __future__ import annotations
 
-import json
 import math
 import warnings
 from collections.abc import Mapping, Sequence
@@ -46,8 +46,6 @@ from capvector.backbones.base import (
     VLABackbone,
     VLAOutput,
     draw_flow_noise,
-    load_state_dict_strictly,
-    merge_nested,
     nested_config,
     register_family,
     register_preset,
@@ -113,8 +111,18 @@ class Pi05Config(BackboneConfig):
     state_bins: int = 256
     """The normalised proprio state is discretised into this many bins over [-1, 1] and written
     into the prompt (Pi0.5's discrete state input)."""
+    prompt_state_dim: int = 0
+    """0: the prompt holds the state as it is, as openpi (``TokenizePrompt`` runs before
+    ``PadStatesAndActions``) and LeRobot since commit f0d2b37. N: the state is zero-padded to N dims
+    first, as LeRobot <= 0.4.4 did (``pad_vector(state, max_state_dim)`` in ``processor_pi05.py``),
+    which adds N - P "128" tokens; set it to the checkpoint's ``max_state_dim`` for a policy trained
+    with LeRobot <= 0.4.4 (its folder does not record which version wrote it)."""
     num_inference_steps: int = 10
     """Euler steps from t = 1 (noise) to t = 0 at inference."""
+    accumulate_time: bool = False
+    """The Euler steps' t as openpi computes it, a float32 running sum of dt (True), or as LeRobot,
+    1 + k·dt (False). They differ by about 1e-7, which the 4e-3 minimum period of the time
+    embedding turns into about 3e-5 in the sampled actions; the openpi import sets it."""
     time_sampling_beta_alpha: float = 1.5
     time_sampling_beta_beta: float = 1.0
     time_sampling_scale: float = 0.999
@@ -174,14 +182,18 @@ def positions_from_valid(valid: Tensor) -> Tensor:
 
 
 def discretize_state(state: Tensor, bins: int = 256) -> Tensor:
-    """(B, P) normalised state -> (B, P) integer bins in [0, bins - 1].
+    """(B, P) normalised state -> (B, P) integer bins, -1 .. bins - 1.
 
-    openpi ``PaligemmaTokenizer.tokenize``: ``np.digitize(s, linspace(-1, 1, bins + 1)[:-1]) - 1``.
-    We clamp to [-1, 1] first (identical inside the range; outside it digitize yields -1 for
-    s < -1). Edges in float64 as numpy's, so values on a bin edge land in the same bin.
+    openpi ``PaligemmaTokenizer.tokenize`` (``src/openpi/models/tokenizer.py``) and LeRobot
+    ``Pi05PrepareStateTokenizerProcessorStep`` (``processor_pi05.py``):
+    ``np.digitize(s, linspace(-1, 1, bins + 1)[:-1]) - 1``. Inside [-1, 1) that is bin
+    floor((s + 1) / 2 * bins); a value below -1 gives -1 (written "-1" into the prompt) and one at or
+    above 1 gives bins - 1, as upstream: neither clamps, and the quantile normalisation does not
+    clip (``capvector.data.statistics``), so trained checkpoints have seen these values. Edges in
+    float64 as numpy's, so values on a bin edge land in the same bin.
     """
     edges = torch.linspace(-1.0, 1.0, bins + 1, dtype=torch.float64, device=state.device)[:-1]
-    values = state.detach().to(torch.float64).clamp(-1.0, 1.0)
+    values = state.detach().to(torch.float64)
     # torch.bucketize(right=True) returns i with edges[i-1] <= x < edges[i], as np.digitize.
     return torch.bucketize(values, edges, right=True) - 1
 
@@ -745,13 +757,20 @@ class Pi05(VLABackbone):
         """Forward Euler from t = 1 (x = noise) to t = 0 with dt = −1/N: (B, T, max_action_dim).
 
         openpi loops ``while t >= -dt / 2``, which is exactly N steps at t = 1 − k/N; we loop over
-        k so no rounding of t can add or drop a step.
+        k so no rounding of t can add or drop a step. The step's t is 1 + k·dt (LeRobot
+        ``modeling_pi05.py`` ``sample_actions``) or, with ``accumulate_time``, the float32 running
+        sum openpi keeps (``pi0_pytorch.py`` ``time += dt``).
         """
         steps = num_steps or self.config.num_inference_steps
         dt = -1.0 / steps
+        running = torch.tensor(1.0, dtype=torch.float32, device=noise.device)
         x = noise
         for k in range(steps):
-            time = torch.full((x.shape[0],), 1.0 + k * dt, device=x.device, dtype=torch.float32)
+            if self.config.accumulate_time:
+                time = running.expand(x.shape[0])
+                running = running + torch.tensor(dt, dtype=torch.float32, device=noise.device)
+            else:
+                time = torch.full((x.shape[0],), 1.0 + k * dt, device=x.device, dtype=torch.float32)
             x = x + dt * self.denoise_step(cache, x, time)
         return x
 
@@ -896,6 +915,10 @@ class Pi05(VLABackbone):
                 raise BackboneError(
                     f"proprio has {proprio.shape[-1]} dims but proprio_dim={self.config.proprio_dim}"
                 )
+            if self.config.prompt_state_dim:
+                proprio = F.pad(
+                    proprio, (0, max(0, self.config.prompt_state_dim - proprio.shape[-1]))
+                )
             bins = discretize_state(proprio, self.config.state_bins).tolist()
         limit = self.config.tokenizer_max_length
         rows = []
@@ -1003,138 +1026,32 @@ class Pi05(VLABackbone):
         source: str | Path,
         preset: str | None = None,
         overrides: Mapping[str, Any] | None = None,
+        tokenizer: str | Path | None = None,
     ) -> OriginalCheckpoint:
-        """Load a LeRobot ``pi05_base``-layout folder strictly, with its config.json.
+        """Load a LeRobot pi05 policy folder or an openpi PyTorch checkpoint strictly, with its
+        config and statistics.
 
-        The folder holds ``model.safetensors`` (openpi PyTorch key names, optionally under
-        ``model.`` as LeRobot saves them) and ``config.json`` (LeRobot ``PI05Config``). Its flow and
-        size fields (``chunk_size``, ``max_action_dim``, ``num_inference_steps``, time sampling,
-        periods, ``tokenizer_max_length``, ``image_resolution``) are applied unless given in
-        ``overrides``; pass the data's ``chunk_size`` there to fine-tune with another horizon (the
-        weights do not depend on it). The
-        PaliGemma tokenizer is not part of these folders: pass ``tokenizer=<folder>`` (a
-        ``google/paligemma-3b-pt-224`` download), or keep tokenizer files beside the weights.
+        The folder is what LeRobot's ``PI05Policy.save_pretrained`` and its processors'
+        ``save_pretrained`` write: ``model.safetensors`` (openpi PyTorch key names, optionally under
+        ``model.``), ``config.json`` (``PI05Config``: chunk size, action and state dims, cameras,
+        ``max_action_dim``, inference steps, time sampling, image resolution, tokenizer length,
+        normalisation mapping) and ``policy_preprocessor*`` (the dataset statistics, returned
+        converted to capvector's schema). ``preset`` gives the architecture sizes; ``overrides``
+        changes named fields last (e.g. ``{"chunk_size": 10}`` to fine-tune with another horizon,
+        ``{"prompt_state_dim": 32}`` for a LeRobot <= 0.4.4 policy). An openpi folder
+        (``convert_jax_model_to_pytorch.py`` / ``train_pytorch.py``: the same keys without
+        ``model.``, a five-field ``config.json``, ``assets/<asset_id>/norm_stats.json``) gives the
+        horizon, ``max_action_dim`` and, from the norm stats, the action and state dims; openpi always
+        feeds 3 cameras at 224 px. PaliGemma's tokenizer is not
+        part of these folders: pass ``tokenizer=<folder>`` (a ``google/paligemma-3b-pt-224``
+        download) or keep its files beside the weights. The conversion lives in
+        ``capvector.backbones.convert_pi05``.
         """
-        from safetensors.torch import load_file
+        from capvector.backbones.convert_pi05 import load_original
 
-        from capvector.backbones.base import preset_config
-
-        root = Path(source)
-        preset = preset or "pi05-3b"
-        if not root.is_dir():
-            raise BackboneError(f"checkpoint folder {source} does not exist")
-        weights = root / "model.safetensors"
-        if not weights.is_file():
-            raise BackboneError(f"{root} has no model.safetensors (the LeRobot pi05 layout)")
-        original: dict[str, Any] = {}
-        if (root / "config.json").is_file():
-            original = json.loads((root / "config.json").read_text())
-            if original.get("type", "pi05") != "pi05":
-                raise BackboneError(
-                    f"{root}/config.json is a {original['type']!r} policy, not pi05 (Pi0 has a state "
-                    "token and other projections; it does not load into this backbone)"
-                )
-        values = {name: original[name] for name in _ORIGINAL_CONFIG_FIELDS if name in original}
-        if "image_resolution" in original:
-            height, width = original["image_resolution"]
-            if height != width:
-                raise BackboneError(
-                    f"{root}/config.json has image_resolution {height}x{width}; this backbone takes "
-                    "square images (image_size)"
-                )
-            values["image_size"] = height
-        if (root / "tokenizer_config.json").is_file():
-            values["tokenizer"] = str(root)
-        config = preset_config(preset, **merge_nested(values, overrides or {}))
-        if not isinstance(config, Pi05Config):
-            raise BackboneError(f"preset {preset!r} is not a pi05 preset")
-        model = cls(config)
-        state = original_to_capvector(load_file(str(weights)), source=str(weights))
-        expected = model.state_dict()
-        missing = sorted(set(expected) - set(state))
-        if missing:
-            names = ", ".join(f"`{capvector_to_original(k)}`" for k in missing[:3])
-            more = " ..." if len(missing) > 3 else ""
-            raise BackboneError(
-                f"{weights} lacks {len(missing)} tensor(s) of the pi05_base layout, e.g. {names}{more}. "
-                "Is it a complete pi05 checkpoint of the same size as preset "
-                f"{preset!r}?"
-            )
-        load_state_dict_strictly(model, state, source=str(weights))
-        return OriginalCheckpoint(model, {}, {"config.json": original})
-
-
-# LeRobot PI05Config fields our config shares, with the same names and meaning.
-_ORIGINAL_CONFIG_FIELDS = (
-    "chunk_size",
-    "max_action_dim",
-    "num_inference_steps",
-    "time_sampling_beta_alpha",
-    "time_sampling_beta_beta",
-    "time_sampling_scale",
-    "time_sampling_offset",
-    "min_period",
-    "max_period",
-    "tokenizer_max_length",
-)
-
-# openpi / LeRobot key prefix -> ours. Everything below a prefix keeps its name (layers.L.self_attn.
-# q_proj.weight, ….input_layernorm.dense.bias, vision_model.encoder.layers.L.mlp.fc1.bias, ...).
-_ORIGINAL_PREFIXES = (
-    ("paligemma_with_expert.paligemma.model.vision_tower.", "vision_tower."),
-    ("paligemma_with_expert.paligemma.model.multi_modal_projector.", "multi_modal_projector."),
-    ("paligemma_with_expert.paligemma.model.language_model.", "language_model."),
-    ("paligemma_with_expert.gemma_expert.model.", "action_expert."),
-    ("action_in_proj.", "action_in_proj."),
-    ("action_out_proj.", "action_out_proj."),
-    ("time_mlp_in.", "time_mlp_in."),
-    ("time_mlp_out.", "time_mlp_out."),
-)
-# PaliGemma ties its embedding to lm_head; the file often holds only lm_head (LeRobot #2307).
-_ORIGINAL_LM_HEAD = "paligemma_with_expert.paligemma.lm_head.weight"
-_EMBEDDING = "language_model.embed_tokens.weight"
-# Present because the expert is built as GemmaForCausalLM, but never used by Pi0.5.
-_ORIGINAL_UNUSED = (
-    "paligemma_with_expert.gemma_expert.lm_head.weight",
-    "paligemma_with_expert.gemma_expert.model.embed_tokens.weight",
-)
-
-
-def original_to_capvector(state: Mapping[str, Tensor], source: str) -> dict[str, Tensor]:
-    """openpi/LeRobot pi05 keys -> ours. Unknown keys are kept as they are, so the strict load
-    reports them as unexpected."""
-    out: dict[str, Tensor] = {}
-    lm_head = None
-    for raw_key, value in state.items():
-        key = raw_key.removeprefix("model.")  # LeRobot's policy wrapper prefix
-        if key in _ORIGINAL_UNUSED:
-            continue
-        if key == _ORIGINAL_LM_HEAD:
-            lm_head = value
-            continue
-        for old, new in _ORIGINAL_PREFIXES:
-            if key.startswith(old):
-                key = new + key[len(old) :]
-                break
-        out[key] = value
-    if lm_head is not None:
-        if _EMBEDDING in out and not torch.equal(out[_EMBEDDING], lm_head):
-            raise BackboneError(
-                f"{source} holds both `{_ORIGINAL_LM_HEAD}` and the token embedding and they differ; "
-                "PaliGemma ties them, so this backbone cannot represent the checkpoint"
-            )
-        out.setdefault(_EMBEDDING, lm_head)
-    return out
-
-
-def capvector_to_original(key: str) -> str:
-    """Our key -> its openpi/LeRobot name (for error messages)."""
-    if key == _EMBEDDING:
-        return _ORIGINAL_LM_HEAD
-    for old, new in _ORIGINAL_PREFIXES:
-        if key.startswith(new):
-            return old + key[len(new) :]
-    return key
+        return load_original(
+            cls, source, preset, overrides, None if tokenizer is None else str(tokenizer)
+        )
 
 
 def _right_pad(

@@ -17,6 +17,7 @@ from capvector.data.episodes import EpisodeDataset, EpisodeItem, EpisodeSampler,
 from capvector.data.hdf5 import DatasetError, HDF5RobotDataset
 from capvector.data.lerobot import LeRobotV3Dataset
 from capvector.data.spec import DataSpec
+from capvector.data.statistics import BOUNDS_Q99, check_normalization
 from capvector.data.transforms import ImageTransform
 
 DEFAULT_CAMERAS = ("agentview", "robot0_eye_in_hand")
@@ -47,6 +48,7 @@ class RobotDataModule(L.LightningDataModule):
         lerobot_root: str | None = None,
         train_episodes: list[int] | None = None,
         val_episodes: list[int] | None = None,
+        normalization: str = BOUNDS_Q99,
     ) -> None:
         """
         Args:
@@ -70,7 +72,12 @@ class RobotDataModule(L.LightningDataModule):
                 ``proprio_keys`` is ``[<state feature>]`` or ``[]``, the instruction is the task.
             train_episodes: LeRobot ``episode_index`` values to train on (None: all).
             val_episodes: LeRobot episodes for validation; leave them out of ``train_episodes``.
+            normalization: how states and actions are normalised, a per-family choice that follows
+                the family's upstream: ``bounds_q99`` (OpenVLA-OFT: clipped to [-1, 1], gripper
+                raw) or ``quantiles`` (Pi0.5 as openpi and LeRobot: not clipped, every dimension).
+                See ``capvector.data.statistics``; the backbone YAMLs set it.
         """
+        check_normalization(normalization)
         super().__init__()
         self.save_hyperparameters()
         self.eval_tasks = [EvalTask(**t) if isinstance(t, Mapping) else t for t in eval_tasks or []]
@@ -119,6 +126,7 @@ class RobotDataModule(L.LightningDataModule):
                 statistics=statistics,
                 transform=transform,
                 episodes=episodes,
+                normalization=hp.normalization,
             )
         return HDF5RobotDataset(
             files,
@@ -130,6 +138,7 @@ class RobotDataModule(L.LightningDataModule):
             instruction=hp.instruction,
             load_depth=hp.load_depth,
             load_annotations=hp.load_annotations,
+            normalization=hp.normalization,
         )
 
     @property

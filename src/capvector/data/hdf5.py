@@ -28,7 +28,7 @@ import torch
 from torch.utils.data import Dataset
 
 from capvector.data import keys
-from capvector.data.statistics import Normalizer, compute_statistics
+from capvector.data.statistics import BOUNDS_Q99, Normalizer, compute_statistics
 from capvector.data.transforms import ImageTransform
 from capvector.errors import CapVectorError
 
@@ -79,7 +79,10 @@ class HDF5RobotDataset(Dataset):
         instruction: str | None = None,
         load_depth: bool = False,
         load_annotations: bool = False,
+        normalization: str = BOUNDS_Q99,
     ) -> None:
+        """``normalization`` is the rule of statistics computed here (``capvector.data.statistics``);
+        given ``statistics`` carry their own."""
         if not files:
             raise DatasetError("no dataset files given; set data.train_files")
         self.files = [str(f) for f in files]
@@ -127,7 +130,10 @@ class HDF5RobotDataset(Dataset):
         self.action_dim = all_actions[0].shape[1]
         self.proprio_dim = all_proprio[0].shape[1]
         self.statistics = statistics or compute_statistics(
-            np.concatenate(all_actions), np.concatenate(all_proprio), len(self.episodes)
+            np.concatenate(all_actions),
+            np.concatenate(all_proprio),
+            len(self.episodes),
+            normalization=normalization,
         )
         self.normalizer = Normalizer(self.statistics)
         self._handles: dict[int, h5py.File] = {}

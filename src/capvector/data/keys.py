@@ -8,10 +8,11 @@ IMAGES = "images"
 """(B, N_cam, 3, H, W) float32 in [0, 1], upright, cameras in ``DataSpec.cameras`` order."""
 
 PROPRIO = "proprio"
-"""(B, P) float32, normalised with the dataset's q01/q99 statistics (clipped to [-1, 1])."""
+"""(B, P) float32, normalised with the dataset's q01/q99 statistics by the family's rule
+(``capvector.data.statistics``: clipped to [-1, 1] for OpenVLA-OFT, not clipped for Pi0.5)."""
 
 ACTIONS = "actions"
-"""(B, T, A) float32: the action chunk, normalised; the gripper dimension is left raw."""
+"""(B, T, A) float32: the action chunk, normalised as ``PROPRIO`` (OFT leaves the gripper raw)."""
 
 INSTRUCTION = "instruction"
 """list[str] of length B: the task's language instruction."""

@@ -36,7 +36,12 @@ from torch.utils.data import Dataset
 
 from capvector.data import keys
 from capvector.data.hdf5 import DatasetError
-from capvector.data.statistics import Normalizer, compute_statistics
+from capvector.data.statistics import (
+    BOUNDS_Q99,
+    Normalizer,
+    check_normalization,
+    compute_statistics,
+)
 from capvector.data.transforms import ImageTransform
 
 if TYPE_CHECKING:
@@ -95,14 +100,17 @@ def statistics_from_lerobot(
     action_key: str = "action",
     state_key: str | None = "observation.state",
     gripper_raw: bool = True,
+    normalization: str = BOUNDS_Q99,
 ) -> dict[str, Any] | None:
     """An OFT ``dataset_statistics.json`` entry converted from a ``meta/stats.json`` dict.
 
     Returns None when the file lacks a field q01/q99 normalisation needs (LeRobot datasets recorded
     before quantile stats have only mean/std/min/max; LeRobot then refuses QUANTILES mode).
     ``num_transitions`` is the action feature's ``count``. As ``compute_statistics``, the last action
-    dimension (the gripper) is left raw when ``gripper_raw``.
+    dimension (the gripper) is left raw when ``gripper_raw`` and ``normalization`` is OFT's
+    ``bounds_q99``; ``quantiles`` (Pi0.5) normalises every dimension and is recorded in the entry.
     """
+    check_normalization(normalization)
 
     def convert(key: str) -> dict[str, list[float]] | None:
         feature = stats.get(key, {})
@@ -115,15 +123,18 @@ def statistics_from_lerobot(
     if action is None or proprio is None:
         return None
     mask = [True] * len(action["q01"])
-    if gripper_raw:
+    if gripper_raw and normalization == BOUNDS_Q99:
         mask[-1] = False
     count = stats[action_key].get("count")
-    return {
+    entry = {
         "action": {**action, "mask": mask},
         "proprio": proprio,
         "num_transitions": int(np.asarray(count).reshape(-1)[0]) if count is not None else 0,
         "num_trajectories": int(num_trajectories),
     }
+    if normalization != BOUNDS_Q99:
+        entry["normalization"] = normalization
+    return entry
 
 
 class LeRobotV3Dataset(Dataset):
@@ -139,6 +150,7 @@ class LeRobotV3Dataset(Dataset):
         statistics: dict[str, Any] | None = None,
         transform: ImageTransform | None = None,
         episodes: Sequence[int] | None = None,
+        normalization: str = BOUNDS_Q99,
     ) -> None:
         """
         Args:
@@ -151,7 +163,10 @@ class LeRobotV3Dataset(Dataset):
                 validation split); None converts ``meta/stats.json`` or recomputes from the data.
             transform: image transform; default is the deterministic evaluation view.
             episodes: ``episode_index`` values to read (LeRobot's ``episodes`` argument); None for all.
+            normalization: the rule of statistics converted or computed here
+                (``capvector.data.statistics``); given ``statistics`` carry their own.
         """
+        self.normalization = check_normalization(normalization)
         _pyarrow()  # fail before reading anything when the extra is missing
         self.root = Path(root)
         self.cameras = list(cameras)
@@ -410,6 +425,7 @@ class LeRobotV3Dataset(Dataset):
                 num_trajectories=int(self.info.get("total_episodes", 0)),
                 action_key=self.action_key,
                 state_key=self.state_key,
+                normalization=self.normalization,
             )
         if converted is not None:
             # Dataset-wide statistics even for an episode subset, as LeRobot normalises with them.
@@ -427,7 +443,12 @@ class LeRobotV3Dataset(Dataset):
             len(self.episodes),
         )
         rows = np.concatenate([np.arange(e.start, e.start + e.length) for e in self.episodes])
-        return compute_statistics(self._actions[rows], self._proprio[rows], len(self.episodes))
+        return compute_statistics(
+            self._actions[rows],
+            self._proprio[rows],
+            len(self.episodes),
+            normalization=self.normalization,
+        )
 
     # -- samples ------------------------------------------------------------------------------
 

@@ -1,14 +1,24 @@
-"""Normalisation statistics in OpenVLA-OFT's ``dataset_statistics.json`` schema, and the q01/q99
-(BOUNDS_Q99) normalisation OFT trains with.
+"""Normalisation statistics in OpenVLA-OFT's ``dataset_statistics.json`` schema, and the two q01/q99
+normalisations of the families we follow.
 
 Schema (``prismatic/vla/datasets/rlds/utils/data_utils.py``)::
 
     {"<dataset name>": {"action":  {"mean", "std", "max", "min", "q01", "q99", "mask"},
                         "proprio": {"mean", "std", "max", "min", "q01", "q99"},
-                        "num_transitions": int, "num_trajectories": int}}
+                        "num_transitions": int, "num_trajectories": int,
+                        "normalization": "bounds_q99" | "quantiles"}}
 
-``mask`` is True for dimensions that are normalised; the gripper (last action dimension) is False
-and stays raw, as in OFT.
+``mask`` is True for dimensions that are normalised; OFT leaves the gripper (last action dimension)
+raw. ``normalization`` is our addition (absent means ``bounds_q99``), so the rule travels with the
+statistics into checkpoints and evaluation:
+
+- ``bounds_q99`` (OpenVLA-OFT, ``NormalizationType.BOUNDS_Q99`` in prismatic's ``data_utils.py``):
+  2(x − q01)/(q99 − q01 + 1e-8) − 1 clipped to [−1, 1]; dimensions that never change are set to 0.
+- ``quantiles`` (Pi0.5: LeRobot ``NormalizationMode.QUANTILES`` in
+  ``src/lerobot/processor/normalize_processor.py``; openpi ``shared/normalize.py``
+  ``_normalize_quantile``): 2(x − q01)/(q99 − q01) − 1 with 1e-8 only where q99 == q01, **not
+  clipped**, every dimension (the gripper too). openpi adds 1e-6 to every denominator instead; the
+  two differ by about 1e-6 relative and we follow LeRobot, whose checkpoints we import.
 """
 
 from __future__ import annotations
@@ -18,14 +28,33 @@ from typing import Any
 
 import numpy as np
 
-# OFT's BOUNDS_Q99 adds this to the denominator so constant dimensions do not divide by zero.
+# OFT's BOUNDS_Q99 adds this to the denominator so constant dimensions do not divide by zero;
+# LeRobot's QUANTILES uses it only where the denominator is 0.
 _EPS = 1e-8
+BOUNDS_Q99 = "bounds_q99"
+QUANTILES = "quantiles"
+NORMALIZATIONS = (BOUNDS_Q99, QUANTILES)
+
+
+def check_normalization(normalization: str) -> str:
+    if normalization not in NORMALIZATIONS:
+        raise ValueError(f"unknown normalization {normalization!r}; known: {list(NORMALIZATIONS)}")
+    return normalization
 
 
 def compute_statistics(
-    actions: np.ndarray, proprio: np.ndarray, num_trajectories: int, gripper_raw: bool = True
+    actions: np.ndarray,
+    proprio: np.ndarray,
+    num_trajectories: int,
+    gripper_raw: bool = True,
+    normalization: str = BOUNDS_Q99,
 ) -> dict[str, Any]:
-    """Statistics entry for one dataset from all its transitions: actions (N, A), proprio (N, P)."""
+    """Statistics entry for one dataset from all its transitions: actions (N, A), proprio (N, P).
+
+    ``gripper_raw`` leaves the last action dimension raw (OFT); it is ignored for ``quantiles``,
+    which normalises every dimension as LeRobot and openpi do.
+    """
+    check_normalization(normalization)
 
     def describe(x: np.ndarray) -> dict[str, list[float]]:
         x = x.astype(np.float64)
@@ -40,29 +69,39 @@ def compute_statistics(
 
     action_stats: dict[str, Any] = describe(actions)
     mask = [True] * actions.shape[1]
-    if gripper_raw:
+    if gripper_raw and normalization == BOUNDS_Q99:
         mask[-1] = False
     action_stats["mask"] = mask
-    return {
+    entry = {
         "action": action_stats,
         "proprio": describe(proprio) if proprio.shape[1] else {},
         "num_transitions": int(actions.shape[0]),
         "num_trajectories": int(num_trajectories),
     }
+    if normalization != BOUNDS_Q99:
+        entry["normalization"] = normalization
+    return entry
 
 
 @dataclass
 class Normalizer:
-    """q01/q99 normalisation to [-1, 1] (clipped); masked-out dimensions pass through."""
+    """q01/q99 normalisation to about [-1, 1] by the entry's rule (see the module docstring);
+    masked-out dimensions pass through."""
 
     stats: dict[str, Any]
     """One dataset's entry of the statistics file."""
+
+    @property
+    def normalization(self) -> str:
+        return check_normalization(self.stats.get("normalization", BOUNDS_Q99))
 
     def _bounds(self, kind: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         entry = self.stats[kind]
         q01 = np.asarray(entry["q01"], dtype=np.float32)
         q99 = np.asarray(entry["q99"], dtype=np.float32)
         mask = np.asarray(entry.get("mask", [True] * len(q01)), dtype=bool)
+        if "min" not in entry:  # openpi's norm stats have no min/max; only bounds_q99 reads them
+            return q01, q99, mask, np.zeros_like(mask)
         constant = np.asarray(entry["min"], dtype=np.float32) == np.asarray(
             entry["max"], dtype=np.float32
         )
@@ -73,14 +112,25 @@ class Normalizer:
         if not self.stats.get(kind):
             return x.astype(np.float32)
         q01, q99, mask, constant = self._bounds(kind)
+        if self.normalization == QUANTILES:
+            scaled = 2 * (x - q01) / self._quantile_range(q01, q99) - 1  # no clipping
+            return np.where(mask, scaled, x).astype(np.float32)
         scaled = np.clip(2 * (x - q01) / (q99 - q01 + _EPS) - 1, -1, 1)
         # OFT zeroes dimensions that never change (min == max) instead of mapping them to -1.
         scaled = np.where(constant & mask, 0.0, scaled)
         return np.where(mask, scaled, x).astype(np.float32)
 
+    @staticmethod
+    def _quantile_range(q01: np.ndarray, q99: np.ndarray) -> np.ndarray:
+        span = q99 - q01
+        return np.where(span == 0, np.float32(_EPS), span)
+
     def unnormalize(self, kind: str, x: np.ndarray) -> np.ndarray:
         if not self.stats.get(kind):
             return x.astype(np.float32)
         q01, q99, mask, _ = self._bounds(kind)
+        if self.normalization == QUANTILES:
+            raw = (x + 1) * self._quantile_range(q01, q99) / 2 + q01
+            return np.where(mask, raw, x).astype(np.float32)
         raw = 0.5 * (x + 1) * (q99 - q01 + _EPS) + q01
         return np.where(mask, raw, x).astype(np.float32)
