@@ -7,12 +7,13 @@ importing the simulator and ``capvector fit`` does not pay for the vector tools.
 
 from __future__ import annotations
 
-import argparse
 import importlib
 import shlex
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
+
+from capvector.errors import ToolParser
 
 LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
 
@@ -101,9 +102,7 @@ def backbone_info_main(argv: list[str]) -> int:
 
     from capvector.backbones import build_backbone, list_presets
 
-    parser = argparse.ArgumentParser(
-        prog="capvector backbone-info", description=backbone_info_main.__doc__
-    )
+    parser = ToolParser(prog="capvector backbone-info", description=backbone_info_main.__doc__)
     parser.add_argument("preset", nargs="?", help="a registered preset; omit with --list")
     parser.add_argument("--list", action="store_true", help="list the registered presets")
     parser.add_argument("--memory", action="store_true", help="estimate per-device training memory")
@@ -149,7 +148,7 @@ def export_main(argv: list[str]) -> int:
     """Export a Lightning checkpoint to a folder that `extract`, `merge` and `evaluate` read."""
     from capvector.module import load_module
 
-    parser = argparse.ArgumentParser(prog="capvector export", description=export_main.__doc__)
+    parser = ToolParser(prog="capvector export", description=export_main.__doc__)
     parser.add_argument("--ckpt", required=True, help="Lightning checkpoint (.ckpt)")
     parser.add_argument("--out", required=True, help="output folder (written atomically)")
     parser.add_argument("--overwrite", action="store_true")
@@ -168,9 +167,7 @@ def import_original_main(argv: list[str]) -> int:
     from capvector.backbones import backbone_class, preset_config
     from capvector.errors import CapVectorError
 
-    parser = argparse.ArgumentParser(
-        prog="capvector import-original", description=import_original_main.__doc__
-    )
+    parser = ToolParser(prog="capvector import-original", description=import_original_main.__doc__)
     parser.add_argument(
         "--preset", required=True, help="the architecture, e.g. openvla-oft-7b, pi05-3b"
     )

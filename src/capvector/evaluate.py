@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 from collections import defaultdict
@@ -11,6 +10,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from capvector.data.episodes import EvalTask
+from capvector.errors import ToolParser
 from capvector.fileio import atomic_write_bytes
 from capvector.module import load_module
 from capvector.policy import VLAPolicy
@@ -85,9 +85,7 @@ def format_table(rows: list[dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="capvector evaluate", description="MuJoCo rollouts of a checkpoint."
-    )
+    parser = ToolParser(prog="capvector evaluate", description="MuJoCo rollouts of a checkpoint.")
     parser.add_argument("--ckpt", required=True, help="Lightning checkpoint or export folder")
     parser.add_argument("--task", nargs="+", default=["Lift"], help="robosuite task(s)")
     parser.add_argument("--robot", default="Panda")

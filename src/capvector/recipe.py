@@ -28,7 +28,6 @@ name stands for all of its seeds), e.g. one report of a large recipe.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import re
@@ -39,7 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from capvector.errors import CapVectorError
+from capvector.errors import CapVectorError, ToolParser
 from capvector.fileio import atomic_write_bytes
 
 DONE = ".done"
@@ -334,7 +333,7 @@ def format_results(rows: list[dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="capvector recipe", description=__doc__.splitlines()[0])
+    parser = ToolParser(prog="capvector recipe", description=__doc__.splitlines()[0])
     parser.add_argument("--config", required=True, help="recipe YAML (configs/recipes/*.yaml)")
     parser.add_argument("--dry-run", action="store_true", help="print the stage commands only")
     parser.add_argument(

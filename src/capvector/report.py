@@ -9,7 +9,6 @@ rollout success and held-out action L1 at every validation, the step time and pe
 
 from __future__ import annotations
 
-import argparse
 import csv
 import io
 import itertools
@@ -19,7 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from capvector.errors import CapVectorError
+from capvector.errors import CapVectorError, ToolParser
 from capvector.fileio import atomic_write_bytes
 
 SUCCESS = "val/success_rate"
@@ -192,7 +191,7 @@ def report(
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="capvector report", description=__doc__.splitlines()[0])
+    parser = ToolParser(prog="capvector report", description=__doc__.splitlines()[0])
     parser.add_argument("--run-dir", required=True, type=Path, help="the recipe's run folder")
     parser.add_argument(
         "--arm", nargs=3, action="append", required=True, metavar=("LABEL", "GLOB", "START"),

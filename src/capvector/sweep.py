@@ -9,7 +9,6 @@ Results go to ``<out>/sweep.json`` after every λ, so an interrupted sweep resum
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 from typing import Any
@@ -18,6 +17,7 @@ import torch
 from tqdm import tqdm
 
 from capvector.data.episodes import EvalTask
+from capvector.errors import ToolParser
 from capvector.evaluate import wilson_interval
 from capvector.fileio import atomic_write_bytes
 from capvector.module import load_module
@@ -179,9 +179,7 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="capvector sweep-scale", description=__doc__.splitlines()[0]
-    )
+    parser = ToolParser(prog="capvector sweep-scale", description=__doc__.splitlines()[0])
     parser.add_argument("--base", required=True, help="θ_pre: export folder or checkpoint")
     parser.add_argument("--vector", required=True, help="capability vector folder")
     parser.add_argument("--scales", default="0,0.25,0.5,0.75,1,1.25,1.5")

@@ -159,10 +159,19 @@ class HDF5RobotDataset(Dataset):
             raise DatasetError(f"{where} has no `actions` dataset")
         obs = demo.get("obs")
         available = sorted(obs.keys()) if obs is not None else []
-        wanted = [f"{c}_image" for c in self.cameras] + self.proprio_keys
-        if self.load_depth:
-            wanted += [f"{c}_depth" for c in self.cameras]
-        missing = [k for k in wanted if k not in available]
+        depth = [f"{c}_depth" for c in self.cameras] if self.load_depth else []
+        missing_depth = [k for k in depth if k not in available]
+        missing = [
+            k
+            for k in [f"{c}_image" for c in self.cameras] + self.proprio_keys
+            if k not in available
+        ]
+        if missing_depth and not missing:
+            raise DatasetError(
+                f"{where}/obs has no depth ({missing_depth}): the demos were recorded without "
+                "depth, which this config loads (for spatial alignment). Record them with "
+                "`capvector demos --depth`, or set data.load_depth=false"
+            )
         if missing:
             raise DatasetError(
                 f"{where}/obs lacks {missing}; it has {available}. Set data.cameras (without the "

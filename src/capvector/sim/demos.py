@@ -46,6 +46,7 @@ import h5py
 import numpy as np
 from tqdm import tqdm
 
+from capvector.errors import ToolParser
 from capvector.sim.annotations import Annotator
 from capvector.sim.envs import (
     DEFAULT_CAMERAS,
@@ -317,7 +318,7 @@ def _parse_fovy(items: Sequence[str]) -> dict[str, float]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = ToolParser(
         prog="capvector demos",
         description="Record scripted-expert demonstrations (robosuite 1.5) to robomimic-layout HDF5.",
     )

@@ -14,6 +14,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from capvector.errors import ToolParser
 from capvector.vectors.io import DEFAULT_MAX_SHARD_SIZE, CapVectorError
 
 _OUT_HELP = "output folder; written atomically, an existing one is an error unless --overwrite"
@@ -67,7 +68,7 @@ def _add_common(parser: argparse.ArgumentParser, dtype: bool = True, shards: boo
 
 
 def extract_main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
+    parser = ToolParser(
         prog="capvector extract",
         description="Capability vector c = θ_aux − θ_sft from two export folders or checkpoints.",
     )
@@ -167,7 +168,7 @@ def _vector_arg(text: str) -> tuple[str, float]:
 
 
 def merge_main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
+    parser = ToolParser(
         prog="capvector merge",
         description="θ_meta = θ_pre + Σ λ_i c_i, written as an export folder sharded like the base.",
     )
@@ -222,7 +223,7 @@ def merge_main(argv: list[str] | None = None) -> int:
 
 
 def compose_main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
+    parser = ToolParser(
         prog="capvector compose", description="Combine vectors by a weighted sum or TIES-merging."
     )
     parser.add_argument("--vectors", nargs="+", required=True, metavar="DIR", help="vector folders")
@@ -270,7 +271,7 @@ def compose_main(argv: list[str] | None = None) -> int:
 
 
 def inspect_main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
+    parser = ToolParser(
         prog="capvector inspect",
         description="Per-layer norms of a vector, cosines against another.",
     )
