@@ -15,6 +15,7 @@ Sequence layout (one row, right padded):
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -159,8 +160,8 @@ def openvla_oft_aloha_tiny() -> OpenVLAOFTConfig:
     return dataclasses.replace(openvla_oft_tiny(), **_ALOHA)
 
 
-def _build_vit(spec: ViTConfig, image_size: int) -> nn.Module:
-    from timm.models.vision_transformer import VisionTransformer
+def _build_vit(spec: ViTConfig, image_size: int, film: bool = False) -> nn.Module:
+    from timm.models.vision_transformer import Block, VisionTransformer
 
     return VisionTransformer(
         img_size=image_size,
@@ -176,6 +177,7 @@ def _build_vit(spec: ViTConfig, image_size: int) -> nn.Module:
         no_embed_class=spec.no_embed_class,
         reg_tokens=spec.reg_tokens,
         act_layer=spec.act_layer,
+        block_fn=_filmed_block_class() if film else Block,
     )
 
 
@@ -189,12 +191,34 @@ class FiLM(nn.Module):
         self.shift = nn.Linear(llm_dim, vision_dim)
 
 
-def _filmed_block(block: nn.Module, film: FiLM, x: Tensor, language: Tensor) -> Tensor:
-    """A timm ``Block`` with FiLM between its attention and MLP residuals, as upstream's wrapper:
-    ``x * (1 + gamma) + beta`` so that zero projections leave the block unchanged."""
-    x = x + block.drop_path1(block.ls1(block.attn(block.norm1(x))))
-    x = x * (1 + film.scale(language).unsqueeze(1)) + film.shift(language).unsqueeze(1)
-    return x + block.drop_path2(block.ls2(block.mlp(block.norm2(x))))
+@functools.cache
+def _filmed_block_class() -> type[nn.Module]:
+    """timm's ``Block`` that applies FiLM between its residuals when given one (built lazily: timm
+    is imported on first use)."""
+    from timm.models.vision_transformer import Block
+
+    class FiLMedBlock(Block):
+        """``FiLMedVisionTransformerBlock`` of ``prismatic/models/film_vit_wrapper.py``:
+        ``x * (1 + gamma) + beta`` after the attention residual, so zero projections change nothing.
+        A subclass, not a wrapper, so parameter names stay timm's and FSDP2 units / activation
+        checkpointing (hooks on the block) see the call."""
+
+        def forward(
+            self,
+            x: Tensor,
+            attn_mask: Tensor | None = None,
+            is_causal: bool = False,
+            film: FiLM | None = None,
+            language: Tensor | None = None,
+        ) -> Tensor:
+            if film is None:
+                return super().forward(x, attn_mask=attn_mask, is_causal=is_causal)
+            attn = self.attn(self.norm1(x), attn_mask=attn_mask, is_causal=is_causal)
+            x = x + self.drop_path1(self.ls1(attn))
+            x = x * (1 + film.scale(language).unsqueeze(1)) + film.shift(language).unsqueeze(1)
+            return x + self.drop_path2(self.ls2(self.mlp(self.norm2(x))))
+
+    return FiLMedBlock
 
 
 class FusedVisionBackbone(nn.Module):
@@ -207,8 +231,8 @@ class FusedVisionBackbone(nn.Module):
 
     def __init__(self, config: OpenVLAOFTConfig) -> None:
         super().__init__()
-        self.featurizer = _build_vit(config.featurizer, config.image_size)
-        self.fused_featurizer = _build_vit(config.fused_featurizer, config.image_size)
+        self.featurizer = _build_vit(config.featurizer, config.image_size, config.film)
+        self.fused_featurizer = _build_vit(config.fused_featurizer, config.image_size, config.film)
         self.featurizer_film: nn.ModuleList | None = None
         self.fused_featurizer_film: nn.ModuleList | None = None
         if config.film:
@@ -266,7 +290,7 @@ class FusedVisionBackbone(nn.Module):
                 # to the second-to-last one.
                 x = vit.norm_pre(vit.patch_drop(vit._pos_embed(vit.patch_embed(x))))
                 for block, film in zip(vit.blocks[:-1], films, strict=False):
-                    x = _filmed_block(block, film, x, language)
+                    x = block(x, film=film, language=language)
                 out = x[:, vit.num_prefix_tokens :]
             features.append(out)
         return torch.cat(features, dim=-1)
