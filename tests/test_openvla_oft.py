@@ -93,6 +93,21 @@ def test_film_conditions_the_vision_features_on_the_instruction() -> None:
     assert plain.vision_backbone.featurizer_film is None  # film=False adds nothing
 
 
+def test_film_padding_changes_nothing() -> None:
+    """FiLM averages only real tokens (upstream also averages a padded batch's pad embeddings, see
+    _mean_embedding): a short prompt padded beside a long one gets the actions it gets alone."""
+    torch.manual_seed(0)
+    model = build_backbone("openvla-oft-aloha-tiny").eval()
+    batch = make_batch(2, ["lift", "stack the red cube on top of the green cube, carefully"])
+    batch[keys.IMAGES] = torch.rand(2, 3, 3, 64, 64)
+    batch[keys.PROPRIO] = torch.rand(2, 14)
+    batch.pop(keys.ACTIONS)
+    with torch.no_grad():
+        together = model(batch).actions[0]
+        alone = model({k: v[:1] for k, v in batch.items()}).actions[0]
+    torch.testing.assert_close(together, alone, atol=1e-5, rtol=1e-4)
+
+
 def test_unknown_preset_names_close_matches() -> None:
     with pytest.raises(
         BackboneError, match=r"unknown backbone preset 'openvla-oft-tinny'.*openvla-oft-tiny"
