@@ -30,8 +30,10 @@ def test_meta_activation_estimate_is_close_to_a_real_step(preset: str) -> None:
     with saved_activation_bytes(store):
         model(synthetic_batch(model, 4, "cpu")).loss.backward()
     # The meta device takes SDPA's math path (it saves attention weights), the CPU a fused kernel,
-    # so the estimate is an upper bound, but of the right size.
-    assert store[0] <= estimate.activations <= 2.0 * store[0]
+    # so the estimate is an upper bound, but of the right size. Attention weights grow with the
+    # square of the sequence: openvla-oft-aloha-tiny's ~600 tokens (3 cameras, 25 x 14 action
+    # slots) put its bound at ~2.4x.
+    assert store[0] <= estimate.activations <= 2.5 * store[0]
     assert estimate.activations_checkpointed < 0.25 * estimate.activations
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -54,6 +55,58 @@ def test_openvla_oft_7b_matches_published_parameter_counts() -> None:
     assert count(model.action_head) == 151_117_831
     assert count(model.proprio_projector) == 16_818_176
     assert model.num_visual_tokens == 512  # 2 cameras x 16 x 16 patches
+
+
+def test_openvla_oft_aloha_7b_parameter_counts() -> None:
+    """OFT+ on ALOHA: the 7B VLM plus FiLM (two Linear(4096, D) per block of both ViTs), a head
+    over 14 x 4096 inputs and a 14-d proprio projector."""
+    with torch.device("meta"):
+        model = build_backbone("openvla-oft-aloha-7b")
+
+    def count(module: torch.nn.Module) -> int:
+        return sum(p.numel() for p in module.parameters())
+
+    vision = model.vision_backbone
+    film = count(vision.featurizer_film) + count(vision.fused_featurizer_film)
+    assert film == 24 * 2 * (4096 * 1024 + 1024) + 27 * 2 * (4096 * 1152 + 1152) == 456_241_920
+    vlm = count(vision) - film + count(model.projector) + count(model.language_model)
+    assert vlm == 7_541_237_184  # the same VLM as openvla-oft-7b
+    assert count(model.action_head) == 268_644_366
+    assert count(model.proprio_projector) == 14 * 4096 + 4096 + 4096 * 4096 + 4096
+    assert model.num_visual_tokens == 768  # 3 cameras x 16 x 16 patches
+    assert (model.config.chunk_size, model.config.action_dim) == (25, 14)
+
+
+def test_film_conditions_the_vision_features_on_the_instruction() -> None:
+    torch.manual_seed(0)
+    model = build_backbone("openvla-oft-aloha-tiny").eval()
+    batch = make_batch(1)
+    batch[keys.IMAGES] = torch.rand(1, 3, 3, 64, 64)
+    batch[keys.PROPRIO] = torch.rand(1, 14)
+    batch.pop(keys.ACTIONS)
+    seen = []
+    model.vision_backbone.register_forward_hook(lambda _m, _a, out: seen.append(out))
+    with torch.no_grad():
+        model(batch)
+        model({**batch, keys.INSTRUCTION: ["open the drawer"]})
+    assert not torch.allclose(seen[0], seen[1])
+    plain = build_backbone("openvla-oft-tiny")
+    assert plain.vision_backbone.featurizer_film is None  # film=False adds nothing
+
+
+def test_film_padding_changes_nothing() -> None:
+    """FiLM averages only real tokens (upstream also averages a padded batch's pad embeddings, see
+    _mean_embedding): a short prompt padded beside a long one gets the actions it gets alone."""
+    torch.manual_seed(0)
+    model = build_backbone("openvla-oft-aloha-tiny").eval()
+    batch = make_batch(2, ["lift", "stack the red cube on top of the green cube, carefully"])
+    batch[keys.IMAGES] = torch.rand(2, 3, 3, 64, 64)
+    batch[keys.PROPRIO] = torch.rand(2, 14)
+    batch.pop(keys.ACTIONS)
+    with torch.no_grad():
+        together = model(batch).actions[0]
+        alone = model({k: v[:1] for k, v in batch.items()}).actions[0]
+    torch.testing.assert_close(together, alone, atol=1e-5, rtol=1e-4)
 
 
 def test_unknown_preset_names_close_matches() -> None:
@@ -148,106 +201,95 @@ def test_mismatched_camera_count_is_a_clear_error(tiny: OpenVLAOFT) -> None:
 
 
 # -- original OpenVLA-OFT checkpoint folders -----------------------------------------------------
+# Parity with upstream's outputs is tests/test_parity_openvla_oft.py; these check the loader's
+# handling of variations of upstream's run folder (a copy of the LIBERO fixture).
+
+UPSTREAM_LIBERO = Path(__file__).parent / "fixtures" / "upstream" / "openvla_oft" / "libero"
 
 
-def write_original_folder(model: OpenVLAOFT, root: Path, step: int = 150000) -> Path:
-    """A run folder in the layout OpenVLA-OFT's finetune.py saves, with its real key names."""
-    root.mkdir(parents=True)
-    state = model.state_dict()
-    vlm = {}
-    for key, value in state.items():
-        if key.startswith(("action_head.", "proprio_projector.")):
-            continue
-        if key.startswith("vision_backbone.") and (".ls1.gamma" in key or ".ls2.gamma" in key):
-            key = key.replace(".gamma", ".scale_factor")  # HF renames `gamma` parameters
-        vlm[key] = value.clone()
-    keys_sorted = sorted(vlm)
-    half = len(keys_sorted) // 2
-    shards = {
-        "model-00001-of-00002.safetensors": keys_sorted[:half],
-        "model-00002-of-00002.safetensors": keys_sorted[half:],
-    }
-    weight_map = {}
-    for shard, names in shards.items():
-        save_file({k: vlm[k].contiguous() for k in names}, str(root / shard))
-        weight_map.update(dict.fromkeys(names, shard))
-    (root / "model.safetensors.index.json").write_text(
-        json.dumps({"metadata": {}, "weight_map": weight_map})
-    )
-    for component in ("action_head", "proprio_projector"):
-        sub = {
-            f"module.{k[len(component) + 1 :]}": v.clone()
-            for k, v in state.items()
-            if k.startswith(component + ".")
-        }
-        torch.save(sub, root / f"{component}--{step}_checkpoint.pt")
-    stats = {"libero_spatial_no_noops": {"action": {"q01": [0.0] * 7, "q99": [1.0] * 7}}}
-    (root / "dataset_statistics.json").write_text(json.dumps(stats))
-    model.tokenizer.save_pretrained(str(root))
+@pytest.fixture
+def upstream_folder(tmp_path: Path) -> Path:
+    root = tmp_path / "run--5_chkpt"
+    shutil.copytree(UPSTREAM_LIBERO, root)
     return root
 
 
-def test_from_original_loads_strictly_with_real_key_names(tiny: OpenVLAOFT, tmp_path: Path) -> None:
-    root = write_original_folder(tiny, tmp_path / "run--150000_chkpt")
-    imported = OpenVLAOFT.from_original(root, preset="openvla-oft-tiny")
-    loaded = imported.model
-    assert "libero_spatial_no_noops" in imported.statistics
-    batch = make_batch()
-    torch.testing.assert_close(loaded.eval().predict_action(batch), tiny.predict_action(batch))
+def upstream_batch(model: OpenVLAOFT) -> dict:
+    batch = make_batch(2)
+    batch[keys.IMAGES] = torch.rand(2, 2, 3, 224, 224, generator=torch.Generator().manual_seed(1))
+    return batch
 
 
-def test_from_original_names_a_missing_key(tiny: OpenVLAOFT, tmp_path: Path) -> None:
-    root = write_original_folder(tiny, tmp_path / "run")
-    head = root / "action_head--150000_checkpoint.pt"
+def test_from_original_reads_sharded_weights(upstream_folder: Path) -> None:
+    """save_pretrained's sharded layout (index + shards) loads like the single file."""
+    from safetensors.torch import load_file
+
+    single = OpenVLAOFT.from_original(upstream_folder, preset="openvla-oft-tiny").model.eval()
+    state = load_file(str(upstream_folder / "model.safetensors"))
+    (upstream_folder / "model.safetensors").unlink()
+    names = sorted(state)
+    shards = {
+        "model-00001-of-00002.safetensors": names[::2],
+        "model-00002-of-00002.safetensors": names[1::2],
+    }
+    weight_map = {}
+    for shard, keys_in_shard in shards.items():
+        save_file({k: state[k] for k in keys_in_shard}, str(upstream_folder / shard))
+        weight_map.update(dict.fromkeys(keys_in_shard, shard))
+    (upstream_folder / "model.safetensors.index.json").write_text(
+        json.dumps({"metadata": {}, "weight_map": weight_map})
+    )
+    sharded = OpenVLAOFT.from_original(upstream_folder, preset="openvla-oft-tiny").model.eval()
+    batch = upstream_batch(single)
+    torch.testing.assert_close(sharded.predict_action(batch), single.predict_action(batch))
+
+
+def test_from_original_names_a_missing_key(upstream_folder: Path) -> None:
+    head = next(upstream_folder.glob("action_head--*"))
     state = torch.load(head, weights_only=True)
-    del state["module.model.fc2.weight"]
+    del state["module.model.fc2.bias"]
     torch.save(state, head)
-    with pytest.raises(BackboneError, match=r"1 missing key.*action_head\.model\.fc2\.weight"):
-        OpenVLAOFT.from_original(root, preset="openvla-oft-tiny")
+    with pytest.raises(BackboneError, match=r"1 missing key.*action_head\.model\.fc2\.bias"):
+        OpenVLAOFT.from_original(upstream_folder, preset="openvla-oft-tiny")
 
 
-def test_from_original_rejects_another_architecture(tiny: OpenVLAOFT, tmp_path: Path) -> None:
-    root = write_original_folder(tiny, tmp_path / "run")
+def test_from_original_rejects_another_architecture(upstream_folder: Path) -> None:
     with pytest.raises(BackboneError, match="shape mismatch.*another architecture"):
         OpenVLAOFT.from_original(
-            root,
-            preset="openvla-oft-tiny",
-            overrides=dict(
-                head_blocks=2,
-                llm={
-                    "hidden_size": 32,
-                    "intermediate_size": 64,
-                    "num_layers": 4,
-                    "num_heads": 4,
-                    "num_kv_heads": 4,
-                    "vocab_size": 320,
-                    "max_position_embeddings": 512,
-                },
-            ),
+            upstream_folder, preset="openvla-oft-tiny", overrides={"llm": {"hidden_size": 32}}
         )
 
 
-def test_from_original_merges_a_peft_lora_adapter(tiny: OpenVLAOFT, tmp_path: Path) -> None:
+def test_from_original_requires_the_save_pretrained_config(upstream_folder: Path) -> None:
+    (upstream_folder / "config.json").unlink()
+    with pytest.raises(BackboneError, match="no config.json"):
+        OpenVLAOFT.from_original(upstream_folder, preset="openvla-oft-tiny")
+
+
+def test_from_original_merges_a_peft_lora_adapter(upstream_folder: Path) -> None:
     from peft import LoraConfig, get_peft_model
 
-    root = write_original_folder(tiny, tmp_path / "run")
+    base = OpenVLAOFT.from_original(upstream_folder, preset="openvla-oft-tiny").model
     target = "language_model.model.layers.0.self_attn.q_proj"
-    donor = build_backbone("openvla-oft-tiny")
-    donor.load_state_dict(tiny.state_dict())
+    before = base.get_parameter(f"{target}.weight").detach().clone()
     peft_model = get_peft_model(
-        donor, LoraConfig(r=4, lora_alpha=8, target_modules=[target], init_lora_weights="gaussian")
+        base, LoraConfig(r=4, lora_alpha=8, target_modules=[target], init_lora_weights="gaussian")
     )
     with torch.no_grad():
         for name, param in peft_model.named_parameters():
             if "lora_B" in name:
                 param.normal_()
-    peft_model.save_pretrained(str(root / "lora_adapter"))
+    shutil.rmtree(upstream_folder / "lora_adapter")
+    peft_model.save_pretrained(str(upstream_folder / "lora_adapter"))
     expected = peft_model.merge_and_unload().get_parameter(f"{target}.weight")
     loaded = OpenVLAOFT.from_original(
-        root, preset="openvla-oft-tiny", apply_lora_adapter=True
+        upstream_folder, preset="openvla-oft-tiny", apply_lora_adapter=True
     ).model
-    torch.testing.assert_close(loaded.get_parameter(f"{target}.weight"), expected)
-    assert not torch.allclose(expected, tiny.get_parameter(f"{target}.weight"))
+    # The checkpoint's weights are bf16 (as upstream saves them): the merge rounds back to bf16.
+    torch.testing.assert_close(
+        loaded.get_parameter(f"{target}.weight"), expected.to(torch.bfloat16).float()
+    )
+    assert not torch.allclose(expected, before)
 
 
 def test_from_original_reports_an_unreachable_hub_id() -> None:

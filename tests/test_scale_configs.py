@@ -10,9 +10,9 @@ import pytest
 import torch
 import yaml
 
-from capvector.backbones import build_backbone, from_pretrained
+from capvector.backbones import from_pretrained
 from capvector.cli import main
-from test_openvla_oft import make_batch, write_original_folder
+from test_openvla_oft import UPSTREAM_LIBERO, upstream_batch
 
 REPO = Path(__file__).resolve().parents[1]
 FAMILIES = ["openvla-oft.yaml", "pi05.yaml", "starvla.yaml"]
@@ -52,8 +52,10 @@ def test_full_size_config_parses_and_its_strategy_instantiates(
 
 
 def test_import_original_writes_a_usable_theta_pre(tmp_path: Path) -> None:
-    model = build_backbone("openvla-oft-tiny").eval()
-    folder = write_original_folder(model, tmp_path / "run")
+    """An OpenVLA-OFT run folder written by upstream's code -> a capvector export."""
+    from capvector.backbones.openvla_oft import OpenVLAOFT
+
+    folder = UPSTREAM_LIBERO
     out = tmp_path / "theta_pre"
     assert (
         main(
@@ -70,7 +72,8 @@ def test_import_original_writes_a_usable_theta_pre(tmp_path: Path) -> None:
         == 0
     )
     assert (out / "dataset_statistics.json").is_file()
-    batch = make_batch()
+    model = OpenVLAOFT.from_original(folder, preset="openvla-oft-tiny").model.eval()
+    batch = upstream_batch(model)
     torch.testing.assert_close(
         from_pretrained(out).eval().predict_action(batch), model.predict_action(batch)
     )

@@ -1,10 +1,12 @@
 """OpenVLA-OFT-style backbone: fused DINOv2 + SigLIP vision, Llama with bidirectional attention,
-parallel decoding of an action chunk and an MLP-ResNet L1 head.
+parallel decoding of an action chunk and an MLP-ResNet L1 head; optionally OFT+'s FiLM language
+conditioning of the vision backbone (the ALOHA recipe).
 
 Faithful to moojink/openvla-oft (``prismatic/extern/hf/modeling_prismatic.py``,
-``prismatic/models/action_heads.py``, ``prismatic/models/projectors.py``, ``vla-scripts/finetune.py``)
-and its transformers fork (bidirectional SDPA attention). Parameter names match the released
-checkpoints so they load through a small key map (``_ORIGINAL_KEY_RENAMES``).
+``prismatic/models/action_heads.py``, ``prismatic/models/projectors.py``,
+``prismatic/models/film_vit_wrapper.py``, ``vla-scripts/finetune.py``) and its transformers fork
+(bidirectional SDPA attention); ``tests/test_parity_openvla_oft.py`` checks it against outputs of
+that code. Reading upstream's checkpoint folders lives in ``convert_openvla_oft.py``.
 
 Sequence layout (one row, right padded):
 ``[BOS] [N_cam x patches visual tokens] [proprio token] [prompt] [T*A action slots] [</s>] [pad]``
@@ -12,7 +14,8 @@ Sequence layout (one row, right padded):
 
 from __future__ import annotations
 
-import json
+import dataclasses
+import functools
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,9 +33,7 @@ from capvector.backbones.base import (
     VLABackbone,
     VLAOutput,
     keep_hidden_states,
-    load_state_dict_strictly,
     nested_config,
-    read_sharded,
     register_family,
     register_preset,
 )
@@ -61,6 +62,9 @@ class ViTConfig:
     global_pool: str = "token"
     """'map' builds SigLIP's attention-pool head: unused by OFT but part of its checkpoints."""
     act_layer: str = "gelu"
+    """timm activation name. OpenVLA-OFT builds both ViTs with ``act_layer=None`` under timm 0.9.10
+    (``TIMM_OVERRIDE_ACT_LAYER`` in ``configuration_prismatic.py``), i.e. timm's default exact GELU,
+    SigLIP included (timm >= 1.0 registers SigLIP with ``gelu_tanh``; OFT never sees that)."""
 
 
 @nested_config
@@ -91,7 +95,14 @@ class OpenVLAOFTConfig(BackboneConfig):
     tokenizer: str = "byte"
     """'byte' builds a local byte-level tokenizer; a folder path loads a saved HF tokenizer."""
     prompt_template: str = "In: What action should the robot take to {instruction}?\nOut: "
+    """The trailing space tokenizes to Llama-2's '▁' (29871), the id OFT's ``predict_action``
+    appends to ``...Out:`` and its training prompts carry before the action tokens
+    (``PurePromptBuilder``); the parity fixtures check both give the same ids."""
     pad_to_multiple_of: int = 64
+    film: bool = False
+    """OFT+: FiLM language conditioning of every ViT block (``prismatic/models/film_vit_wrapper.py``):
+    after the attention residual, ``x * (1 + scale(l)) + shift(l)`` with ``l`` the mean input
+    embedding of the prompt tokens (BOS, prompt, </s>; not the action slots)."""
 
 
 @register_preset("openvla-oft-7b")
@@ -105,7 +116,7 @@ def openvla_oft_7b() -> OpenVLAOFTConfig:
         ),
         fused_featurizer=ViTConfig(
             patch_size=14, embed_dim=1152, depth=27, num_heads=16, mlp_ratio=3.7362,
-            class_token=False, global_pool="map", act_layer="gelu_tanh",
+            class_token=False, global_pool="map",
         ),
         llm=LlamaSpec(),
         tokenizer="",  # Llama-2's tokenizer comes with the checkpoint folder
@@ -123,7 +134,7 @@ def openvla_oft_tiny() -> OpenVLAOFTConfig:
         ),
         fused_featurizer=ViTConfig(
             patch_size=8, embed_dim=48, depth=3, num_heads=4, class_token=False,
-            global_pool="map", act_layer="gelu_tanh",
+            global_pool="map",
         ),
         llm=LlamaSpec(
             hidden_size=64, intermediate_size=128, num_layers=4, num_heads=4, num_kv_heads=4,
@@ -132,8 +143,25 @@ def openvla_oft_tiny() -> OpenVLAOFTConfig:
     )  # fmt: skip
 
 
-def _build_vit(spec: ViTConfig, image_size: int) -> nn.Module:
-    from timm.models.vision_transformer import VisionTransformer
+# ALOHA dimensions: ALOHA_CONSTANTS in prismatic/vla/constants.py (25-step chunks of 14-d actions,
+# 14-d proprio) and ALOHA.md's recipe (--num_images_in_input 3, --use_film True).
+_ALOHA = dict(action_dim=14, chunk_size=25, proprio_dim=14, num_images=3, film=True)
+
+
+@register_preset("openvla-oft-aloha-7b")
+def openvla_oft_aloha_7b() -> OpenVLAOFTConfig:
+    """OFT+ on ALOHA: 3 cameras, 14-d proprio, chunk 25 x 14, FiLM on both ViTs."""
+    return dataclasses.replace(openvla_oft_7b(), **_ALOHA)
+
+
+@register_preset("openvla-oft-aloha-tiny")
+def openvla_oft_aloha_tiny() -> OpenVLAOFTConfig:
+    """``openvla-oft-aloha-7b`` at the width of ``openvla-oft-tiny``."""
+    return dataclasses.replace(openvla_oft_tiny(), **_ALOHA)
+
+
+def _build_vit(spec: ViTConfig, image_size: int, film: bool = False) -> nn.Module:
+    from timm.models.vision_transformer import Block, VisionTransformer
 
     return VisionTransformer(
         img_size=image_size,
@@ -149,20 +177,73 @@ def _build_vit(spec: ViTConfig, image_size: int) -> nn.Module:
         no_embed_class=spec.no_embed_class,
         reg_tokens=spec.reg_tokens,
         act_layer=spec.act_layer,
+        block_fn=_filmed_block_class() if film else Block,
     )
+
+
+class FiLM(nn.Module):
+    """Per-block FiLM projections of OFT+ (``FiLMedVisionTransformerBlock`` in
+    ``prismatic/models/film_vit_wrapper.py``): gamma and beta from the mean language embedding."""
+
+    def __init__(self, llm_dim: int, vision_dim: int) -> None:
+        super().__init__()
+        self.scale = nn.Linear(llm_dim, vision_dim)
+        self.shift = nn.Linear(llm_dim, vision_dim)
+
+
+@functools.cache
+def _filmed_block_class() -> type[nn.Module]:
+    """timm's ``Block`` that applies FiLM between its residuals when given one (built lazily: timm
+    is imported on first use)."""
+    from timm.models.vision_transformer import Block
+
+    class FiLMedBlock(Block):
+        """``FiLMedVisionTransformerBlock`` of ``prismatic/models/film_vit_wrapper.py``:
+        ``x * (1 + gamma) + beta`` after the attention residual, so zero projections change nothing.
+        A subclass, not a wrapper, so parameter names stay timm's and FSDP2 units / activation
+        checkpointing (hooks on the block) see the call."""
+
+        def forward(
+            self,
+            x: Tensor,
+            attn_mask: Tensor | None = None,
+            is_causal: bool = False,
+            film: FiLM | None = None,
+            language: Tensor | None = None,
+        ) -> Tensor:
+            if film is None:
+                return super().forward(x, attn_mask=attn_mask, is_causal=is_causal)
+            attn = self.attn(self.norm1(x), attn_mask=attn_mask, is_causal=is_causal)
+            x = x + self.drop_path1(self.ls1(attn))
+            x = x * (1 + film.scale(language).unsqueeze(1)) + film.shift(language).unsqueeze(1)
+            return x + self.drop_path2(self.ls2(self.mlp(self.norm2(x))))
+
+    return FiLMedBlock
 
 
 class FusedVisionBackbone(nn.Module):
     """DINOv2 + SigLIP patch features of the second-to-last block, concatenated per patch.
 
     As Prismatic's ``PrismaticVisionBackbone``: prefix tokens dropped, no final norm, each image
-    normalised twice (ImageNet statistics for DINOv2, 0.5/0.5 for SigLIP).
+    normalised twice (ImageNet statistics for DINOv2, 0.5/0.5 for SigLIP). With ``film`` each block
+    of both ViTs is FiLM-conditioned on the language (OFT+).
     """
 
     def __init__(self, config: OpenVLAOFTConfig) -> None:
         super().__init__()
-        self.featurizer = _build_vit(config.featurizer, config.image_size)
-        self.fused_featurizer = _build_vit(config.fused_featurizer, config.image_size)
+        self.featurizer = _build_vit(config.featurizer, config.image_size, config.film)
+        self.fused_featurizer = _build_vit(config.fused_featurizer, config.image_size, config.film)
+        self.featurizer_film: nn.ModuleList | None = None
+        self.fused_featurizer_film: nn.ModuleList | None = None
+        if config.film:
+            llm_dim = config.llm.hidden_size
+            self.featurizer_film = nn.ModuleList(
+                FiLM(llm_dim, config.featurizer.embed_dim) for _ in self.featurizer.blocks
+            )
+            self.fused_featurizer_film = nn.ModuleList(
+                FiLM(llm_dim, config.fused_featurizer.embed_dim)
+                for _ in self.fused_featurizer.blocks
+            )
         self.register_buffer(
             "dino_mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False
         )
@@ -181,21 +262,36 @@ class FusedVisionBackbone(nn.Module):
     def embed_dim(self) -> int:
         return self.featurizer.embed_dim + self.fused_featurizer.embed_dim
 
-    def forward(self, images: Tensor) -> Tensor:
-        """(B', 3, H, W) in [0, 1] -> (B', patches, D_dino + D_siglip)."""
+    def forward(self, images: Tensor, language: Tensor | None = None) -> Tensor:
+        """(B', 3, H, W) in [0, 1] -> (B', patches, D_dino + D_siglip).
+
+        ``language`` (B', H_llm): the mean language embedding of each image's sample, required
+        with FiLM and ignored without.
+        """
         features = []
-        for vit, mean, std in (
-            (self.featurizer, self.dino_mean, self.dino_std),
-            (self.fused_featurizer, self.siglip_mean, self.siglip_std),
+        for vit, films, mean, std in (
+            (self.featurizer, self.featurizer_film, self.dino_mean, self.dino_std),
+            (self.fused_featurizer, self.fused_featurizer_film, self.siglip_mean, self.siglip_std),
         ):
-            (out,) = vit.forward_intermediates(
-                (images - mean) / std,
-                indices=[len(vit.blocks) - 2],
-                norm=False,
-                stop_early=True,
-                output_fmt="NLC",
-                intermediates_only=True,
-            )
+            x = (images - mean) / std
+            if films is None:
+                (out,) = vit.forward_intermediates(
+                    x,
+                    indices=[len(vit.blocks) - 2],
+                    norm=False,
+                    stop_early=True,
+                    output_fmt="NLC",
+                    intermediates_only=True,
+                )
+            else:
+                if language is None:
+                    raise BackboneError("a FiLM vision backbone needs the language embedding")
+                # FiLMedVisionTransformer._intermediate_layers: the same stem, then FiLM blocks up
+                # to the second-to-last one.
+                x = vit.norm_pre(vit.patch_drop(vit._pos_embed(vit.patch_embed(x))))
+                for block, film in zip(vit.blocks[:-1], films, strict=False):
+                    x = block(x, film=film, language=language)
+                out = x[:, vit.num_prefix_tokens :]
             features.append(out)
         return torch.cat(features, dim=-1)
 
@@ -288,7 +384,10 @@ class OpenVLAOFT(VLABackbone):
             r"|projector\.fc[123])"
         )
 
-    lora_trainable_modules = ("action_head.*", "proprio_projector.*")
+    # FiLM projections are new modules trained in full, as finetune.py adds them after LoRA.
+    lora_trainable_modules = ("action_head.*", "proprio_projector.*", "vision_backbone.*_film.*")
+    # FiLM (OFT+) falls under vision_backbone.*: it is part of the vision pathway a vector moves,
+    # and narrowing the globs would make new exports disagree with existing ones.
     capability_parameters = ("vision_backbone.*", "projector.*", "language_model.*")
 
     def __init__(self, config: OpenVLAOFTConfig) -> None:
@@ -356,6 +455,12 @@ class OpenVLAOFT(VLABackbone):
                     (f"blocks.{last}.", "norm.", "attn_pool.", "fc_norm.", "head.")
                 ):
                     unused.append(prefix + param_name)
+            films = getattr(self.vision_backbone, f"{name}_film")
+            if films is not None:
+                unused += [
+                    f"vision_backbone.{name}_film.{last}.{n}"
+                    for n, _ in films[last].named_parameters()
+                ]
         return unused
 
     def language_head_parameter_names(self) -> list[str]:
@@ -416,8 +521,11 @@ class OpenVLAOFT(VLABackbone):
             lm_logits=logits,
         )
 
-    def _prefix_tokens(self, batch: Mapping[str, Any]) -> Tensor:
-        """(B, n_visual [+ 1 proprio], H): projected patch tokens of every camera, then proprio."""
+    def _prefix_tokens(self, batch: Mapping[str, Any], language: Tensor | None = None) -> Tensor:
+        """(B, n_visual [+ 1 proprio], H): projected patch tokens of every camera, then proprio.
+
+        ``language`` (B, H): the mean language embedding FiLM conditions on (OFT+ only).
+        """
         images: Tensor = batch[keys.IMAGES]
         b, n_cam = images.shape[:2]
         if n_cam != self.config.num_images:
@@ -432,7 +540,9 @@ class OpenVLAOFT(VLABackbone):
                 flat, size=(size, size), mode="bicubic", align_corners=False, antialias=True
             )
             flat = flat.clamp(0, 1)
-        patches = self.vision_backbone(flat.to(self.projector.fc1.weight.dtype))
+        if language is not None:  # every camera of a sample sees its sample's language
+            language = language.repeat_interleave(n_cam, dim=0)
+        patches = self.vision_backbone(flat.to(self.projector.fc1.weight.dtype), language)
         visual = self.projector(patches.reshape(b, -1, patches.shape[-1]))
         if self.proprio_projector is None:
             return visual
@@ -441,11 +551,13 @@ class OpenVLAOFT(VLABackbone):
 
     def _embed_inputs(self, batch: Mapping[str, Any]) -> tuple[Tensor, Tensor, Tensor, int]:
         """Input embeddings (B, S, H), valid mask (B, S), action-slot positions (B, T*A)."""
-        prefix_tokens = self._prefix_tokens(batch)
-        ids, text_valid, slot_pos = self._tokenize(batch[keys.INSTRUCTION], prefix_tokens.device)
+        device = batch[keys.IMAGES].device
+        ids, text_valid, slot_pos = self._tokenize(batch[keys.INSTRUCTION], device)
         text = self.language_model.get_input_embeddings()(ids)
-        # Continuous-action mode: action-slot embeddings are zeroed, the slots carry position only.
         slot_mask = torch.zeros_like(ids, dtype=torch.bool).scatter_(1, slot_pos, True)
+        language = _mean_embedding(text, text_valid & ~slot_mask) if self.config.film else None
+        prefix_tokens = self._prefix_tokens(batch, language)
+        # Continuous-action mode: action-slot embeddings are zeroed, the slots carry position only.
         text = text * (~slot_mask).unsqueeze(-1).to(text.dtype)
         embeds, valid = _splice_after_bos(text, text_valid, prefix_tokens)
         n_prefix = prefix_tokens.shape[1]
@@ -460,16 +572,20 @@ class OpenVLAOFT(VLABackbone):
         co-training), run separately so the action pathway's bidirectional attention is untouched.
         """
         tok = self._require_tokenizer()
-        prefix_tokens = self._prefix_tokens(batch)
+        device = batch[keys.IMAGES].device
         rows, label_rows = [], []
         for prompt, answer in zip(prompts, answers, strict=True):
             prompt_ids = tok(prompt, add_special_tokens=False)["input_ids"]
             answer_ids = [*tok(answer, add_special_tokens=False)["input_ids"], tok.eos_token_id]
             rows.append([tok.bos_token_id, *prompt_ids, *answer_ids])
             label_rows.append([-100] * (1 + len(prompt_ids)) + answer_ids)
-        ids, text_valid = _right_pad(rows, tok.pad_token_id, prefix_tokens.device)
-        text_labels, _ = _right_pad(label_rows, -100, prefix_tokens.device)
+        ids, text_valid = _right_pad(rows, tok.pad_token_id, device)
+        text_labels, _ = _right_pad(label_rows, -100, device)
         text = self.language_model.get_input_embeddings()(ids)
+        # Upstream has no text pass with FiLM; this one conditions on the whole row (prompt and
+        # answer), as OFT conditions on every non-action token of its row.
+        language = _mean_embedding(text, text_valid) if self.config.film else None
+        prefix_tokens = self._prefix_tokens(batch, language)
         embeds, valid = _splice_after_bos(text, text_valid, prefix_tokens)
         n_prefix = prefix_tokens.shape[1]
         labels = torch.cat(
@@ -525,33 +641,14 @@ class OpenVLAOFT(VLABackbone):
         overrides: Mapping[str, Any] | None = None,
         apply_lora_adapter: bool = False,
     ) -> OriginalCheckpoint:
-        """Load a released OpenVLA-OFT run folder strictly, with its statistics.
+        """Load an OpenVLA-OFT run folder (what ``vla-scripts/finetune.py`` saves) strictly.
 
-        The folder holds merged safetensors (+ index), ``action_head--*_checkpoint.pt`` and
-        ``proprio_projector--*_checkpoint.pt`` (DDP ``module.`` prefixes), ``dataset_statistics.json``
-        and optionally ``lora_adapter/`` (merged into the weights with ``apply_lora_adapter``; the
-        released folders already hold merged weights). A hub repo id is downloaded first.
+        The architecture comes from the folder's ``config.json`` and the shapes of its files; see
+        ``convert_openvla_oft.load_original`` for what is read from where.
         """
-        from capvector.backbones.base import preset_config
+        from capvector.backbones.convert_openvla_oft import load_original
 
-        root = _resolve_folder(source)
-        preset = preset or "openvla-oft-7b"
-        config = preset_config(preset, **(overrides or {}))
-        if not isinstance(config, OpenVLAOFTConfig):
-            raise BackboneError(f"preset {preset!r} is not an OpenVLA-OFT preset")
-        if (root / "tokenizer_config.json").is_file():
-            config.tokenizer = str(root)
-        model = cls(config)
-        state = _read_original_vlm(root)
-        state.update(_read_component(root, "action_head", "action_head."))
-        if config.proprio_dim:
-            state.update(_read_component(root, "proprio_projector", "proprio_projector."))
-        if apply_lora_adapter:
-            _merge_peft_adapter(state, root / "lora_adapter")
-        load_state_dict_strictly(model, state, source=str(root))
-        stats_path = root / "dataset_statistics.json"
-        stats = json.loads(stats_path.read_text()) if stats_path.is_file() else {}
-        return OriginalCheckpoint(model, stats)
+        return load_original(cls, source, preset, overrides, apply_lora_adapter)
 
 
 def _right_pad(rows: list[list[int]], pad: int, device: torch.device) -> tuple[Tensor, Tensor]:
@@ -564,16 +661,24 @@ def _right_pad(rows: list[list[int]], pad: int, device: torch.device) -> tuple[T
     return ids.to(device), valid.to(device)
 
 
+def _mean_embedding(text: Tensor, keep: Tensor) -> Tensor:
+    """(B, S, H) embeddings averaged over the ``keep`` (B, S) positions -> (B, H).
+
+    FiLM's language input: OFT averages ``input_embeddings[~all_actions_mask]``
+    (``modeling_prismatic.py``), i.e. every token but the action slots, so BOS, the prompt and
+    ``</s>``. Padding is left out here; upstream averages the pad embeddings of a padded training
+    batch in too, which makes a sample's conditioning depend on its batch neighbours (a deviation
+    only for padded rows: upstream's inference runs one unpadded row).
+    """
+    weights = keep.to(text.dtype).unsqueeze(-1)
+    return (text * weights).sum(1) / weights.sum(1)
+
+
 def _splice_after_bos(text: Tensor, text_valid: Tensor, prefix: Tensor) -> tuple[Tensor, Tensor]:
     """Insert the visual/proprio tokens right after BOS, as Prismatic does."""
     embeds = torch.cat([text[:, :1], prefix, text[:, 1:]], dim=1)
     ones = text_valid.new_ones(prefix.shape[:2])
     return embeds, torch.cat([text_valid[:, :1], ones, text_valid[:, 1:]], dim=1)
-
-
-# LayerScale parameters are called `gamma` in timm; HF renames parameters containing "gamma", so
-# Prismatic stores them as `scale_factor` (helper `ls_apply_patch`).
-_ORIGINAL_KEY_RENAMES = ((".ls1.scale_factor", ".ls1.gamma"), (".ls2.scale_factor", ".ls2.gamma"))
 
 
 def _make_tokenizer(spec: str) -> Any:
@@ -587,81 +692,3 @@ def _make_tokenizer(spec: str) -> Any:
     if tok.pad_token is None:  # Prismatic adds <PAD> = 32000 to Llama-2's tokenizer
         tok.add_special_tokens({"pad_token": "<PAD>"})
     return tok
-
-
-def _resolve_folder(folder: str | Path) -> Path:
-    path = Path(folder)
-    if path.is_dir():
-        return path
-    if str(folder).count("/") == 1 and not path.exists():
-        try:
-            from huggingface_hub import snapshot_download
-
-            return Path(snapshot_download(str(folder)))
-        except Exception as exc:  # no network, private repo, unknown id
-            raise BackboneError(
-                f"{folder} is not a local folder and could not be downloaded from the hub ({exc}); "
-                "download it where the network allows and pass the local path"
-            ) from exc
-    raise BackboneError(f"checkpoint folder {folder} does not exist")
-
-
-def _read_original_vlm(root: Path) -> dict[str, Tensor]:
-    from safetensors.torch import load_file
-
-    if (root / "model.safetensors.index.json").is_file():
-        raw = read_sharded(root)
-    elif (root / "model.safetensors").is_file():
-        raw = load_file(str(root / "model.safetensors"))
-    else:
-        raise BackboneError(
-            f"{root} has no merged VLM weights (model.safetensors or model.safetensors.index.json)"
-        )
-    state = {}
-    for key, value in raw.items():
-        for old, new in _ORIGINAL_KEY_RENAMES:
-            if key.startswith("vision_backbone.") and key.endswith(old):
-                key = key[: -len(old)] + new
-        state[key] = value
-    return state
-
-
-def _read_component(root: Path, name: str, prefix: str) -> dict[str, Tensor]:
-    files = sorted(root.glob(f"{name}--*checkpoint.pt"))
-    if not files:
-        raise BackboneError(f"{root} has no {name}--<step>_checkpoint.pt file")
-    if len(files) > 1:
-        raise BackboneError(
-            f"{root} has several {name} files ({[f.name for f in files]}); keep one"
-        )
-    raw = torch.load(files[0], map_location="cpu", weights_only=True)
-    # Saved from DDP-wrapped modules, hence the `module.` prefix (OFT's remove_ddp_in_checkpoint).
-    return {prefix + k.removeprefix("module."): v for k, v in raw.items()}
-
-
-def _merge_peft_adapter(state: dict[str, Tensor], adapter_dir: Path) -> None:
-    """W += (alpha / r) * B @ A for every LoRA pair of a PEFT adapter folder."""
-    from safetensors.torch import load_file
-
-    config_path = adapter_dir / "adapter_config.json"
-    if not config_path.is_file():
-        raise BackboneError(f"{adapter_dir} is not a PEFT adapter folder (no adapter_config.json)")
-    config = json.loads(config_path.read_text())
-    weights_path = adapter_dir / "adapter_model.safetensors"
-    if weights_path.is_file():
-        weights = load_file(str(weights_path))
-    else:
-        weights = torch.load(
-            adapter_dir / "adapter_model.bin", map_location="cpu", weights_only=True
-        )
-    scaling = config["lora_alpha"] / config["r"]
-    for key, lora_a in weights.items():
-        if not key.endswith(".lora_A.weight"):
-            continue
-        module = key.removeprefix("base_model.model.").removesuffix(".lora_A.weight")
-        lora_b = weights[key.replace(".lora_A.", ".lora_B.")]
-        target = f"{module}.weight"
-        if target not in state:
-            raise BackboneError(f"LoRA adapter targets {target}, which the checkpoint lacks")
-        merged = state[target].float() + scaling * (lora_b.float() @ lora_a.float())
-        state[target] = merged.to(state[target].dtype)
