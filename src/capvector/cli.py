@@ -14,6 +14,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from capvector.errors import ToolParser
+from capvector.fileio import check_new_output
 
 LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
 
@@ -87,6 +88,15 @@ def run_lightning_cli(args: list[str] | None) -> object:
                 "data", "model.data_spec", apply_on="instantiate", compute_fn=lambda dm: dm.spec
             )
 
+        def before_fit(self) -> None:
+            from capvector.resume import check_fit_outputs, resume_latest_run
+
+            check_fit_outputs(self.trainer)
+            settings = self.config_init[self.subcommand]
+            if settings.get("ckpt_path") == "last":
+                settings["ckpt_path"] = str(resume_latest_run(self.trainer))
+                print(f"capvector fit: resuming {settings['ckpt_path']}")
+
     return CapVectorCLI(
         VLAModule,
         RobotDataModule,
@@ -153,6 +163,7 @@ def export_main(argv: list[str]) -> int:
     parser.add_argument("--out", required=True, help="output folder (written atomically)")
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args(argv)
+    check_new_output(args.out, args.overwrite)  # before loading the checkpoint
     folder = load_module(args.ckpt).export(args.out, overwrite=args.overwrite)
     print(f"exported {args.ckpt} to {folder}")
     return 0
@@ -193,6 +204,7 @@ def import_original_main(argv: list[str]) -> int:
         raise CapVectorError(f"--override is not JSON ({exc}): {args.override!r}") from exc
     if not isinstance(overrides, dict):
         raise CapVectorError(f"--override must be a JSON object, got {args.override!r}")
+    check_new_output(args.out, args.overwrite)  # before reading the checkpoint
     family = preset_config(args.preset).family
     options = {
         "openvla-oft": {"apply_lora_adapter": args.apply_lora_adapter},

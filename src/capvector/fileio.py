@@ -33,11 +33,11 @@ def _publish_modes(tmp: Path) -> None:
             os.chmod(path, (0o777 if path.is_dir() else 0o666) & ~mask)
 
 
-def check_writable(path: str | Path, what: str = "output") -> Path:
-    """Fail before any work when ``path`` could not be created: its nearest existing ancestor must
-    be a folder this process may write into."""
+def check_writable(path: str | Path, what: str = "output", inside: bool = False) -> Path:
+    """Fail before any work when ``path`` could not be created (``inside``: when files could not be
+    created inside the folder ``path``): the nearest existing folder must be writable."""
     target = Path(path)
-    ancestor = target.absolute().parent
+    ancestor = target.absolute() if inside else target.absolute().parent
     while not ancestor.exists():
         ancestor = ancestor.parent
     if not ancestor.is_dir():
@@ -49,6 +49,14 @@ def check_writable(path: str | Path, what: str = "output") -> Path:
             f"cannot write {what} {target}: no permission to write in {ancestor}; choose a folder "
             "you can write to"
         )
+    return target
+
+
+def check_new_output(path: str | Path, overwrite: bool, what: str = "--out") -> Path:
+    """Fail before any work when ``path`` exists (without ``overwrite``) or could not be written."""
+    target = check_writable(path, what)
+    if target.exists() and not overwrite:
+        raise CapVectorError(f"{target} exists; choose another {what} or pass --overwrite")
     return target
 
 

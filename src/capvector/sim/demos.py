@@ -46,7 +46,8 @@ import h5py
 import numpy as np
 from tqdm import tqdm
 
-from capvector.errors import ToolParser
+from capvector.errors import CapVectorError, ToolParser
+from capvector.fileio import check_writable
 from capvector.sim.annotations import Annotator
 from capvector.sim.envs import (
     DEFAULT_CAMERAS,
@@ -243,7 +244,10 @@ def record_demos(
         raise ValueError(f"episodes must be at least 1, got {episodes}")
     if max_attempts is None:
         max_attempts = max(2 * episodes, episodes + 20)
-    out = Path(out)
+    # Checked before any simulation: a bad path must not cost minutes of recording first.
+    out = check_writable(out, "demo file")
+    if out.is_dir():
+        raise CapVectorError(f"--out {out} is a folder; give a file, e.g. {out / 'demos.hdf5'}")
     out.parent.mkdir(parents=True, exist_ok=True)
     own_sim = sim is None
     if sim is None:
@@ -376,6 +380,8 @@ def main(argv: list[str] | None = None) -> int:
             camera_fovy=_parse_fovy(args.fovy),
             progress=not args.no_progress,
         )
+    except CapVectorError:
+        raise  # bad input: `capvector` prints it as one line, exit code 2
     except (RuntimeError, ValueError, KeyError, argparse.ArgumentTypeError) as e:
         print(f"capvector demos: error: {e}", file=sys.stderr)
         return 1

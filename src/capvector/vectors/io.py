@@ -28,7 +28,7 @@ import torch
 from torch import Tensor
 
 from capvector.errors import CapVectorError  # noqa: F401 (re-exported: the vector tools' error)
-from capvector.fileio import atomic_directory, check_writable
+from capvector.fileio import atomic_directory, check_new_output
 
 # File names of an export folder; the writer is ``capvector.backbones.base`` (``VLABackbone.
 # save_pretrained``). Repeated here because ``vectors`` sits below ``backbones`` and imports nothing
@@ -689,9 +689,7 @@ def _fsync_dir(path: Path) -> None:
 def check_output(out: str | Path, overwrite: bool, inputs: Sequence[str | Path] = ()) -> Path:
     """Fail before any work when ``out`` exists (without overwrite), is one of the inputs, or could
     not be written."""
-    target = check_writable(out, "--out")
-    if target.exists() and not overwrite:
-        raise CapVectorError(f"{target} exists; choose another --out or pass --overwrite")
+    target = check_new_output(out, overwrite)
     for path in inputs:
         if Path(path).resolve() == target.resolve():
             raise CapVectorError(f"--out {target} is also an input; write to another folder")

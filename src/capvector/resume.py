@@ -1,0 +1,80 @@
+"""What ``capvector fit ... --ckpt_path last`` resumes, and checks a fit's outputs before it starts.
+
+Lightning resolves ``ckpt_path="last"`` inside the run folder of the *new* logger version, which
+is empty, so a plain ``capvector fit --ckpt_path last`` trained from scratch in a new version folder
+with only a warning. Here ``last`` means the newest run in the logger's folder that holds a
+checkpoint: the fit resumes from it and logs into that same version folder, so its metrics go on.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import lightning as L
+from lightning.pytorch.callbacks import ModelCheckpoint
+
+from capvector.callbacks.export import ExportOnFitEnd
+from capvector.errors import CapVectorError
+from capvector.fileio import check_writable
+
+LAST = "last.ckpt"
+
+
+def resume_latest_run(trainer: L.Trainer) -> Path:
+    """Point the trainer's logger at the newest version folder with a checkpoint; its checkpoint."""
+    checkpoint = next(
+        (c for c in trainer.callbacks if isinstance(c, ModelCheckpoint) and c.dirpath), None
+    )
+    if checkpoint is not None:  # an explicit checkpoint folder: the logger version does not matter
+        found = _newest_checkpoint(Path(checkpoint.dirpath))
+        if found is None:
+            raise CapVectorError(
+                f"--ckpt_path last: {checkpoint.dirpath} holds no checkpoint; pass a .ckpt path, or "
+                "drop --ckpt_path to start a new run"
+            )
+        return found
+    logger = trainer.logger
+    root = Path(logger.root_dir) if logger is not None and hasattr(logger, "root_dir") else None
+    if root is None:
+        found = _newest_checkpoint(Path(trainer.default_root_dir) / "checkpoints")
+        where = Path(trainer.default_root_dir) / "checkpoints"
+    else:
+        found = None
+        for version_dir in _versions_newest_first(root):
+            found = _newest_checkpoint(version_dir / "checkpoints")
+            if found is not None:
+                logger._version = int(version_dir.name.removeprefix("version_"))  # type: ignore[union-attr]
+                break
+        where = root / "version_*" / "checkpoints"
+    if found is None:
+        raise CapVectorError(
+            f"--ckpt_path last: no checkpoint under {where}; pass the path of a .ckpt "
+            f"(e.g. <run>/checkpoints/{LAST}), or drop --ckpt_path to start a new run"
+        )
+    return found
+
+
+def check_fit_outputs(trainer: L.Trainer) -> None:
+    """Fail before training when a folder the fit writes to could not be created."""
+    paths = [("trainer.default_root_dir", trainer.default_root_dir)]
+    for logger in trainer.loggers:
+        if getattr(logger, "save_dir", None):
+            paths.append((f"the {type(logger).__name__}'s save_dir", logger.save_dir))
+    for callback in trainer.callbacks:
+        if isinstance(callback, ModelCheckpoint | ExportOnFitEnd) and callback.dirpath:
+            paths.append((f"{type(callback).__name__}'s dirpath", callback.dirpath))
+    for what, path in paths:
+        check_writable(path, f"into {what}", inside=True)
+
+
+def _versions_newest_first(root: Path) -> list[Path]:
+    versions = [p for p in root.glob("version_*") if re.fullmatch(r"version_\d+", p.name)]
+    return sorted(versions, key=lambda p: int(p.name.removeprefix("version_")), reverse=True)
+
+
+def _newest_checkpoint(folder: Path) -> Path | None:
+    if (folder / LAST).is_file():
+        return folder / LAST
+    checkpoints = sorted(folder.glob("*.ckpt"), key=lambda p: p.stat().st_mtime)
+    return checkpoints[-1] if checkpoints else None
