@@ -24,6 +24,21 @@ DEFAULT_CAMERAS = ("agentview", "robot0_eye_in_hand")
 DEFAULT_PROPRIO = ("robot0_eef_pos", "robot0_eef_axis_angle", "robot0_gripper_qpos")
 
 
+@dataclasses.dataclass
+class DemoGeneration:
+    """``data.generate``: record the demos the config names when a file does not exist yet, as
+    ``capvector demos`` would (cameras, depth and annotations follow the data config)."""
+
+    task: str = "Lift"
+    robot: str = "Panda"
+    gripper: str | None = None
+    episodes: int = 20
+    seed: int = 0
+    """Seed of the first attempt; the i-th missing file of train_files + val_files starts at
+    seed + 10,000·i, so no two files share an episode."""
+    image_size: int = 64
+
+
 class RobotDataModule(L.LightningDataModule):
     """Training samples from HDF5 demos or a LeRobot v3 folder; optional held-out demos (files, or
     episodes of the folder) for an action-L1 validation."""
@@ -49,6 +64,7 @@ class RobotDataModule(L.LightningDataModule):
         train_episodes: list[int] | None = None,
         val_episodes: list[int] | None = None,
         normalization: str = BOUNDS_Q99,
+        generate: DemoGeneration | None = None,
     ) -> None:
         """
         Args:
@@ -76,6 +92,9 @@ class RobotDataModule(L.LightningDataModule):
                 the family's upstream: ``bounds_q99`` (OpenVLA-OFT: clipped to [-1, 1], gripper
                 raw) or ``quantiles`` (Pi0.5 as openpi and LeRobot: not clipped, every dimension).
                 See ``capvector.data.statistics``; the backbone YAMLs set it.
+            generate: record missing HDF5 files with the robosuite experts (``prepare_data``, once
+                per node, with a progress bar) instead of stopping; ``configs/debug.yaml`` turns it
+                on so a fresh checkout trains.
         """
         check_normalization(normalization)
         super().__init__()
@@ -83,31 +102,78 @@ class RobotDataModule(L.LightningDataModule):
         self.eval_tasks = [EvalTask(**t) if isinstance(t, Mapping) else t for t in eval_tasks or []]
         # Plain data in checkpoints, so they load with torch.load(weights_only=True).
         self.hparams["eval_tasks"] = [dataclasses.asdict(t) for t in self.eval_tasks] or None
+        self.generate = DemoGeneration(**generate) if isinstance(generate, Mapping) else generate
+        self.hparams["generate"] = dataclasses.asdict(self.generate) if self.generate else None
+        self.train_dataset: HDF5RobotDataset | LeRobotV3Dataset | None = None
+        self.val_dataset: HDF5RobotDataset | LeRobotV3Dataset | None = None
         if (lerobot_root is None) == (not train_files):
             raise DatasetError(
                 "set exactly one of data.train_files (HDF5 files) and data.lerobot_root "
                 "(a LeRobot v3 folder)"
             )
         if lerobot_root is not None:
-            if len(proprio_keys) > 1 or load_depth or load_annotations or instruction or val_files:
+            if (
+                len(proprio_keys) > 1
+                or load_depth
+                or load_annotations
+                or instruction
+                or val_files
+                or generate
+            ):
                 raise DatasetError(
                     "with data.lerobot_root, proprio_keys is one state feature (e.g. "
                     "['observation.state']) or [], validation uses data.val_episodes, and "
-                    "instruction, load_depth, load_annotations and val_files are not available"
+                    "instruction, load_depth, load_annotations, val_files and generate are not "
+                    "available"
                 )
-            self.train_dataset = self._dataset(None, augment=augment, episodes=train_episodes)
-            self.val_dataset = (
-                self._dataset(None, augment=False, episodes=val_episodes) if val_episodes else None
-            )
+            self._load_datasets()
             return
-        missing = [f for f in [*train_files, *(val_files or [])] if not Path(f).is_file()]
-        if missing:
+        missing = self._missing_files()
+        if missing and self.generate is None:
             raise DatasetError(
                 f"dataset file(s) not found: {missing}. Generate demos with "
-                "`capvector demos --task Lift --episodes 20 --out FILE` or fix data.train_files"
+                "`capvector demos --task Lift --episodes 20 --out FILE`, set data.generate to "
+                "record them at the start of fit, or fix data.train_files"
             )
-        self.train_dataset = self._dataset(train_files, augment=augment)
-        self.val_dataset = self._dataset(val_files, augment=False) if val_files else None
+        if not missing:
+            self._load_datasets()
+
+    def _missing_files(self) -> list[str]:
+        files = [*(self.hparams.train_files or []), *(self.hparams.val_files or [])]
+        return [f for f in files if not Path(f).is_file()]
+
+    def prepare_data(self) -> None:
+        """Record the missing demo files (``data.generate``). Lightning calls it once per node."""
+        if self.generate is None:
+            return
+        from capvector.sim.demos import record_demos  # the simulator only when recording
+
+        hp, gen = self.hparams, self.generate
+        files = [*(hp.train_files or []), *(hp.val_files or [])]
+        for i, file in enumerate(files):
+            if Path(file).is_file():
+                continue
+            record_demos(
+                gen.task, gen.episodes, file, robot=gen.robot, gripper=gen.gripper,
+                cameras=list(hp.cameras), image_size=gen.image_size, depth=hp.load_depth,
+                seed=gen.seed + 10_000 * i,
+            )  # fmt: skip
+
+    def setup(self, stage: str) -> None:
+        self._load_datasets()
+
+    def _load_datasets(self) -> None:
+        if self.train_dataset is not None:
+            return
+        if self._missing_files():  # first needed before the trainer ran prepare_data (CLI links)
+            self.prepare_data()
+        hp = self.hparams
+        self.train_dataset = self._dataset(
+            hp.train_files, augment=hp.augment, episodes=hp.train_episodes
+        )
+        held_out = hp.val_episodes if hp.lerobot_root is not None else hp.val_files
+        if held_out:
+            self.val_dataset = self._dataset(hp.val_files, augment=False, episodes=hp.val_episodes)
 
     def _dataset(
         self, files: list[str] | None, augment: bool, episodes: list[int] | None = None
@@ -143,7 +209,9 @@ class RobotDataModule(L.LightningDataModule):
 
     @property
     def spec(self) -> DataSpec:
+        self._load_datasets()
         ds = self.train_dataset
+        assert ds is not None
         return DataSpec(
             cameras=list(self.hparams.cameras),
             proprio_keys=list(self.hparams.proprio_keys),
@@ -159,7 +227,9 @@ class RobotDataModule(L.LightningDataModule):
 
     def train_dataloader(self) -> DataLoader:
         hp = self.hparams
+        self._load_datasets()
         dataset = self.train_dataset
+        assert dataset is not None
         drop_last = len(dataset) >= hp.batch_size
         trainer = self.trainer
         if trainer is not None and trainer.world_size > 1:
