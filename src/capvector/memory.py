@@ -24,6 +24,9 @@ on the meta device.
 
 from __future__ import annotations
 
+import contextlib
+import functools
+import weakref
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -34,7 +37,7 @@ import torch.nn.functional as F
 from torch import Tensor
 from torch.overrides import TorchFunctionMode
 from torch.utils import _pytree as pytree
-from torch.utils._python_dispatch import TorchDispatchMode
+from torch.utils._python_dispatch import TorchDispatchMode, _disable_current_modes
 
 from capvector.backbones.base import VLABackbone, build_backbone, list_presets, preset_config
 from capvector.data import keys
@@ -57,9 +60,12 @@ class MemoryEstimate:
     optimizer: float
     activations: float
     activations_checkpointed: float
-    recompute: float = 0.0
-    """Checkpointed runs recompute one block at a time in the backward pass: the largest block's
-    saved tensors, on top of ``activations_checkpointed``."""
+    working: float = 0.0
+    """The traced step's peak beyond activations and gradients: the backward's activation
+    gradients and temporaries, the loss, AdamW's temporaries (negative when activations are
+    already freed at the peak)."""
+    working_checkpointed: float = 0.0
+    """The same with checkpointing: includes the blocks recomputed in the backward pass."""
     checkpointing: bool = False
     """Whether ``total`` assumes activation checkpointing (``VLAModule(activation_checkpointing)``)."""
     trainable_parameters: float = 0.0
@@ -70,18 +76,16 @@ class MemoryEstimate:
         return self.total_checkpointed if self.checkpointing else self.total_plain
 
     @property
+    def _states(self) -> float:
+        return self.parameters + self.gradients + self.optimizer
+
+    @property
     def total_plain(self) -> float:
-        return self.parameters + self.gradients + self.optimizer + self.activations
+        return self._states + self.activations + self.working
 
     @property
     def total_checkpointed(self) -> float:
-        return (
-            self.parameters
-            + self.gradients
-            + self.optimizer
-            + self.activations_checkpointed
-            + self.recompute
-        )
+        return self._states + self.activations_checkpointed + self.working_checkpointed
 
     def table(self) -> str:
         rows: list[tuple[str, float]] = [
@@ -90,14 +94,15 @@ class MemoryEstimate:
             ("gradients", self.gradients),
             ("optimizer (AdamW)", self.optimizer),
             ("activations", self.activations),
-            ("activations, checkpointed", self.activations_checkpointed),
-            ("  + one block recomputed", self.recompute),
+            ("working memory", self.working),
             ("total, no checkpointing", self.total_plain),
+            ("activations, checkpointed", self.activations_checkpointed),
+            ("working memory, checkpointed", self.working_checkpointed),
             ("total, checkpointed", self.total_checkpointed),
         ]
-        lines = [f"  {name:<26} {value / GIB:10.3f} GiB" for name, value in rows]
+        lines = [f"  {name:<29} {value / GIB:10.3f} GiB" for name, value in rows]
         which = "checkpointed" if self.checkpointing else "no checkpointing"
-        lines.append(f"  {'total':<26} {self.total / GIB:10.3f} GiB  ({which})")
+        lines.append(f"  {'total':<29} {self.total / GIB:10.3f} GiB  ({which})")
         if self.activations != self.activations:  # NaN
             lines.append("  (activations could not be traced on the meta device for this backbone)")
         return "\n".join(lines)
@@ -142,24 +147,30 @@ class HostValuesMetaCompute(TorchDispatchMode):
     A CPU tensor sent to the meta device stays on the CPU (``.to(device)`` of an input); a
     boolean CPU mask that indexes a meta tensor becomes the integer positions it selects.
 
-    A CPU tensor that meets meta weights in several ops (a mask or RoPE table used by every
-    layer) gets one meta twin, so what autograd saves of it is counted once, as on a GPU where it
-    is one tensor.
+    A CPU tensor that meets meta weights gets a meta twin of its whole storage, alive as long as
+    the CPU storage is: a view (an expanded mask) stays a view, and a mask or RoPE table used by
+    every layer is one tensor, as on a GPU, so what autograd saves of it is counted once.
     """
 
     def __init__(self) -> None:
         super().__init__()
-        self._twins: dict[tuple[Any, ...], tuple[Tensor, Tensor]] = {}
+        self._twins: dict[tuple[int, torch.dtype], tuple[Tensor, weakref.ref[Any]]] = {}
 
     def _meta(self, t: Tensor) -> Tensor:
         if t.is_meta:
             return t
-        key = (
-            t.untyped_storage()._cdata, t.storage_offset(), tuple(t.shape), t.stride(), t.dtype
-        )  # fmt: skip
-        if key not in self._twins:  # the CPU tensor is kept alive, so its address is not reused
-            self._twins[key] = (t, t.to("meta"))
-        return self._twins[key][1]
+        storage = t.untyped_storage()
+        key = (storage._cdata, t.dtype)
+        if key not in self._twins:
+            # Made outside every mode: the CPU tensor is what a GPU would hold, the twin is not.
+            with _disable_current_modes():
+                twin = torch.empty(
+                    storage.nbytes() // t.element_size(), dtype=t.dtype, device="meta"
+                )
+            forget = functools.partial(lambda key, _: self._twins.pop(key, None), key)
+            self._twins[key] = (twin, weakref.ref(storage, forget))
+        with _disable_current_modes():
+            return self._twins[key][0].as_strided(t.shape, t.stride(), t.storage_offset())
 
     def __torch_dispatch__(self, func: Any, types: Any, args: Any = (), kwargs: Any = None) -> Any:
         kwargs = kwargs or {}
@@ -184,34 +195,45 @@ def _positions(index: Tensor | None) -> list[Tensor | None]:
     return list(index.nonzero().unbind(1))
 
 
-# CUDA autocast's op lists (aten/src/ATen/autocast_mode.cpp), at the level of the torch functions
+# Autocast's op lists (aten/src/ATen/autocast_mode.cpp), at the level of the torch functions
 # model code calls: inputs of these run in bf16 ...
 _LOWER_PRECISION = frozenset({
     "linear", "matmul", "__matmul__", "__rmatmul__", "mm", "bmm", "baddbmm", "addmm", "addbmm",
     "addmv", "mv", "einsum", "prelu", "conv1d", "conv2d", "conv3d", "conv_transpose1d",
     "conv_transpose2d", "conv_transpose3d", "scaled_dot_product_attention",
 })  # fmt: skip
-# ... and of these in float32.
-_FLOAT32 = frozenset({
-    "layer_norm", "group_norm", "softmax", "log_softmax", "cross_entropy", "nll_loss", "mse_loss",
-    "l1_loss", "smooth_l1_loss", "huber_loss", "kl_div", "binary_cross_entropy_with_logits",
-    "cosine_similarity", "pow", "__pow__", "exp", "log", "rsqrt", "logsumexp", "cumsum", "norm",
-    "softplus",
+# ... and of these in float32: losses on both devices; on CUDA also norms, softmax and the like,
+# which CPU autocast leaves in their input dtype.
+_FLOAT32_LOSSES = frozenset({
+    "cross_entropy", "nll_loss", "mse_loss", "l1_loss", "smooth_l1_loss", "huber_loss", "kl_div",
+    "binary_cross_entropy_with_logits",
 })  # fmt: skip
+_FLOAT32 = {
+    "cuda": _FLOAT32_LOSSES | {
+        "layer_norm", "group_norm", "softmax", "log_softmax", "cosine_similarity", "pow",
+        "__pow__", "exp", "log", "rsqrt", "logsumexp", "cumsum", "norm", "softplus",
+    },
+    "cpu": _FLOAT32_LOSSES,
+}  # fmt: skip
+AUTOCAST_DEVICES = tuple(_FLOAT32)
 
 
 class GpuKernels(TorchFunctionMode):
     """Run a traced forward as it would run on a GPU: CUDA autocast's casts (``autocast_dtype``)
-    and SDPA as the memory-efficient kernel (``efficient_attention``).
+    and SDPA as the memory-efficient kernel (``efficient_attention``). ``device="cpu"`` follows
+    CPU autocast instead (to check the trace against a CPU run).
 
     Sits above autograd, as autocast does, so autograd records the casts and saves the cast
     copies. Like autocast, a trainable leaf (LoRA weights, heads) is cast once per forward;
     frozen weights are cast at every use.
     """
 
-    def __init__(self, autocast_dtype: torch.dtype | None, efficient_attention: bool) -> None:
+    def __init__(
+        self, autocast_dtype: torch.dtype | None, efficient_attention: bool, device: str = "cuda"
+    ) -> None:
         super().__init__()
         self.autocast_dtype = autocast_dtype
+        self.float32_ops = _FLOAT32[device]
         self.efficient_attention = efficient_attention
         self._cast_cache: dict[int, tuple[Tensor, Tensor]] = {}
 
@@ -235,7 +257,7 @@ class GpuKernels(TorchFunctionMode):
         if self.autocast_dtype is not None and torch.is_grad_enabled():
             if name in _LOWER_PRECISION:
                 args, kwargs = self._cast(self.autocast_dtype, (args, kwargs))
-            elif name in _FLOAT32:
+            elif name in self.float32_ops:
                 args, kwargs = self._cast(torch.float32, (args, kwargs))
         if self.efficient_attention and name == "scaled_dot_product_attention":
             return efficient_attention(*args, **kwargs)
@@ -326,6 +348,49 @@ def set_storage_dtypes(backbone: VLABackbone, precision: str, frozen_dtype: torc
             param.data = param.data.to(frozen_dtype)
 
 
+class LiveBytes(TorchDispatchMode):
+    """Bytes of the storages ops allocate that are still alive, and their peak.
+
+    Each new storage is counted when an op returns it and uncounted when it is freed (a weak
+    reference's callback: storages keep their Python object while alive). Storages that exist
+    when the tracker starts (parameters, AdamW state, the batch) are not counted.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.live = 0
+        self.peak = 0
+        self._refs: dict[int, weakref.ref[Any]] = {}
+
+    def __torch_dispatch__(self, func: Any, types: Any, args: Any = (), kwargs: Any = None) -> Any:
+        out = func(*args, **(kwargs or {}))
+        for t in pytree.tree_leaves(out):
+            if isinstance(t, Tensor):
+                self._track(t)
+        return out
+
+    def _track(self, t: Tensor) -> None:
+        storage = t.untyped_storage()
+        key = storage._cdata
+        if key in self._refs or key in self._existing:
+            return
+        size = storage.nbytes()
+        self.live += size
+        self.peak = max(self.peak, self.live)
+        self._refs[key] = weakref.ref(storage, functools.partial(self._free, key, size))
+
+    def _free(self, key: int, size: int, _: Any) -> None:
+        self.live -= size
+        self._refs.pop(key, None)
+
+    def __enter__(self) -> LiveBytes:
+        self._existing: set[int] = set()
+        return super().__enter__()
+
+    def exclude(self, tensors: Iterator[Tensor] | list[Tensor]) -> None:
+        self._existing.update(t.untyped_storage()._cdata for t in tensors)
+
+
 def measure_activations(
     backbone: VLABackbone,
     batch: dict[str, Any],
@@ -334,54 +399,56 @@ def measure_activations(
     attention: str = "math",
 ) -> float:
     """Bytes autograd saves in one forward of ``backbone`` (weights on meta, ``batch`` on the CPU)."""
-    return _trace_activations(backbone, batch, checkpointed, precision, attention)[0]
+    return trace_step(backbone, batch, checkpointed, precision, attention, backward=False)[0]
 
 
-def _trace_activations(
+def trace_step(
     backbone: VLABackbone,
     batch: dict[str, Any],
     checkpointed: bool,
     precision: str,
     attention: str,
+    backward: bool = True,
+    device: str = "cuda",
 ) -> tuple[float, float]:
-    """(saved bytes, the largest shard unit's share of them)."""
+    """(bytes autograd saves in the forward, peak bytes alive during the step) of one training
+    step of ``backbone`` with AdamW, the AdamW state already there (a later step): forward,
+    backward, ``optimizer.step()``. Parameters and AdamW state are not in the peak."""
+    autocast = torch.bfloat16 if precision == "bf16-mixed" else None
+
+    def kernels() -> GpuKernels:
+        return GpuKernels(autocast, attention == "efficient", device)
+
     if checkpointed:
         from torch.distributed._composable import checkpoint
 
         for unit in backbone.shard_units():
-            checkpoint(unit)
+            # The backward recomputes on autograd's thread, which the mode does not reach.
+            checkpoint(unit, context_fn=lambda: (contextlib.nullcontext(), kernels()))
     if precision == "bf16-true":  # Lightning's bf16-true converts the batch's float tensors
         batch = pytree.tree_map_only(
             Tensor, lambda t: t.to(torch.bfloat16) if t.is_floating_point() else t, batch
         )
-    autocast = torch.bfloat16 if precision == "bf16-mixed" else None
+    trainable = [p for p in backbone.parameters() if p.requires_grad]
+    # foreach=True is AdamW's default on a GPU; its temporaries are part of the peak.
+    optimizer = torch.optim.AdamW(trainable, foreach=True)
+    for p in trainable:
+        optimizer.state[p] = {
+            "step": torch.tensor(1.0), "exp_avg": torch.zeros_like(p),
+            "exp_avg_sq": torch.zeros_like(p),
+        }  # fmt: skip
     store: list[float] = []
-    units: list[float] = []
-    with (
-        HostValuesMetaCompute(),
-        GpuKernels(autocast, attention == "efficient"),
-        saved_activation_bytes(store, backbone) as counter,
-        _per_unit(backbone.shard_units(), counter, units),
-    ):
-        backbone(batch)
-    return store[0], max(units, default=0.0)
-
-
-@contextmanager
-def _per_unit(
-    units: list[torch.nn.Module], counter: SavedBytes, out: list[float]
-) -> Iterator[None]:
-    """Append the bytes saved during each call of each of ``units``."""
-    start: dict[int, int] = {}
-    handles = []
-    for unit in units:
-        handles.append(unit.register_forward_pre_hook(lambda m, a: start.__setitem__(id(m), counter.total)))  # fmt: skip
-        handles.append(unit.register_forward_hook(lambda m, a, o: out.append(counter.total - start.get(id(m), counter.total))))  # fmt: skip
-    try:
-        yield
-    finally:
-        for handle in handles:
-            handle.remove()
+    with LiveBytes() as live, HostValuesMetaCompute(), kernels():
+        live.exclude([*backbone.parameters(), *backbone.buffers()])
+        live.exclude([t for state in optimizer.state.values() for t in state.values()])
+        with saved_activation_bytes(store, backbone):
+            loss = backbone(batch).loss
+        if backward:
+            loss.backward()
+            del loss
+            optimizer.step()
+            optimizer.zero_grad(set_to_none=True)
+    return store[0], float(live.peak)
 
 
 def _tiny_tokenizer(preset: str) -> dict[str, Any]:
@@ -436,27 +503,33 @@ def estimate_memory(
     frozen_dtype: str = "float32",
     attention: str = "efficient",
     activation_checkpointing: bool = False,
+    device: str = "cuda",
 ) -> MemoryEstimate:
     """Per-device bytes for training ``preset`` with AdamW; ``batch_size`` is per device.
 
     ``attention="efficient"`` models a GPU's SDPA kernels (no attention matrix kept), ``"math"``
     the math path (what the meta device and some CPUs take). ``activation_checkpointing`` picks
-    which activation figure ``total`` uses; both are always reported.
+    which activation figure ``total`` uses; both are always reported. ``device`` is the autocast
+    policy the trace follows: ``cuda``, or ``cpu`` to compare with a CPU run.
     """
+    if device not in AUTOCAST_DEVICES:
+        raise CapVectorError(
+            f"unknown device {device!r}; choose from {', '.join(AUTOCAST_DEVICES)}"
+        )
     dtype = _check(strategy, precision, frozen_dtype, attention)
-    activations = []
+    traces = []
     for checkpointed in (False, True):
         backbone = _meta_backbone(preset, lora_rank)
         set_storage_dtypes(backbone, precision, dtype)
         batch = synthetic_batch(backbone, batch_size, "cpu")
         try:
-            activations.append(
-                _trace_activations(backbone, batch, checkpointed, precision, attention)
+            traces.append(
+                trace_step(backbone, batch, checkpointed, precision, attention, device=device)
             )
         except (NotImplementedError, RuntimeError):
             # A forward that reads values of meta results (data-dependent shapes downstream of
             # the weights) cannot be traced; then only the weight-related terms are estimated.
-            activations.append((float("nan"), float("nan")))
+            traces.append((float("nan"), float("nan")))
     params = list(backbone.parameters())
     total = sum(p.numel() * p.element_size() for p in params)
     trainable = sum(p.numel() * p.element_size() for p in params if p.requires_grad)
@@ -470,16 +543,19 @@ def estimate_memory(
             reverse=True,
         )  # fmt: skip
         param_bytes += sum(units[:2])
-    # Gradients and AdamW's two moments have the dtype of what trains.
+    # Gradients and AdamW's two moments have the dtype of what trains. The traced peak holds the
+    # whole gradients of one device before they are reduced (and sharded): what is beyond the
+    # saved activations and those gradients is working memory.
     grads = trainable / (devices if shard_grads else 1)
+    (saved, peak), (saved_checkpointed, peak_checkpointed) = traces
     return MemoryEstimate(
         parameters=param_bytes,
         gradients=grads,
         optimizer=2 * grads,
-        activations=activations[0][0],
-        activations_checkpointed=activations[1][0],
-        # A checkpointed block's saved tensors come back in its backward: the largest, once.
-        recompute=activations[0][1],
+        activations=saved,
+        activations_checkpointed=saved_checkpointed,
+        working=peak - saved - trainable,
+        working_checkpointed=peak_checkpointed - saved_checkpointed - trainable,
         checkpointing=activation_checkpointing,
         trainable_parameters=trainable / (devices if shard_params else 1),
     )
