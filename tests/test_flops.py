@@ -56,7 +56,8 @@ def test_flops_match_the_flop_counter_on_a_real_step(preset: str) -> None:
 def test_lora_skips_the_weight_gradients_of_frozen_layers() -> None:
     full = estimate_flops("openvla-oft-tiny", batch_size=2, objectives=())
     lora = estimate_flops("openvla-oft-tiny", batch_size=2, lora_rank=4, objectives=())
-    assert lora.forward["action"] == pytest.approx(full.forward["action"], rel=0.05)
+    # The adapters add r/hidden of the adapted matmuls (r 4 of 64 here).
+    assert lora.forward["action"] == pytest.approx(full.forward["action"], rel=0.1)
     assert lora.backward["action"] < 0.75 * full.backward["action"]
 
 
