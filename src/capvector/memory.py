@@ -410,10 +410,14 @@ def trace_step(
     attention: str,
     backward: bool = True,
     device: str = "cuda",
+    keep_gradients: bool = True,
 ) -> tuple[float, float]:
     """(bytes autograd saves in the forward, peak bytes alive during the step) of one training
     step of ``backbone`` with AdamW, the AdamW state already there (a later step): forward,
-    backward, ``optimizer.step()``. Parameters and AdamW state are not in the peak."""
+    backward, ``optimizer.step()``. Parameters and AdamW state are not in the peak.
+
+    ``keep_gradients=False`` drops each gradient as soon as it is complete, as FSDP2 and ZeRO
+    free the unsharded gradient once it is reduce-scattered (their shards are counted apart)."""
     autocast = torch.bfloat16 if precision == "bf16-mixed" else None
 
     def kernels() -> GpuKernels:
@@ -437,6 +441,9 @@ def trace_step(
             "step": torch.tensor(1.0), "exp_avg": torch.zeros_like(p),
             "exp_avg_sq": torch.zeros_like(p),
         }  # fmt: skip
+    if not keep_gradients:
+        for p in trainable:
+            p.register_post_accumulate_grad_hook(lambda p: setattr(p, "grad", None))
     store: list[float] = []
     with LiveBytes() as live, HostValuesMetaCompute(), kernels():
         live.exclude([*backbone.parameters(), *backbone.buffers()])
@@ -517,6 +524,8 @@ def estimate_memory(
             f"unknown device {device!r}; choose from {', '.join(AUTOCAST_DEVICES)}"
         )
     dtype = _check(strategy, precision, frozen_dtype, attention)
+    shard_params = strategy in ("fsdp2", "deepspeed_zero3")
+    shard_grads = strategy != "ddp" and devices > 1
     traces = []
     for checkpointed in (False, True):
         backbone = _meta_backbone(preset, lora_rank)
@@ -524,7 +533,15 @@ def estimate_memory(
         batch = synthetic_batch(backbone, batch_size, "cpu")
         try:
             traces.append(
-                trace_step(backbone, batch, checkpointed, precision, attention, device=device)
+                trace_step(
+                    backbone,
+                    batch,
+                    checkpointed,
+                    precision,
+                    attention,
+                    device=device,
+                    keep_gradients=not shard_grads,
+                )  # fmt: skip
             )
         except (NotImplementedError, RuntimeError):
             # A forward that reads values of meta results (data-dependent shapes downstream of
@@ -533,8 +550,6 @@ def estimate_memory(
     params = list(backbone.parameters())
     total = sum(p.numel() * p.element_size() for p in params)
     trainable = sum(p.numel() * p.element_size() for p in params if p.requires_grad)
-    shard_params = strategy in ("fsdp2", "deepspeed_zero3")
-    shard_grads = strategy != "ddp"
     param_bytes = total / (devices if shard_params else 1)
     if shard_params and devices > 1:
         # FSDP2 all-gathers one unit at a time (plus one prefetched): add the two largest units.
@@ -543,10 +558,11 @@ def estimate_memory(
             reverse=True,
         )  # fmt: skip
         param_bytes += sum(units[:2])
-    # Gradients and AdamW's two moments have the dtype of what trains. The traced peak holds the
-    # whole gradients of one device before they are reduced (and sharded): what is beyond the
-    # saved activations and those gradients is working memory.
+    # Gradients and AdamW's two moments have the dtype of what trains. Unsharded, the traced peak
+    # holds the whole gradients; what is beyond the saved activations and those gradients is
+    # working memory. Sharded, the trace frees each gradient when complete (reduce-scatter).
     grads = trainable / (devices if shard_grads else 1)
+    traced_grads = 0 if shard_grads else trainable
     (saved, peak), (saved_checkpointed, peak_checkpointed) = traces
     return MemoryEstimate(
         parameters=param_bytes,
@@ -554,8 +570,8 @@ def estimate_memory(
         optimizer=2 * grads,
         activations=saved,
         activations_checkpointed=saved_checkpointed,
-        working=peak - saved - trainable,
-        working_checkpointed=peak_checkpointed - saved_checkpointed - trainable,
+        working=peak - saved - traced_grads,
+        working_checkpointed=peak_checkpointed - saved_checkpointed - traced_grads,
         checkpointing=activation_checkpointing,
         trainable_parameters=trainable / (devices if shard_params else 1),
     )
