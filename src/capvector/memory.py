@@ -237,6 +237,9 @@ class GpuKernels(TorchFunctionMode):
         self.efficient_attention = efficient_attention
         self._cast_cache: dict[int, tuple[Tensor, Tensor]] = {}
 
+    def clear_cast_cache(self) -> None:
+        self._cast_cache.clear()
+
     def _cast(self, dtype: torch.dtype, tree: Any) -> Any:
         def cast(t: Tensor) -> Tensor:
             if not t.is_floating_point() or t.dtype == dtype or t.dtype == torch.float64:
@@ -445,11 +448,12 @@ def trace_step(
         for p in trainable:
             p.register_post_accumulate_grad_hook(lambda p: setattr(p, "grad", None))
     store: list[float] = []
-    with LiveBytes() as live, HostValuesMetaCompute(), kernels():
+    with LiveBytes() as live, HostValuesMetaCompute(), kernels() as gpu:
         live.exclude([*backbone.parameters(), *backbone.buffers()])
         live.exclude([t for state in optimizer.state.values() for t in state.values()])
         with saved_activation_bytes(store, backbone):
             loss = backbone(batch).loss
+        gpu.clear_cast_cache()  # autocast's cache goes when its region ends, after the forward
         if backward:
             loss.backward()
             del loss
