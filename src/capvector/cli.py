@@ -107,24 +107,46 @@ def run_lightning_cli(args: list[str] | None) -> object:
 
 
 def backbone_info_main(argv: list[str]) -> int:
-    """Parameter counts per component from a meta-device build (no memory, no download)."""
+    """Parameter counts per component from a meta-device build (no memory, no download); with
+    --memory the per-device training memory, with --flops the training FLOPs and GPU-hours."""
     import torch
 
     from capvector.backbones import build_backbone, list_presets
+    from capvector.memory import ATTENTION_PATHS, FROZEN_DTYPES, PRECISIONS, STRATEGIES
 
     parser = ToolParser(prog="capvector backbone-info", description=backbone_info_main.__doc__)
     parser.add_argument("preset", nargs="?", help="a registered preset; omit with --list")
     parser.add_argument("--list", action="store_true", help="list the registered presets")
     parser.add_argument("--memory", action="store_true", help="estimate per-device training memory")
-    parser.add_argument("--batch", type=int, default=8, help="per-device batch size (--memory)")
-    parser.add_argument(
-        "--precision", default="bf16-mixed", help="32-true, bf16-mixed or bf16-true"
-    )
-    parser.add_argument(
-        "--strategy", default="fsdp2", help="ddp, fsdp2, deepspeed_zero2, deepspeed_zero3"
-    )
+    parser.add_argument("--flops", action="store_true", help="training FLOPs per sample, GPU-hours")
+    parser.add_argument("--batch", type=int, default=8, help="per-device batch size")
+    parser.add_argument("--precision", default="bf16-mixed", choices=PRECISIONS)
+    parser.add_argument("--strategy", default="fsdp2", choices=STRATEGIES)
     parser.add_argument("--devices", type=int, default=1, help="devices the model is sharded over")
     parser.add_argument("--lora-rank", type=int, default=None, help="train LoRA of this rank")
+    parser.add_argument(
+        "--frozen-dtype",
+        default="float32",
+        choices=list(FROZEN_DTYPES),
+        help="storage dtype of the parameters that do not train (model.frozen_dtype)",
+    )
+    parser.add_argument(
+        "--attention",
+        default="efficient",
+        choices=ATTENTION_PATHS,
+        help="SDPA as a GPU runs it (efficient/flash kernels: no S x S attention matrix kept) or "
+        "the math path (what the meta device and some CPUs take)",
+    )
+    parser.add_argument(
+        "--activation-checkpointing",
+        action="store_true",
+        help="the total assumes model.activation_checkpointing: true",
+    )
+    parser.add_argument("--steps", type=int, default=100_000, help="optimizer steps (--flops)")
+    parser.add_argument("--mfu", type=float, default=0.4, help="model FLOPs utilisation (--flops)")
+    parser.add_argument(
+        "--gpu-tflops", type=float, default=989.0, help="peak dense TFLOP/s (H100 bf16: 989)"
+    )
     args = parser.parse_args(argv)
     if args.list or not args.preset:
         print("\n".join(list_presets()))
@@ -149,8 +171,20 @@ def backbone_info_main(argv: list[str]) -> int:
         settings = {
             "batch_size": args.batch, "precision": args.precision, "strategy": args.strategy,
             "devices": args.devices, "lora_rank": args.lora_rank,
+            "frozen_dtype": args.frozen_dtype, "attention": args.attention,
+            "activation_checkpointing": args.activation_checkpointing,
         }  # fmt: skip
         print(describe(estimate_memory(args.preset, **settings), **settings))
+    if args.flops:
+        from capvector.memory import estimate_flops
+
+        flops = estimate_flops(args.preset, batch_size=args.batch, lora_rank=args.lora_rank)
+        print(
+            flops.table(
+                steps=args.steps, batch_size=args.batch, devices=args.devices, mfu=args.mfu,
+                gpu_tflops=args.gpu_tflops,
+            )
+        )  # fmt: skip
     return 0
 
 

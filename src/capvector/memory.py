@@ -1,9 +1,20 @@
-"""Per-device training memory, estimated from a meta-device build (nothing allocated).
+"""Per-device training memory and training FLOPs, from a meta-device build (nothing allocated).
 
-Parameters, gradients and AdamW state follow from parameter counts, the precision and how the
-strategy shards them. Activations are measured, not guessed: one forward pass with the weights on
-the ``meta`` device records every tensor autograd saves for the backward pass
-(``saved_tensors_hooks``), once plainly and once with the backbone's blocks checkpointed.
+Parameters, gradients and AdamW state follow from what trains and the dtype each parameter is
+stored in, as ``VLAModule`` sets them up: LoRA (``inject_lora``) or full fine-tuning, unused and
+language-head parameters frozen, frozen parameters stored in ``frozen_dtype`` (``bfloat16`` halves
+them, as OpenVLA-OFT keeps its 7.5 B base in bf16) while what trains stays float32 with float32
+gradients and AdamW state. Strategies shard them as they do.
+
+Activations are measured, not guessed: one forward pass with the weights on the ``meta`` device
+records every tensor autograd saves for the backward pass (``saved_tensors_hooks``), once plainly
+and once with the backbone's blocks checkpointed. The trace does what a GPU would do
+(``GpuKernels``): under ``bf16-mixed`` it casts as CUDA autocast does (matmul and convolution
+inputs to bf16, so autograd saves the bf16 copies, including bf16 copies of float32 frozen
+weights; norms, softmax and losses in float32), and with ``attention="efficient"`` SDPA runs as the
+memory-efficient kernel, which saves the output and a (B, heads, S) logsumexp instead of the
+math path's (B, heads, S, S) attention probabilities. Attention computed outside SDPA (Pi0.5's
+``joint_attention``) keeps its matrices on a GPU too, and is counted as such.
 
 The batch stays on the CPU with real values (``HostValuesMetaCompute``): forward passes read values
 to build prompts (Pi0.5's and StarVLA's discretised state), find token positions and multimodal
@@ -13,15 +24,20 @@ on the meta device.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import contextlib
+import functools
+import weakref
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
+from torch.overrides import TorchFunctionMode
 from torch.utils import _pytree as pytree
-from torch.utils._python_dispatch import TorchDispatchMode
+from torch.utils._python_dispatch import TorchDispatchMode, _disable_current_modes
 
 from capvector.backbones.base import VLABackbone, build_backbone, list_presets, preset_config
 from capvector.data import keys
@@ -29,60 +45,98 @@ from capvector.errors import CapVectorError
 
 STRATEGIES = ("ddp", "fsdp2", "deepspeed_zero2", "deepspeed_zero3")
 PRECISIONS = ("32-true", "bf16-mixed", "bf16-true")
+FROZEN_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}
+ATTENTION_PATHS = ("math", "efficient")
+OBJECTIVES = ("spatial", "reasoning")
 GIB = 1024**3
 
 
 @dataclass
 class MemoryEstimate:
+    """All in bytes per device."""
+
     parameters: float
     gradients: float
     optimizer: float
     activations: float
     activations_checkpointed: float
-    """All in bytes per device."""
+    working: float = 0.0
+    """The traced step's peak beyond activations and gradients: the backward's activation
+    gradients and temporaries, the loss, AdamW's temporaries (negative when activations are
+    already freed at the peak)."""
+    working_checkpointed: float = 0.0
+    """The same with checkpointing: includes the blocks recomputed in the backward pass."""
+    checkpointing: bool = False
+    """Whether ``total`` assumes activation checkpointing (``VLAModule(activation_checkpointing)``)."""
+    trainable_parameters: float = 0.0
+    """Of ``parameters``, the bytes of those that train (float32 unless ``bf16-true``)."""
 
     @property
     def total(self) -> float:
-        return self.parameters + self.gradients + self.optimizer + self.activations
+        return self.total_checkpointed if self.checkpointing else self.total_plain
+
+    @property
+    def _states(self) -> float:
+        return self.parameters + self.gradients + self.optimizer
+
+    @property
+    def total_plain(self) -> float:
+        return self._states + self.activations + self.working
 
     @property
     def total_checkpointed(self) -> float:
-        return self.parameters + self.gradients + self.optimizer + self.activations_checkpointed
+        return self._states + self.activations_checkpointed + self.working_checkpointed
 
     def table(self) -> str:
         rows: list[tuple[str, float]] = [
             ("parameters", self.parameters),
+            ("  of which train", self.trainable_parameters),
             ("gradients", self.gradients),
             ("optimizer (AdamW)", self.optimizer),
             ("activations", self.activations),
+            ("working memory", self.working),
+            ("total, no checkpointing", self.total_plain),
             ("activations, checkpointed", self.activations_checkpointed),
-            ("total", self.total),
+            ("working memory, checkpointed", self.working_checkpointed),
             ("total, checkpointed", self.total_checkpointed),
         ]
-        lines = [f"  {name:<26} {value / GIB:10.3f} GiB" for name, value in rows]
+        lines = [f"  {name:<29} {value / GIB:10.3f} GiB" for name, value in rows]
+        which = "checkpointed" if self.checkpointing else "no checkpointing"
+        lines.append(f"  {'total':<29} {self.total / GIB:10.3f} GiB  ({which})")
         if self.activations != self.activations:  # NaN
             lines.append("  (activations could not be traced on the meta device for this backbone)")
         return "\n".join(lines)
 
 
-@contextmanager
-def saved_activation_bytes(store: list[float]) -> Iterator[None]:
-    """Sum the bytes of storages autograd saves for backward, each storage once (views of one
-    tensor share it) and parameters excluded (they are counted as parameters)."""
-    seen: set[int] = set()
-    total = 0
+class SavedBytes:
+    """Running sum of the bytes autograd has saved so far (see ``saved_activation_bytes``)."""
 
-    def pack(t: Tensor) -> Tensor:
-        nonlocal total
+    def __init__(self, module: torch.nn.Module | None = None) -> None:
+        self.total = 0
+        # Weights are counted as parameters: autograd often saves a view of one (``W.t()`` in a
+        # linear layer), which shares the parameter's storage.
+        tensors = [] if module is None else [*module.parameters(), *module.buffers()]
+        self._seen: set[int] = {t.untyped_storage()._cdata for t in tensors}
+
+    def pack(self, t: Tensor) -> Tensor:
         storage = t.untyped_storage()
-        if storage._cdata not in seen and not isinstance(t, torch.nn.Parameter):
-            seen.add(storage._cdata)
-            total += storage.nbytes()
+        if storage._cdata not in self._seen and not isinstance(t, torch.nn.Parameter):
+            self._seen.add(storage._cdata)
+            self.total += storage.nbytes()
         return t
 
-    with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
-        yield
-    store.append(float(total))
+
+@contextmanager
+def saved_activation_bytes(
+    store: list[float], module: torch.nn.Module | None = None
+) -> Iterator[SavedBytes]:
+    """Sum the bytes of storages autograd saves for backward, each storage once (views of one
+    tensor share it); parameters, and views of ``module``'s parameters and buffers, excluded
+    (they are counted as parameters)."""
+    counter = SavedBytes(module)
+    with torch.autograd.graph.saved_tensors_hooks(counter.pack, lambda t: t):
+        yield counter
+    store.append(float(counter.total))
 
 
 class HostValuesMetaCompute(TorchDispatchMode):
@@ -92,7 +146,31 @@ class HostValuesMetaCompute(TorchDispatchMode):
     are built as in training), while everything that involves the meta weights costs nothing.
     A CPU tensor sent to the meta device stays on the CPU (``.to(device)`` of an input); a
     boolean CPU mask that indexes a meta tensor becomes the integer positions it selects.
+
+    A CPU tensor that meets meta weights gets a meta twin of its whole storage, alive as long as
+    the CPU storage is: a view (an expanded mask) stays a view, and a mask or RoPE table used by
+    every layer is one tensor, as on a GPU, so what autograd saves of it is counted once.
     """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._twins: dict[tuple[int, torch.dtype], tuple[Tensor, weakref.ref[Any]]] = {}
+
+    def _meta(self, t: Tensor) -> Tensor:
+        if t.is_meta:
+            return t
+        storage = t.untyped_storage()
+        key = (storage._cdata, t.dtype)
+        if key not in self._twins:
+            # Made outside every mode: the CPU tensor is what a GPU would hold, the twin is not.
+            with _disable_current_modes():
+                twin = torch.empty(
+                    storage.nbytes() // t.element_size(), dtype=t.dtype, device="meta"
+                )
+            forget = functools.partial(lambda key, _: self._twins.pop(key, None), key)
+            self._twins[key] = (twin, weakref.ref(storage, forget))
+        with _disable_current_modes():
+            return self._twins[key][0].as_strided(t.shape, t.stride(), t.storage_offset())
 
     def __torch_dispatch__(self, func: Any, types: Any, args: Any = (), kwargs: Any = None) -> Any:
         kwargs = kwargs or {}
@@ -106,7 +184,7 @@ class HostValuesMetaCompute(TorchDispatchMode):
         if func is torch.ops.aten.index.Tensor:  # x[mask]: the mask's values give the shape
             source, indices = args
             args = (source, [position for i in indices for position in _positions(i)])
-        args, kwargs = pytree.tree_map_only(Tensor, lambda t: t.to("meta"), (args, kwargs))
+        args, kwargs = pytree.tree_map_only(Tensor, self._meta, (args, kwargs))
         return func(*args, **kwargs)
 
 
@@ -117,11 +195,122 @@ def _positions(index: Tensor | None) -> list[Tensor | None]:
     return list(index.nonzero().unbind(1))
 
 
+# Autocast's op lists (aten/src/ATen/autocast_mode.cpp), at the level of the torch functions
+# model code calls: inputs of these run in bf16 ...
+_LOWER_PRECISION = frozenset({
+    "linear", "matmul", "__matmul__", "__rmatmul__", "mm", "bmm", "baddbmm", "addmm", "addbmm",
+    "addmv", "mv", "einsum", "prelu", "conv1d", "conv2d", "conv3d", "conv_transpose1d",
+    "conv_transpose2d", "conv_transpose3d", "scaled_dot_product_attention",
+})  # fmt: skip
+# ... and of these in float32: losses on both devices; on CUDA also norms, softmax and the like,
+# which CPU autocast leaves in their input dtype.
+_FLOAT32_LOSSES = frozenset({
+    "cross_entropy", "nll_loss", "mse_loss", "l1_loss", "smooth_l1_loss", "huber_loss", "kl_div",
+    "binary_cross_entropy_with_logits",
+})  # fmt: skip
+_FLOAT32 = {
+    "cuda": _FLOAT32_LOSSES | {
+        "layer_norm", "group_norm", "softmax", "log_softmax", "cosine_similarity", "pow",
+        "__pow__", "exp", "log", "rsqrt", "logsumexp", "cumsum", "norm", "softplus",
+    },
+    "cpu": _FLOAT32_LOSSES,
+}  # fmt: skip
+AUTOCAST_DEVICES = tuple(_FLOAT32)
+
+
+class GpuKernels(TorchFunctionMode):
+    """Run a traced forward as it would run on a GPU: CUDA autocast's casts (``autocast_dtype``)
+    and SDPA as the memory-efficient kernel (``efficient_attention``). ``device="cpu"`` follows
+    CPU autocast instead (to check the trace against a CPU run).
+
+    Sits above autograd, as autocast does, so autograd records the casts and saves the cast
+    copies. Like autocast, a trainable leaf (LoRA weights, heads) is cast once per forward;
+    frozen weights are cast at every use.
+    """
+
+    def __init__(
+        self, autocast_dtype: torch.dtype | None, efficient_attention: bool, device: str = "cuda"
+    ) -> None:
+        super().__init__()
+        self.autocast_dtype = autocast_dtype
+        self.float32_ops = _FLOAT32[device]
+        self.efficient_attention = efficient_attention
+        self._cast_cache: dict[int, tuple[Tensor, Tensor]] = {}
+
+    def clear_cast_cache(self) -> None:
+        self._cast_cache.clear()
+
+    def _cast(self, dtype: torch.dtype, tree: Any) -> Any:
+        def cast(t: Tensor) -> Tensor:
+            if not t.is_floating_point() or t.dtype == dtype or t.dtype == torch.float64:
+                return t
+            if t.is_leaf and t.requires_grad:
+                if id(t) not in self._cast_cache:
+                    self._cast_cache[id(t)] = (t, t.to(dtype))
+                return self._cast_cache[id(t)][1]
+            return t.to(dtype)
+
+        return pytree.tree_map_only(Tensor, cast, tree)
+
+    def __torch_function__(
+        self, func: Any, types: Any, args: Sequence[Any] = (), kwargs: Any = None
+    ) -> Any:
+        kwargs = kwargs or {}
+        name = getattr(func, "__name__", "")
+        if self.autocast_dtype is not None and torch.is_grad_enabled():
+            if name in _LOWER_PRECISION:
+                args, kwargs = self._cast(self.autocast_dtype, (args, kwargs))
+            elif name in self.float32_ops:
+                args, kwargs = self._cast(torch.float32, (args, kwargs))
+        if self.efficient_attention and name == "scaled_dot_product_attention":
+            return efficient_attention(*args, **kwargs)
+        return func(*args, **kwargs)
+
+
+def efficient_attention(
+    query: Tensor,
+    key: Tensor,
+    value: Tensor,
+    attn_mask: Tensor | None = None,
+    dropout_p: float = 0.0,
+    is_causal: bool = False,
+    scale: float | None = None,
+    enable_gqa: bool = False,
+) -> Tensor:
+    """``F.scaled_dot_product_attention`` through the memory-efficient kernel, as on a GPU.
+
+    Autograd then saves what that kernel's backward needs: q, k, v, the bias, the output and a
+    float32 (B, heads, S) logsumexp; no (B, heads, S, S) probabilities. A boolean mask becomes an
+    additive bias in the query dtype, as SDPA does before calling the kernel.
+    """
+    if query.dim() != 4:
+        return F.scaled_dot_product_attention(
+            query, key, value, attn_mask, dropout_p, is_causal, scale=scale, enable_gqa=enable_gqa
+        )
+    if key.shape[1] != query.shape[1]:  # grouped-query attention: the kernel wants equal heads
+        groups = query.shape[1] // key.shape[1]
+        key, value = key.repeat_interleave(groups, 1), value.repeat_interleave(groups, 1)
+    bias = None
+    if attn_mask is not None:
+        if attn_mask.dtype == torch.bool:
+            bias = torch.zeros(attn_mask.shape, dtype=query.dtype, device=query.device)
+            bias = bias.masked_fill(~attn_mask, float("-inf"))
+        else:
+            bias = attn_mask.to(query.dtype)
+        shape = (query.shape[0], query.shape[1], query.shape[2], key.shape[2])
+        bias = bias.expand(shape)
+    return torch.ops.aten._scaled_dot_product_efficient_attention(
+        query, key, value, bias, True, dropout_p, is_causal, scale=scale
+    )[0]
+
+
 def synthetic_batch(
-    backbone: VLABackbone, batch_size: int, device: str | torch.device
+    backbone: VLABackbone, batch_size: int, device: str | torch.device, objectives: bool = False
 ) -> dict[str, Any]:
+    """A training batch of ``backbone``'s shapes; ``objectives`` adds what the auxiliary objectives
+    read (depth and intrinsics for spatial alignment, a text annotation for reasoning)."""
     c = backbone.config
-    return {
+    batch: dict[str, Any] = {
         keys.IMAGES: torch.rand(
             batch_size, c.num_images, 3, c.image_size, c.image_size, device=device
         ),
@@ -129,19 +318,148 @@ def synthetic_batch(
         keys.ACTIONS: torch.zeros(batch_size, c.chunk_size, c.action_dim, device=device),
         keys.INSTRUCTION: ["pick up the red cube and place it on the plate"] * batch_size,
     }
+    if objectives:
+        size = (batch_size, c.num_images, c.image_size, c.image_size)
+        batch[keys.DEPTH] = torch.ones(size, device=device)
+        intrinsics = torch.tensor([[c.image_size, 0, c.image_size / 2], [0, c.image_size, c.image_size / 2], [0, 0, 1.0]])  # fmt: skip
+        batch[keys.INTRINSICS] = intrinsics.expand(batch_size, c.num_images, 3, 3).to(device)
+        batch[keys.ANNOTATION] = ["the gripper moves toward the red cube, left of the plate"] * batch_size  # fmt: skip
+    return batch
 
 
-def measure_activations(backbone: VLABackbone, batch: dict[str, Any], checkpointed: bool) -> float:
+def set_trainable(backbone: VLABackbone, lora_rank: int | None) -> None:
+    """Make the same parameters trainable as ``VLAModule.__init__`` does: LoRA of ``lora_rank``
+    (adapters and ``lora_trainable_modules``) or everything, then unused and language-head
+    parameters frozen."""
+    if lora_rank:
+        from capvector.lora import LoraSettings, inject_lora
+
+        inject_lora(backbone, LoraSettings(r=lora_rank, alpha=min(lora_rank, 16)))
+    frozen = set(backbone.unused_parameter_names()) | set(backbone.language_head_parameter_names())
+    for name, param in backbone.named_parameters():
+        if name.replace(".base_layer.", ".") in frozen:
+            param.requires_grad_(False)
+
+
+def set_storage_dtypes(backbone: VLABackbone, precision: str, frozen_dtype: torch.dtype) -> None:
+    """Parameter dtypes as training keeps them: ``bf16-true`` casts everything to bf16; otherwise
+    what does not train is stored in ``frozen_dtype`` and the rest stays float32."""
+    for param in backbone.parameters():
+        if precision == "bf16-true":
+            param.data = param.data.to(torch.bfloat16)
+        elif not param.requires_grad:
+            param.data = param.data.to(frozen_dtype)
+
+
+class LiveBytes(TorchDispatchMode):
+    """Bytes of the storages ops allocate that are still alive, and their peak.
+
+    Each new storage is counted when an op returns it and uncounted when it is freed (a weak
+    reference's callback: storages keep their Python object while alive). Storages that exist
+    when the tracker starts (parameters, AdamW state, the batch) are not counted.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.live = 0
+        self.peak = 0
+        self._refs: dict[int, weakref.ref[Any]] = {}
+
+    def __torch_dispatch__(self, func: Any, types: Any, args: Any = (), kwargs: Any = None) -> Any:
+        out = func(*args, **(kwargs or {}))
+        for t in pytree.tree_leaves(out):
+            if isinstance(t, Tensor):
+                self._track(t)
+        return out
+
+    def _track(self, t: Tensor) -> None:
+        storage = t.untyped_storage()
+        key = storage._cdata
+        if key in self._refs or key in self._existing:
+            return
+        size = storage.nbytes()
+        self.live += size
+        self.peak = max(self.peak, self.live)
+        self._refs[key] = weakref.ref(storage, functools.partial(self._free, key, size))
+
+    def _free(self, key: int, size: int, _: Any) -> None:
+        self.live -= size
+        self._refs.pop(key, None)
+
+    def __enter__(self) -> LiveBytes:
+        self._existing: set[int] = set()
+        return super().__enter__()
+
+    def exclude(self, tensors: Iterator[Tensor] | list[Tensor]) -> None:
+        self._existing.update(t.untyped_storage()._cdata for t in tensors)
+
+
+def measure_activations(
+    backbone: VLABackbone,
+    batch: dict[str, Any],
+    checkpointed: bool,
+    precision: str = "32-true",
+    attention: str = "math",
+) -> float:
     """Bytes autograd saves in one forward of ``backbone`` (weights on meta, ``batch`` on the CPU)."""
+    return trace_step(backbone, batch, checkpointed, precision, attention, backward=False)[0]
+
+
+def trace_step(
+    backbone: VLABackbone,
+    batch: dict[str, Any],
+    checkpointed: bool,
+    precision: str,
+    attention: str,
+    backward: bool = True,
+    device: str = "cuda",
+    keep_gradients: bool = True,
+) -> tuple[float, float]:
+    """(bytes autograd saves in the forward, peak bytes alive during the step) of one training
+    step of ``backbone`` with AdamW, the AdamW state already there (a later step): forward,
+    backward, ``optimizer.step()``. Parameters and AdamW state are not in the peak.
+
+    ``keep_gradients=False`` drops each gradient as soon as it is complete, as FSDP2 and ZeRO
+    free the unsharded gradient once it is reduce-scattered (their shards are counted apart)."""
+    autocast = torch.bfloat16 if precision == "bf16-mixed" else None
+
+    def kernels() -> GpuKernels:
+        return GpuKernels(autocast, attention == "efficient", device)
+
     if checkpointed:
         from torch.distributed._composable import checkpoint
 
         for unit in backbone.shard_units():
-            checkpoint(unit)
+            # The backward recomputes on autograd's thread, which the mode does not reach.
+            checkpoint(unit, context_fn=lambda: (contextlib.nullcontext(), kernels()))
+    if precision == "bf16-true":  # Lightning's bf16-true converts the batch's float tensors
+        batch = pytree.tree_map_only(
+            Tensor, lambda t: t.to(torch.bfloat16) if t.is_floating_point() else t, batch
+        )
+    trainable = [p for p in backbone.parameters() if p.requires_grad]
+    # foreach=True is AdamW's default on a GPU; its temporaries are part of the peak.
+    optimizer = torch.optim.AdamW(trainable, foreach=True)
+    for p in trainable:
+        optimizer.state[p] = {
+            "step": torch.tensor(1.0), "exp_avg": torch.zeros_like(p),
+            "exp_avg_sq": torch.zeros_like(p),
+        }  # fmt: skip
+    if not keep_gradients:
+        for p in trainable:
+            p.register_post_accumulate_grad_hook(lambda p: setattr(p, "grad", None))
     store: list[float] = []
-    with HostValuesMetaCompute(), saved_activation_bytes(store):
-        backbone(batch)
-    return store[0]
+    with LiveBytes() as live, HostValuesMetaCompute(), kernels() as gpu:
+        live.exclude([*backbone.parameters(), *backbone.buffers()])
+        live.exclude([t for state in optimizer.state.values() for t in state.values()])
+        with saved_activation_bytes(store, backbone):
+            loss = backbone(batch).loss
+        gpu.clear_cast_cache()  # autocast's cache goes when its region ends, after the forward
+        if backward:
+            loss.backward()
+            del loss
+            optimizer.step()
+            optimizer.zero_grad(set_to_none=True)
+    return store[0], float(live.peak)
 
 
 def _tiny_tokenizer(preset: str) -> dict[str, Any]:
@@ -156,6 +474,36 @@ def _tiny_tokenizer(preset: str) -> dict[str, Any]:
     return {}
 
 
+def _check(strategy: str, precision: str, frozen_dtype: str, attention: str) -> torch.dtype:
+    if strategy not in STRATEGIES:
+        raise CapVectorError(f"unknown strategy {strategy!r}; choose from {', '.join(STRATEGIES)}")
+    if precision not in PRECISIONS:
+        raise CapVectorError(
+            f"unknown precision {precision!r}; choose from {', '.join(PRECISIONS)}"
+        )
+    if frozen_dtype not in FROZEN_DTYPES:
+        raise CapVectorError(
+            f"unknown frozen dtype {frozen_dtype!r}; choose from {', '.join(FROZEN_DTYPES)}"
+        )
+    if attention not in ATTENTION_PATHS:
+        raise CapVectorError(
+            f"unknown attention path {attention!r}; choose from {', '.join(ATTENTION_PATHS)}"
+        )
+    if frozen_dtype != "float32" and precision == "32-true":
+        raise CapVectorError(
+            f"frozen dtype {frozen_dtype} needs precision bf16-mixed (autocast), as training does: "
+            "pass --precision bf16-mixed or --frozen-dtype float32"
+        )
+    return FROZEN_DTYPES[frozen_dtype]
+
+
+def _meta_backbone(preset: str, lora_rank: int | None, **overrides: Any) -> VLABackbone:
+    with torch.device("meta"):
+        backbone = build_backbone(preset, **_tiny_tokenizer(preset), **overrides)
+        set_trainable(backbone, lora_rank)
+    return backbone
+
+
 def estimate_memory(
     preset: str,
     batch_size: int = 8,
@@ -163,53 +511,73 @@ def estimate_memory(
     strategy: str = "fsdp2",
     devices: int = 1,
     lora_rank: int | None = None,
+    frozen_dtype: str = "float32",
+    attention: str = "efficient",
+    activation_checkpointing: bool = False,
+    device: str = "cuda",
 ) -> MemoryEstimate:
-    """Per-device bytes for training ``preset`` with AdamW; ``batch_size`` is per device."""
-    if strategy not in STRATEGIES:
-        raise CapVectorError(f"unknown strategy {strategy!r}; choose from {', '.join(STRATEGIES)}")
-    if precision not in PRECISIONS:
-        raise CapVectorError(
-            f"unknown precision {precision!r}; choose from {', '.join(PRECISIONS)}"
-        )
-    overrides = _tiny_tokenizer(preset)
-    activations = []
-    for checkpointed in (False, True):
-        with torch.device("meta"):
-            backbone = build_backbone(preset, **overrides)
-            if lora_rank:
-                from capvector.lora import LoraSettings, inject_lora
+    """Per-device bytes for training ``preset`` with AdamW; ``batch_size`` is per device.
 
-                inject_lora(backbone, LoraSettings(r=lora_rank, alpha=lora_rank))
+    ``attention="efficient"`` models a GPU's SDPA kernels (no attention matrix kept), ``"math"``
+    the math path (what the meta device and some CPUs take). ``activation_checkpointing`` picks
+    which activation figure ``total`` uses; both are always reported. ``device`` is the autocast
+    policy the trace follows: ``cuda``, or ``cpu`` to compare with a CPU run.
+    """
+    if device not in AUTOCAST_DEVICES:
+        raise CapVectorError(
+            f"unknown device {device!r}; choose from {', '.join(AUTOCAST_DEVICES)}"
+        )
+    dtype = _check(strategy, precision, frozen_dtype, attention)
+    shard_params = strategy in ("fsdp2", "deepspeed_zero3")
+    shard_grads = strategy != "ddp" and devices > 1
+    traces = []
+    for checkpointed in (False, True):
+        backbone = _meta_backbone(preset, lora_rank)
+        set_storage_dtypes(backbone, precision, dtype)
         batch = synthetic_batch(backbone, batch_size, "cpu")
         try:
-            activations.append(measure_activations(backbone, batch, checkpointed))
+            traces.append(
+                trace_step(
+                    backbone,
+                    batch,
+                    checkpointed,
+                    precision,
+                    attention,
+                    device=device,
+                    keep_gradients=not shard_grads,
+                )  # fmt: skip
+            )
         except (NotImplementedError, RuntimeError):
             # A forward that reads values of meta results (data-dependent shapes downstream of
             # the weights) cannot be traced; then only the weight-related terms are estimated.
-            activations.append(float("nan"))
-    total = sum(p.numel() for p in backbone.parameters())
-    trainable = sum(p.numel() for p in backbone.parameters() if p.requires_grad)
-    param_bytes = 2 if precision == "bf16-true" else 4
-    state_bytes = 2 if precision == "bf16-true" else 4
-    # bf16-mixed autocasts matmuls, so most saved activations are bf16: about half the fp32 figure.
-    act_scale = 0.5 if precision != "32-true" else 1.0
-    shard_params = strategy in ("fsdp2", "deepspeed_zero3")
-    shard_grads = strategy != "ddp"
-    params = total * param_bytes / (devices if shard_params else 1)
+            traces.append((float("nan"), float("nan")))
+    params = list(backbone.parameters())
+    total = sum(p.numel() * p.element_size() for p in params)
+    trainable = sum(p.numel() * p.element_size() for p in params if p.requires_grad)
+    param_bytes = total / (devices if shard_params else 1)
     if shard_params and devices > 1:
         # FSDP2 all-gathers one unit at a time (plus one prefetched): add the two largest units.
         units = sorted(
-            (sum(p.numel() for p in u.parameters()) for u in backbone.shard_units()), reverse=True
-        )
-        params += sum(units[:2]) * param_bytes
-    grads = trainable * state_bytes / (devices if shard_grads else 1)
-    optimizer = 2 * trainable * state_bytes / (devices if shard_grads else 1)
+            (sum(p.numel() * p.element_size() for p in u.parameters()) for u in backbone.shard_units()),
+            reverse=True,
+        )  # fmt: skip
+        param_bytes += sum(units[:2])
+    # Gradients and AdamW's two moments have the dtype of what trains. Unsharded, the traced peak
+    # holds the whole gradients; what is beyond the saved activations and those gradients is
+    # working memory. Sharded, the trace frees each gradient when complete (reduce-scatter).
+    grads = trainable / (devices if shard_grads else 1)
+    traced_grads = 0 if shard_grads else trainable
+    (saved, peak), (saved_checkpointed, peak_checkpointed) = traces
     return MemoryEstimate(
-        parameters=params,
+        parameters=param_bytes,
         gradients=grads,
-        optimizer=optimizer,
-        activations=activations[0] * act_scale,
-        activations_checkpointed=activations[1] * act_scale,
+        optimizer=2 * grads,
+        activations=saved,
+        activations_checkpointed=saved_checkpointed,
+        working=peak - saved - traced_grads,
+        working_checkpointed=peak_checkpointed - saved_checkpointed - traced_grads,
+        checkpointing=activation_checkpointing,
+        trainable_parameters=trainable / (devices if shard_params else 1),
     )
 
 
@@ -218,4 +586,128 @@ def describe(estimate: MemoryEstimate, **settings: Any) -> str:
     return f"per-device memory estimate ({header}):\n{estimate.table()}"
 
 
-__all__ = ["MemoryEstimate", "describe", "estimate_memory"]
+# -- FLOPs -------------------------------------------------------------------------------------
+
+
+@dataclass
+class FlopsEstimate:
+    """Model FLOPs of one training step per sample, by auxiliary objective attached.
+
+    Forward and backward are counted separately (``torch.utils.flop_counter``: matmuls,
+    convolutions and attention; elementwise work is not counted). The backward is traced, not
+    assumed 2x: frozen weights need no weight gradients, so a LoRA step costs about 2x the
+    forward, full fine-tuning about 3x. Activation checkpointing recomputes the blocks' forward
+    on top (hardware FLOPs), which model FLOPs utilisation by convention does not count.
+    """
+
+    forward: dict[str, float] = field(default_factory=dict)
+    backward: dict[str, float] = field(default_factory=dict)
+
+    def training(self, objective: str = "action") -> float:
+        return self.forward[objective] + self.backward[objective]
+
+    def gpu_hours(
+        self,
+        objective: str,
+        steps: int,
+        batch_size: int,
+        devices: int,
+        mfu: float,
+        gpu_tflops: float,
+    ) -> float:
+        """GPU-hours of ``steps`` optimizer steps at ``batch_size`` per device on ``devices``."""
+        samples = steps * batch_size * devices
+        return samples * self.training(objective) / (mfu * gpu_tflops * 1e12) / 3600
+
+    def table(
+        self, steps: int, batch_size: int, devices: int, mfu: float, gpu_tflops: float
+    ) -> str:
+        names = {"action": "action loss only", "spatial": "+ spatial alignment",
+                 "reasoning": "+ reasoning co-training"}  # fmt: skip
+        lines = [
+            f"training FLOPs per sample (model FLOPs) and GPU-hours for {steps:,} steps x batch "
+            f"{batch_size} x {devices} device(s) at MFU {mfu:g} of {gpu_tflops:g} TFLOP/s:",
+            f"  {'':<26} {'forward':>10} {'backward':>10} {'train':>10} {'vs SFT':>7} {'GPU-h':>9}",
+        ]
+        for key, label in names.items():
+            if key not in self.forward:
+                continue
+            hours = self.gpu_hours(key, steps, batch_size, devices, mfu, gpu_tflops)
+            lines.append(
+                f"  {label:<26} {self.forward[key] / 1e12:9.3f}T {self.backward[key] / 1e12:9.3f}T "
+                f"{self.training(key) / 1e12:9.3f}T {self.training(key) / self.training():6.2f}x "
+                f"{hours:9.1f}"
+            )
+        lines.append(
+            "  (wall-clock hours = GPU-hours / devices; activation checkpointing adds about one "
+            "forward of the blocks)"
+        )
+        return "\n".join(lines)
+
+
+def make_objective(name: str) -> Any:
+    """The auxiliary objective ``name`` with its defaults (spatial: the geometric teacher)."""
+    from capvector.objectives import ReasoningCoTraining, SpatialAlignment
+
+    if name == "spatial":
+        return SpatialAlignment()
+    if name == "reasoning":
+        return ReasoningCoTraining()
+    raise CapVectorError(f"unknown objective {name!r}; choose from {', '.join(OBJECTIVES)}")
+
+
+def training_step_flops(
+    backbone: VLABackbone, batch: dict[str, Any], objective: Any = None
+) -> tuple[float, float]:
+    """(forward, backward) FLOPs of one training step of ``backbone`` (weights on meta or real)
+    with ``objective`` added to the loss as ``VLAModule.training_step`` does."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    meta = any(p.is_meta for p in backbone.parameters())
+    with FlopCounterMode(display=False) as counter, HostValuesMetaCompute() if meta else _null():
+        request = objective.request if objective is not None else None
+        output = backbone(batch, request)
+        loss = output.loss
+        if objective is not None:
+            loss = loss + objective.weight * objective(batch, output, backbone)
+        forward = counter.get_total_flops()
+        loss.backward()
+    return float(forward), float(counter.get_total_flops() - forward)
+
+
+@contextmanager
+def _null() -> Iterator[None]:
+    yield
+
+
+def estimate_flops(
+    preset: str,
+    batch_size: int = 8,
+    lora_rank: int | None = None,
+    objectives: Sequence[str] = OBJECTIVES,
+) -> FlopsEstimate:
+    """Training FLOPs per sample of ``preset`` (weights on the meta device), plain and with each
+    of ``objectives`` attached. Attention is counted as its matmuls, whichever kernel runs it."""
+    estimate = FlopsEstimate()
+    for name in ("action", *objectives):
+        backbone = _meta_backbone(preset, lora_rank)
+        objective = None
+        if name != "action":
+            objective = make_objective(name)
+            objective.bind(backbone)  # builds projectors, unfreezes the LM head without LoRA
+            objective.to("meta")  # its projector too: gradients must stay on one device
+        batch = synthetic_batch(backbone, batch_size, "cpu", objectives=True)
+        forward, backward = training_step_flops(backbone, batch, objective)
+        estimate.forward[name] = forward / batch_size
+        estimate.backward[name] = backward / batch_size
+    return estimate
+
+
+__all__ = [
+    "FlopsEstimate",
+    "MemoryEstimate",
+    "describe",
+    "estimate_flops",
+    "estimate_memory",
+    "training_step_flops",
+]
