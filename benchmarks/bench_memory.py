@@ -81,14 +81,15 @@ def training_step(
     import torch
 
     from capvector.backbones import build_backbone
-    from capvector.memory import FROZEN_DTYPES, set_trainable, synthetic_batch
+    from capvector.lora import FROZEN_DTYPES, cast_frozen_parameters, set_trainable
+    from capvector.memory import lora_settings, synthetic_batch
 
     torch.manual_seed(0)
     model = build_backbone(preset)
-    set_trainable(model, lora_rank)  # LoRA and the frozen set as VLAModule
-    for param in model.parameters():  # VLAModule(frozen_dtype=...), by hand
-        if not param.requires_grad:
-            param.data = param.data.to(FROZEN_DTYPES[frozen_dtype])
+    set_trainable(model, lora_settings(lora_rank))  # what VLAModule trains
+    cast_frozen_parameters(
+        model, FROZEN_DTYPES[frozen_dtype], keep=set()
+    )  # VLAModule(frozen_dtype)
     trainable = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.AdamW(trainable, lr=1e-4, foreach=True)  # a GPU's default
     batch = synthetic_batch(model, batch_size, "cpu")

@@ -10,11 +10,11 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from capvector.backbones import build_backbone, list_presets
 from capvector.cli import main
+from capvector.lora import set_trainable
 from capvector.memory import (
     FlopsEstimate,
     estimate_flops,
     make_objective,
-    set_trainable,
     synthetic_batch,
 )
 

@@ -9,12 +9,13 @@ from capvector.backbones import build_backbone, list_presets
 from capvector.backbones.starvla import HALF, tiny_qwen_architecture
 from capvector.cli import main
 from capvector.errors import CapVectorError
+from capvector.lora import set_trainable
 from capvector.memory import (
     efficient_attention,
     estimate_memory,
+    lora_settings,
     measure_activations,
     saved_activation_bytes,
-    set_trainable,
     synthetic_batch,
 )
 
@@ -108,7 +109,7 @@ def test_planner_total_is_within_25_percent_of_a_real_step(preset: str, frozen_d
     estimate = estimate_memory(preset, **settings, frozen_dtype=frozen_dtype, device="cpu")
     torch.manual_seed(0)
     model = build_backbone(preset)
-    set_trainable(model, 4)
+    set_trainable(model, lora_settings(4))
     for param in model.parameters():
         if not param.requires_grad:
             param.data = param.data.to(getattr(torch, frozen_dtype))
@@ -130,25 +131,12 @@ def test_planner_total_is_within_25_percent_of_a_real_step(preset: str, frozen_d
     assert 0.75 * measured <= estimate.total <= 1.25 * measured
 
 
-def test_trainable_parameters_are_those_vlamodule_trains() -> None:
-    from capvector.lora import LoraSettings
-    from capvector.module import VLAModule
-
-    for preset in ("openvla-oft-tiny", "pi05-tiny"):
-        for lora in (None, LoraSettings(r=4)):
-            module = VLAModule(backbone=preset, lora=lora)
-            backbone = build_backbone(preset)
-            set_trainable(backbone, None if lora is None else lora.r)
-            ours = {n for n, p in backbone.named_parameters() if p.requires_grad}
-            assert ours == {n for n, p in module.backbone.named_parameters() if p.requires_grad}
-
-
 def test_frozen_dtype_stores_what_does_not_train_in_it() -> None:
     settings = dict(batch_size=2, precision="bf16-mixed", strategy="ddp", lora_rank=4)
     fp32 = estimate_memory("openvla-oft-tiny", **settings, frozen_dtype="float32")
     bf16 = estimate_memory("openvla-oft-tiny", **settings, frozen_dtype="bfloat16")
     backbone = build_backbone("openvla-oft-tiny")
-    set_trainable(backbone, 4)
+    set_trainable(backbone, lora_settings(4))
     trainable = sum(p.numel() for p in backbone.parameters() if p.requires_grad)
     frozen = sum(p.numel() for p in backbone.parameters() if not p.requires_grad)
     assert fp32.parameters == 4 * (trainable + frozen)

@@ -165,11 +165,13 @@ def test_cli_errors_are_clear(tmp_path: Path, capsys: pytest.CaptureFixture[str]
                 "--config",
                 str(REPO / "configs/debug.yaml"),
                 f"--data.train_files=[{tmp_path}/nope.hdf5]",
+                "--data.generate=null",
             ]
         )
         == 2
     )
     assert "not found" in capsys.readouterr().err
+    assert not (tmp_path / "nope.hdf5").exists()
     assert main(["backbone-info", "openvla-oft-7b"]) == 0
     out = capsys.readouterr().out
     assert "7,709,173,191" in out and "151,117,831" in out

@@ -91,3 +91,16 @@ def cast_frozen_parameters(module: nn.Module, dtype: torch.dtype, keep: set[str]
         param.data = param.data.to(dtype)
         cast.append(name)
     return cast
+
+
+def set_trainable(backbone: VLABackbone, lora: LoraSettings | None) -> None:
+    """What trains: LoRA adapters and the backbone's ``lora_trainable_modules`` with ``lora``,
+    everything without; parameters no output depends on and the LM head (until a text objective
+    needs it) are frozen either way, so DDP needs no ``find_unused_parameters``. Used by
+    ``VLAModule`` and by the memory planner, which must count what training trains."""
+    if lora is not None:
+        inject_lora(backbone, lora)
+    frozen = set(backbone.unused_parameter_names()) | set(backbone.language_head_parameter_names())
+    for name, param in backbone.named_parameters():
+        if name.replace(".base_layer.", ".") in frozen:
+            param.requires_grad_(False)

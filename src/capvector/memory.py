@@ -42,10 +42,10 @@ from torch.utils._python_dispatch import TorchDispatchMode, _disable_current_mod
 from capvector.backbones.base import VLABackbone, build_backbone, list_presets, preset_config
 from capvector.data import keys
 from capvector.errors import CapVectorError
+from capvector.lora import FROZEN_DTYPES, LoraSettings, cast_frozen_parameters, set_trainable
 
 STRATEGIES = ("ddp", "fsdp2", "deepspeed_zero2", "deepspeed_zero3")
 PRECISIONS = ("32-true", "bf16-mixed", "bf16-true")
-FROZEN_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}
 ATTENTION_PATHS = ("math", "efficient")
 OBJECTIVES = ("spatial", "reasoning")
 GIB = 1024**3
@@ -327,28 +327,19 @@ def synthetic_batch(
     return batch
 
 
-def set_trainable(backbone: VLABackbone, lora_rank: int | None) -> None:
-    """Make the same parameters trainable as ``VLAModule.__init__`` does: LoRA of ``lora_rank``
-    (adapters and ``lora_trainable_modules``) or everything, then unused and language-head
-    parameters frozen."""
-    if lora_rank:
-        from capvector.lora import LoraSettings, inject_lora
-
-        inject_lora(backbone, LoraSettings(r=lora_rank, alpha=min(lora_rank, 16)))
-    frozen = set(backbone.unused_parameter_names()) | set(backbone.language_head_parameter_names())
-    for name, param in backbone.named_parameters():
-        if name.replace(".base_layer.", ".") in frozen:
-            param.requires_grad_(False)
+def lora_settings(rank: int | None) -> LoraSettings | None:
+    """The LoRA a ``--lora-rank`` stands for: OpenVLA-OFT's alpha = min(r, 16)."""
+    return LoraSettings(r=rank, alpha=min(rank, 16)) if rank else None
 
 
 def set_storage_dtypes(backbone: VLABackbone, precision: str, frozen_dtype: torch.dtype) -> None:
     """Parameter dtypes as training keeps them: ``bf16-true`` casts everything to bf16; otherwise
-    what does not train is stored in ``frozen_dtype`` and the rest stays float32."""
-    for param in backbone.parameters():
-        if precision == "bf16-true":
+    what does not train is stored in ``frozen_dtype`` (``VLAModule(frozen_dtype)``)."""
+    if precision == "bf16-true":
+        for param in backbone.parameters():
             param.data = param.data.to(torch.bfloat16)
-        elif not param.requires_grad:
-            param.data = param.data.to(frozen_dtype)
+    else:
+        cast_frozen_parameters(backbone, frozen_dtype, keep=set())
 
 
 class LiveBytes(TorchDispatchMode):
@@ -500,7 +491,7 @@ def _check(strategy: str, precision: str, frozen_dtype: str, attention: str) -> 
 def _meta_backbone(preset: str, lora_rank: int | None, **overrides: Any) -> VLABackbone:
     with torch.device("meta"):
         backbone = build_backbone(preset, **_tiny_tokenizer(preset), **overrides)
-        set_trainable(backbone, lora_rank)
+        set_trainable(backbone, lora_settings(lora_rank))
     return backbone
 
 

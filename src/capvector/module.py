@@ -32,8 +32,8 @@ from capvector.lora import (
     LoraSettings,
     cast_frozen_parameters,
     frozen_dtype_of,
-    inject_lora,
     merge_lora_state_dict,
+    set_trainable,
 )
 from capvector.metrics import SuccessRate
 from capvector.objectives.base import Objective
@@ -128,14 +128,7 @@ class VLAModule(L.LightningModule):
         self.merged_vectors: list[MergedVector] = (
             read_record(load_export_config(pretrained).get(MERGED_VECTORS)) if pretrained else []
         )
-        if lora is not None:
-            inject_lora(self.backbone, lora)
-        frozen = set(self.backbone.unused_parameter_names()) | set(
-            self.backbone.language_head_parameter_names()
-        )
-        for name, param in self.backbone.named_parameters():
-            if name.replace(".base_layer.", ".") in frozen:
-                param.requires_grad_(False)
+        set_trainable(self.backbone, lora)
         self.objectives = nn.ModuleDict()
         self.activation_checkpointing = activation_checkpointing
         self.frozen_dtype = frozen_dtype_of(frozen_dtype)
