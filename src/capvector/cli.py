@@ -228,6 +228,9 @@ def import_original_main(argv: list[str]) -> int:
     )
     parser.add_argument("--qwen-folder", help="StarVLA: the Qwen-VL folder the run started from")
     parser.add_argument(
+        "--tokenizer", help="Pi0.5: a PaliGemma tokenizer folder (pi05 folders carry none)"
+    )
+    parser.add_argument(
         "--apply-lora-adapter", action="store_true", help="OpenVLA-OFT: merge lora_adapter/"
     )
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
@@ -243,6 +246,7 @@ def import_original_main(argv: list[str]) -> int:
     options = {
         "openvla-oft": {"apply_lora_adapter": args.apply_lora_adapter},
         "starvla": {"qwen_folder": args.qwen_folder},
+        "pi05": {"tokenizer": args.tokenizer},
     }.get(family, {})
     imported = backbone_class(family).from_original(
         args.folder, preset=args.preset, overrides=overrides, **options
