@@ -179,17 +179,17 @@ def test_overrides_win_over_what_no_file_records(tmp_path: Path) -> None:
     assert (model.config.num_images, model.config.chunk_size) == (1, 4)
 
 
-def test_unnormalized_actions_match_upstream_bounds_q99() -> None:
-    """LIBERO's BOUNDS_Q99 un-normalisation (``_unnormalize_actions``) with the imported statistics.
-
-    ALOHA un-normalises with BOUNDS (min/max, ``ALOHA_CONSTANTS``), which capvector's ``Normalizer``
-    does not implement: the aloha fixture's ``actions_unnormalized`` is not compared.
-    """
+@pytest.mark.parametrize(("variant", "rule"), [("libero", "bounds_q99"), ("aloha_film", "bounds")])
+def test_unnormalized_actions_match_upstream(variant: str, rule: str) -> None:
+    """Upstream's un-normalisation (``_unnormalize_actions``) with the imported statistics:
+    BOUNDS_Q99 (q01/q99) for LIBERO, BOUNDS (min/max, ``ALOHA_CONSTANTS``) for ALOHA, which the
+    import records in the statistics because the upstream file does not."""
     from capvector.data.statistics import Normalizer
 
-    imported = OpenVLAOFT.from_original(FIXTURES / "libero", preset="openvla-oft-tiny")
-    references = load_file(str(FIXTURES / "libero" / "reference_outputs.safetensors"))
+    imported = OpenVLAOFT.from_original(FIXTURES / variant, preset="openvla-oft-tiny")
+    references = load_file(str(FIXTURES / variant / "reference_outputs.safetensors"))
     (stats,) = imported.statistics.values()
+    assert Normalizer(stats).normalization == rule
     for i in range(2):
         ours = Normalizer(stats).unnormalize("action", references[f"predict.{i}.actions"].numpy())
         torch.testing.assert_close(

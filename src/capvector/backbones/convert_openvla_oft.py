@@ -47,17 +47,18 @@ from capvector.backbones.base import (
     preset_config,
     read_sharded,
 )
+from capvector.data.statistics import BOUNDS, BOUNDS_Q99
 
 if TYPE_CHECKING:
     from capvector.backbones.openvla_oft import OpenVLAOFT
 
-# (action_dim, proprio_dim) -> (platform, chunk size, cameras). Chunk sizes from
-# prismatic/vla/constants.py; cameras from each recipe's --num_images_in_input (LIBERO.md: 2,
-# ALOHA.md: 3). BRIDGE has no OFT recipe with several cameras.
+# (action_dim, proprio_dim) -> (platform, chunk size, cameras, normalisation). Chunk sizes and
+# normalisation types from prismatic/vla/constants.py; cameras from each recipe's
+# --num_images_in_input (LIBERO.md: 2, ALOHA.md: 3). BRIDGE has no OFT recipe with several cameras.
 _PLATFORMS = {
-    (7, 8): ("LIBERO", 8, 2),
-    (14, 14): ("ALOHA", 25, 3),
-    (7, 7): ("BRIDGE", 5, 1),
+    (7, 8): ("LIBERO", 8, 2, BOUNDS_Q99),
+    (14, 14): ("ALOHA", 25, 3, BOUNDS),
+    (7, 7): ("BRIDGE", 5, 1, BOUNDS_Q99),
 }
 _FUSED_VISION = {
     "dinosiglip-vit-so-224px": ("vit_large_patch14_reg4_dinov2.lvd142m", "vit_so400m_patch14_siglip_224"),
@@ -138,6 +139,11 @@ def load_original(
     load_state_dict_strictly(model, state, source=str(root))
     stats_path = root / "dataset_statistics.json"
     stats = json.loads(stats_path.read_text()) if stats_path.is_file() else {}
+    platform = _PLATFORMS.get((config.action_dim, config.proprio_dim))
+    if platform is not None and platform[3] != BOUNDS_Q99:
+        # The statistics file does not say which rule made it (upstream picks it by platform);
+        # ours carries it, so training and evaluation un-normalise as upstream does.
+        stats = {name: {**entry, "normalization": platform[3]} for name, entry in stats.items()}
     return OriginalCheckpoint(model, stats, upstream)
 
 

@@ -90,7 +90,8 @@ class RobotDataModule(L.LightningDataModule):
             val_episodes: LeRobot episodes for validation; leave them out of ``train_episodes``.
             normalization: how states and actions are normalised, a per-family choice that follows
                 the family's upstream: ``bounds_q99`` (OpenVLA-OFT: clipped to [-1, 1], gripper
-                raw) or ``quantiles`` (Pi0.5 as openpi and LeRobot: not clipped, every dimension).
+                raw), ``bounds`` (OpenVLA-OFT's ALOHA recipe: the same with min/max) or
+                ``quantiles`` (Pi0.5 as openpi and LeRobot: not clipped, every dimension).
                 See ``capvector.data.statistics``; the backbone YAMLs set it.
             generate: record missing HDF5 files with the robosuite experts (``prepare_data``, once
                 per node, with a progress bar) instead of stopping; ``configs/debug.yaml`` turns it

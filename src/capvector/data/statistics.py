@@ -6,7 +6,7 @@ Schema (``prismatic/vla/datasets/rlds/utils/data_utils.py``)::
     {"<dataset name>": {"action":  {"mean", "std", "max", "min", "q01", "q99", "mask"},
                         "proprio": {"mean", "std", "max", "min", "q01", "q99"},
                         "num_transitions": int, "num_trajectories": int,
-                        "normalization": "bounds_q99" | "quantiles"}}
+                        "normalization": "bounds_q99" | "bounds" | "quantiles"}}
 
 ``mask`` is True for dimensions that are normalised; OFT leaves the gripper (last action dimension)
 raw. ``normalization`` is our addition (absent means ``bounds_q99``), so the rule travels with the
@@ -14,6 +14,9 @@ statistics into checkpoints and evaluation:
 
 - ``bounds_q99`` (OpenVLA-OFT, ``NormalizationType.BOUNDS_Q99`` in prismatic's ``data_utils.py``):
   2(x − q01)/(q99 − q01 + 1e-8) − 1 clipped to [−1, 1]; dimensions that never change are set to 0.
+- ``bounds`` (OpenVLA-OFT's ALOHA recipe, ``NormalizationType.BOUNDS``): the same with min/max in
+  place of q01/q99 (``data_utils.py: normalize_action_and_proprio``, ``modeling_prismatic.py:
+  _unnormalize_actions``).
 - ``quantiles`` (Pi0.5: LeRobot ``NormalizationMode.QUANTILES`` in
   ``src/lerobot/processor/normalize_processor.py``; openpi ``shared/normalize.py``
   ``_normalize_quantile``): 2(x − q01)/(q99 − q01) − 1 with 1e-8 only where q99 == q01, **not
@@ -32,8 +35,9 @@ import numpy as np
 # LeRobot's QUANTILES uses it only where the denominator is 0.
 _EPS = 1e-8
 BOUNDS_Q99 = "bounds_q99"
+BOUNDS = "bounds"
 QUANTILES = "quantiles"
-NORMALIZATIONS = (BOUNDS_Q99, QUANTILES)
+NORMALIZATIONS = (BOUNDS_Q99, BOUNDS, QUANTILES)
 
 
 def check_normalization(normalization: str) -> str:
@@ -97,8 +101,9 @@ class Normalizer:
 
     def _bounds(self, kind: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         entry = self.stats[kind]
-        q01 = np.asarray(entry["q01"], dtype=np.float32)
-        q99 = np.asarray(entry["q99"], dtype=np.float32)
+        low, high = ("min", "max") if self.normalization == BOUNDS else ("q01", "q99")
+        q01 = np.asarray(entry[low], dtype=np.float32)
+        q99 = np.asarray(entry[high], dtype=np.float32)
         mask = np.asarray(entry.get("mask", [True] * len(q01)), dtype=bool)
         if "min" not in entry:  # openpi's norm stats have no min/max; only bounds_q99 reads them
             return q01, q99, mask, np.zeros_like(mask)
