@@ -8,6 +8,7 @@ importing the simulator and ``capvector fit`` does not pay for the vector tools.
 from __future__ import annotations
 
 import importlib
+import os
 import shlex
 import sys
 from collections.abc import Callable, Sequence
@@ -76,7 +77,8 @@ def _usage() -> str:
 
 
 def run_lightning_cli(args: list[str] | None) -> object:
-    from lightning.pytorch.cli import LightningCLI
+    from jsonargparse import Namespace
+    from lightning.pytorch.cli import LightningCLI, SaveConfigCallback
 
     from capvector.data.datamodule import RobotDataModule
     from capvector.module import VLAModule
@@ -88,6 +90,18 @@ def run_lightning_cli(args: list[str] | None) -> object:
                 "data", "model.data_spec", apply_on="instantiate", compute_fn=lambda dm: dm.spec
             )
 
+        def before_instantiate_classes(self) -> None:
+            # Lightning's default logger makes its version folder when the trainer sets up, so a
+            # fit refused in setup left an empty run folder; ours (same layout) waits for a write.
+            trainer = (self.config[self.subcommand] if self.subcommand else self.config).trainer
+            if trainer.logger in (None, True):
+                trainer.logger = Namespace(
+                    class_path="capvector.loggers.CSVLogger",
+                    init_args=Namespace(
+                        save_dir=trainer.default_root_dir or os.getcwd(), name="lightning_logs"
+                    ),
+                )
+
         def before_fit(self) -> None:
             from capvector.resume import check_fit_outputs, resume_latest_run
 
@@ -97,11 +111,25 @@ def run_lightning_cli(args: list[str] | None) -> object:
                 settings["ckpt_path"] = str(resume_latest_run(self.trainer))
                 print(f"capvector fit: resuming {settings['ckpt_path']}")
 
+    class SaveConfigAtFitStart(SaveConfigCallback):
+        """Lightning writes ``config.yaml`` into the run folder in ``setup``, before the module's
+        ``setup`` and ``configure_model`` (e.g. ``model.frozen_dtype`` without autocast) and the
+        callbacks' checks have run: a fit refused there left a run folder holding only the
+        config. A fit saves it at ``on_fit_start``, once every check has passed."""
+
+        def setup(self, trainer, pl_module, stage: str) -> None:  # noqa: ANN001 (Lightning's)
+            if stage != "fit":
+                super().setup(trainer, pl_module, stage)
+
+        def on_fit_start(self, trainer, pl_module) -> None:  # noqa: ANN001 (Lightning's)
+            super().setup(trainer, pl_module, "fit")
+
     return CapVectorCLI(
         VLAModule,
         RobotDataModule,
         args=args,
         parser_kwargs={"parser_mode": "omegaconf"},
+        save_config_callback=SaveConfigAtFitStart,
         save_config_kwargs={"overwrite": True},
     )
 
