@@ -3,6 +3,7 @@ demos it names (``data.generate``), then trains and saves a checkpoint, with not
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import h5py
@@ -32,3 +33,26 @@ def test_debug_config_on_a_fresh_checkout_records_its_demos_trains_and_checkpoin
     run = tmp_path / "runs" / "debug" / "fit" / "version_0"
     assert (run / "checkpoints" / "last.ckpt").is_file()
     assert (run / "export" / "model.safetensors").is_file()
+
+
+@pytest.mark.parametrize(
+    ("arg", "message"),
+    [
+        ("--model.backbone=openvla-oft-tinyy", r"unknown backbone preset 'openvla-oft-tinyy'"),
+        ("--trainer.logger.init_args.save_dir=a_file/logs", r"cannot write into the logger's"),
+        ("--trainer.default_root_dir=a_file/runs", r"cannot write into trainer.default_root_dir"),
+    ],
+)
+def test_bad_input_is_refused_before_the_recording(
+    arg: str,
+    message: str,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capfd: pytest.CaptureFixture[str],
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    Path("a_file").write_text("not a folder")
+    code = main(["fit", "--config", str(DEBUG), "--data.generate.episodes=1", arg])
+    assert code == 2
+    assert re.search(message, capfd.readouterr().err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]  # nothing recorded, no run

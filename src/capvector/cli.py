@@ -93,7 +93,8 @@ def run_lightning_cli(args: list[str] | None) -> object:
         def before_instantiate_classes(self) -> None:
             # Lightning's default logger makes its version folder when the trainer sets up, so a
             # fit refused in setup left an empty run folder; ours (same layout) waits for a write.
-            trainer = (self.config[self.subcommand] if self.subcommand else self.config).trainer
+            config = self.config[self.subcommand] if self.subcommand else self.config
+            trainer = config.trainer
             if trainer.logger in (None, True):
                 trainer.logger = Namespace(
                     class_path="capvector.loggers.CSVLogger",
@@ -101,6 +102,8 @@ def run_lightning_cli(args: list[str] | None) -> object:
                         save_dir=trainer.default_root_dir or os.getcwd(), name="lightning_logs"
                     ),
                 )
+            if config.data.get("generate"):
+                _check_before_recording(config)
 
         def before_fit(self) -> None:
             from capvector.resume import check_fit_outputs, resume_latest_run
@@ -132,6 +135,26 @@ def run_lightning_cli(args: list[str] | None) -> object:
         save_config_callback=SaveConfigAtFitStart,
         save_config_kwargs={"overwrite": True},
     )
+
+
+def _check_before_recording(config: object) -> None:
+    """``data.generate`` records demos (minutes) when the CLI builds the data module: before the
+    model, the trainer and ``before_fit``'s output checks. What the config alone can tell is
+    checked first, so a typo does not cost a recording."""
+    from capvector.backbones import preset_config
+    from capvector.fileio import check_writable
+
+    model, trainer = config.model, config.trainer  # type: ignore[attr-defined]
+    if not model.get("pretrained"):
+        preset_config(model.backbone)  # an unknown preset, with close names
+    loggers = trainer.logger if isinstance(trainer.logger, list) else [trainer.logger]
+    paths = [("trainer.default_root_dir", trainer.default_root_dir or os.getcwd())]
+    for logger in loggers:
+        save_dir = (logger.get("init_args") or {}).get("save_dir") if logger else None
+        if save_dir:
+            paths.append((f"the logger's save_dir ({logger.class_path})", save_dir))
+    for what, path in paths:
+        check_writable(path, f"into {what}", inside=True)
 
 
 def backbone_info_main(argv: list[str]) -> int:
