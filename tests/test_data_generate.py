@@ -41,6 +41,7 @@ def test_debug_config_on_a_fresh_checkout_records_its_demos_trains_and_checkpoin
         ("--model.backbone=openvla-oft-tinyy", r"unknown backbone preset 'openvla-oft-tinyy'"),
         ("--trainer.logger.init_args.save_dir=a_file/logs", r"cannot write into the logger's"),
         ("--trainer.default_root_dir=a_file/runs", r"cannot write into trainer.default_root_dir"),
+        ("--data.generate.episodes=0", r"data.generate could not record .*at least 1, got 0"),
     ],
 )
 def test_bad_input_is_refused_before_the_recording(

@@ -62,8 +62,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         module, function, _ = TOOLS[command]
         tool: Callable[[list[str]], int] = getattr(importlib.import_module(module), function)
         return int(tool(rest) or 0)
-    except (CapVectorError, FileExistsError) as exc:
-        print(f"capvector {command}: error: {exc}", file=sys.stderr)
+    except Exception as exc:
+        # Ours, or ours wrapped: jsonargparse re-raises an error of a link's compute_fn (the data
+        # module's spec, where data.generate records) as a ValueError caused by it.
+        cause: BaseException | None = exc
+        while cause is not None and not isinstance(cause, CapVectorError | FileExistsError):
+            cause = cause.__cause__
+        if cause is None:
+            raise
+        print(f"capvector {command}: error: {cause}", file=sys.stderr)
         return 2
 
 
