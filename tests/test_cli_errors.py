@@ -106,6 +106,10 @@ CASES: dict[str, tuple[Callable[[Path, Path], list[str]], str]] = {
         lambda i, o: fit_args(i, o, "--ckpt_path=last"),
         r"--ckpt_path last: no checkpoint under .*drop --ckpt_path to start a new run",
     ),
+    "fit: refused in configure_model, Lightning's default logger": (
+        lambda i, o: [a for a in fit_args(i, o, "--model.frozen_dtype=bfloat16") if "logger" not in a],
+        r"model.frozen_dtype=bfloat16 needs trainer.precision: bf16-mixed",
+    ),
     "fit: demos without depth, a config that loads it": (
         lambda i, o: fit_args(i, o, "--data.load_depth=true"),
         r"recorded without depth.*capvector demos --depth.*data.load_depth=false",

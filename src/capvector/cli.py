@@ -8,6 +8,7 @@ importing the simulator and ``capvector fit`` does not pay for the vector tools.
 from __future__ import annotations
 
 import importlib
+import os
 import shlex
 import sys
 from collections.abc import Callable, Sequence
@@ -61,8 +62,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         module, function, _ = TOOLS[command]
         tool: Callable[[list[str]], int] = getattr(importlib.import_module(module), function)
         return int(tool(rest) or 0)
-    except (CapVectorError, FileExistsError) as exc:
-        print(f"capvector {command}: error: {exc}", file=sys.stderr)
+    except Exception as exc:
+        # Ours, or ours wrapped: jsonargparse re-raises an error of a link's compute_fn (the data
+        # module's spec, where data.generate records) as a ValueError caused by it.
+        cause: BaseException | None = exc
+        while cause is not None and not isinstance(cause, CapVectorError | FileExistsError):
+            cause = cause.__cause__
+        if cause is None:
+            raise
+        print(f"capvector {command}: error: {cause}", file=sys.stderr)
         return 2
 
 
@@ -76,7 +84,8 @@ def _usage() -> str:
 
 
 def run_lightning_cli(args: list[str] | None) -> object:
-    from lightning.pytorch.cli import LightningCLI
+    from jsonargparse import Namespace
+    from lightning.pytorch.cli import LightningCLI, SaveConfigCallback
 
     from capvector.data.datamodule import RobotDataModule
     from capvector.module import VLAModule
@@ -88,6 +97,21 @@ def run_lightning_cli(args: list[str] | None) -> object:
                 "data", "model.data_spec", apply_on="instantiate", compute_fn=lambda dm: dm.spec
             )
 
+        def before_instantiate_classes(self) -> None:
+            # Lightning's default logger makes its version folder when the trainer sets up, so a
+            # fit refused in setup left an empty run folder; ours (same layout) waits for a write.
+            config = self.config[self.subcommand] if self.subcommand else self.config
+            trainer = config.trainer
+            if trainer.logger in (None, True):
+                trainer.logger = Namespace(
+                    class_path="capvector.loggers.CSVLogger",
+                    init_args=Namespace(
+                        save_dir=trainer.default_root_dir or os.getcwd(), name="lightning_logs"
+                    ),
+                )
+            if config.data.get("generate"):
+                _check_before_recording(config)
+
         def before_fit(self) -> None:
             from capvector.resume import check_fit_outputs, resume_latest_run
 
@@ -97,13 +121,47 @@ def run_lightning_cli(args: list[str] | None) -> object:
                 settings["ckpt_path"] = str(resume_latest_run(self.trainer))
                 print(f"capvector fit: resuming {settings['ckpt_path']}")
 
+    class SaveConfigAtFitStart(SaveConfigCallback):
+        """Lightning writes ``config.yaml`` into the run folder in ``setup``, before the module's
+        ``setup`` and ``configure_model`` (e.g. ``model.frozen_dtype`` without autocast) and the
+        callbacks' checks have run: a fit refused there left a run folder holding only the
+        config. A fit saves it at ``on_fit_start``, once every check has passed."""
+
+        def setup(self, trainer, pl_module, stage: str) -> None:  # noqa: ANN001 (Lightning's)
+            if stage != "fit":
+                super().setup(trainer, pl_module, stage)
+
+        def on_fit_start(self, trainer, pl_module) -> None:  # noqa: ANN001 (Lightning's)
+            super().setup(trainer, pl_module, "fit")
+
     return CapVectorCLI(
         VLAModule,
         RobotDataModule,
         args=args,
         parser_kwargs={"parser_mode": "omegaconf"},
+        save_config_callback=SaveConfigAtFitStart,
         save_config_kwargs={"overwrite": True},
     )
+
+
+def _check_before_recording(config: object) -> None:
+    """``data.generate`` records demos (minutes) when the CLI builds the data module: before the
+    model, the trainer and ``before_fit``'s output checks. What the config alone can tell is
+    checked first, so a typo does not cost a recording."""
+    from capvector.backbones import preset_config
+    from capvector.fileio import check_writable
+
+    model, trainer = config.model, config.trainer  # type: ignore[attr-defined]
+    if not model.get("pretrained"):
+        preset_config(model.backbone)  # an unknown preset, with close names
+    loggers = trainer.logger if isinstance(trainer.logger, list) else [trainer.logger]
+    paths = [("trainer.default_root_dir", trainer.default_root_dir or os.getcwd())]
+    for logger in loggers:
+        save_dir = (logger.get("init_args") or {}).get("save_dir") if logger else None
+        if save_dir:
+            paths.append((f"the logger's save_dir ({logger.class_path})", save_dir))
+    for what, path in paths:
+        check_writable(path, f"into {what}", inside=True)
 
 
 def backbone_info_main(argv: list[str]) -> int:

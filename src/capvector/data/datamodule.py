@@ -154,11 +154,14 @@ class RobotDataModule(L.LightningDataModule):
         for i, file in enumerate(files):
             if Path(file).is_file():
                 continue
-            record_demos(
-                gen.task, gen.episodes, file, robot=gen.robot, gripper=gen.gripper,
-                cameras=list(hp.cameras), image_size=gen.image_size, depth=hp.load_depth,
-                seed=gen.seed + 10_000 * i,
-            )  # fmt: skip
+            try:
+                record_demos(
+                    gen.task, gen.episodes, file, robot=gen.robot, gripper=gen.gripper,
+                    cameras=list(hp.cameras), image_size=gen.image_size, depth=hp.load_depth,
+                    seed=gen.seed + 10_000 * i,
+                )  # fmt: skip
+            except (RuntimeError, ValueError, KeyError) as exc:  # as `capvector demos` reports them
+                raise DatasetError(f"data.generate could not record {file}: {exc}") from exc
 
     def setup(self, stage: str) -> None:
         self._load_datasets()
