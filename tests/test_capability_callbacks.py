@@ -381,3 +381,31 @@ def test_frozen_bf16_needs_autocast(setup: dict, tmp_path: Path) -> None:
     module = VLAModule(pretrained=str(setup["initial"]), data_spec=dm.spec, frozen_dtype="bfloat16")
     with pytest.raises(Exception, match="needs trainer.precision: bf16-mixed"):
         fit(module, dm, [], 1, tmp_path)
+
+
+def test_bf16_frozen_weights_with_full_fine_tuning_of_a_subset(setup: dict, tmp_path: Path) -> None:
+    """Full fine-tuning with the vision backbone frozen (any subset with requires_grad off when the
+    fit starts): that subset is stored in bf16, the rest trains in float32."""
+    dm = RobotDataModule(train_files=[str(setup["data"])], batch_size=4)
+    module = VLAModule(pretrained=str(setup["initial"]), data_spec=dm.spec, frozen_dtype="bfloat16")
+    for name, param in module.backbone.named_parameters():
+        if name.startswith("vision_backbone."):
+            param.requires_grad_(False)
+    before = {n: p.detach().clone() for n, p in module.backbone.named_parameters()}
+    frozen = {n for n, p in module.backbone.named_parameters() if not p.requires_grad}
+    assert any(n.startswith("vision_backbone.") for n in frozen)  # and the unused LM head
+    trainer = L.Trainer(
+        max_steps=2, accelerator="cpu", precision="bf16-mixed", logger=False,
+        enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
+        enable_checkpointing=False,
+    )  # fmt: skip
+    trainer.fit(module, dm)
+    for name, param in module.backbone.named_parameters():
+        assert param.dtype == (torch.bfloat16 if name in frozen else torch.float32), name
+        if name in frozen:  # stored in bf16, otherwise untouched
+            torch.testing.assert_close(param.float(), before[name].bfloat16().float())
+    assert any(
+        not torch.equal(p, before[n])
+        for n, p in module.backbone.named_parameters()
+        if n.startswith("action_head.")
+    )
