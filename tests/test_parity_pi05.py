@@ -284,3 +284,33 @@ def test_openpi_unknown_config_field_is_named(tmp_path: Path) -> None:
     (folder / "config.json").write_text(json.dumps({**upstream, "discrete_state_input": False}))
     with pytest.raises(BackboneError, match=r"openpi config field\(s\) \['discrete_state_input'\]"):
         Pi05.from_original(folder, preset="pi05-tiny", overrides=OPENPI_SIZES)
+
+
+def test_a_missing_tensor_is_named_by_its_upstream_key(tmp_path: Path) -> None:
+    from safetensors.torch import save_file
+
+    folder = shutil.copytree(FIXTURE, tmp_path / "lerobot")
+    state = load_file(str(folder / "model.safetensors"))
+    key = "model.paligemma_with_expert.gemma_expert.model.layers.1.mlp.up_proj.weight"
+    del state[key]
+    save_file(state, str(folder / "model.safetensors"))
+    with pytest.raises(
+        BackboneError, match=r"lacks 1 tensor.*`" + key.removeprefix("model.").replace(".", r"\.")
+    ):
+        load(folder)
+
+
+def test_other_policies_and_extra_tensors_are_refused(tmp_path: Path) -> None:
+    from safetensors.torch import save_file
+
+    folder = shutil.copytree(FIXTURE, tmp_path / "pi0")
+    config = json.loads((folder / "config.json").read_text())
+    (folder / "config.json").write_text(json.dumps({**config, "type": "pi0"}))
+    with pytest.raises(BackboneError, match="'pi0' policy, not pi05"):
+        load(folder)
+    folder = shutil.copytree(FIXTURE, tmp_path / "extra")
+    state = load_file(str(folder / "model.safetensors"))
+    state["model.state_proj.weight"] = torch.zeros(32, 32)  # a Pi0 projection
+    save_file(state, str(folder / "model.safetensors"))
+    with pytest.raises(BackboneError, match=r"1 unexpected key.*`state_proj\.weight`"):
+        load(folder)

@@ -3,7 +3,6 @@ persistence, LeRobot ``pi05_base`` loading and the full-size parameter count."""
 
 from __future__ import annotations
 
-import json
 import math
 import warnings
 from pathlib import Path
@@ -11,7 +10,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from safetensors.torch import save_file
 
 from capvector.backbones import BackboneError, OutputRequest, build_backbone, from_pretrained
 from capvector.backbones.pi05 import (
@@ -582,101 +580,6 @@ def test_language_model_logits_are_prefix_lm(tiny: Pi05) -> None:
     assert not torch.allclose(logits[0, start:], other[0, start:])
     n = alone_labels.shape[1]
     torch.testing.assert_close(logits[0, :n], alone[0], atol=1e-5, rtol=1e-4)  # padding is ignored
-
-
-# -- LeRobot pi05_base checkpoints -------------------------------------------------------------------
-
-# Written out by hand from the research notes (§8), independently of the module's key map.
-_LAYOUT = (
-    ("vision_tower.", "paligemma_with_expert.paligemma.model.vision_tower."),
-    ("multi_modal_projector.", "paligemma_with_expert.paligemma.model.multi_modal_projector."),
-    ("language_model.", "paligemma_with_expert.paligemma.model.language_model."),
-    ("action_expert.", "paligemma_with_expert.gemma_expert.model."),
-)
-
-
-def write_pi05_base(
-    model: Pi05, root: Path, key_prefix: str = "", config: dict | None = None
-) -> Path:
-    """A LeRobot ``pi05_base``-layout folder: openpi key names, embedding stored only as the tied
-    lm_head, plus the expert's unused lm_head."""
-    root.mkdir(parents=True)
-    state = {}
-    for key, value in model.state_dict().items():
-        if key == "language_model.embed_tokens.weight":
-            state["paligemma_with_expert.paligemma.lm_head.weight"] = value.clone()
-            continue
-        for ours, theirs in _LAYOUT:
-            if key.startswith(ours):
-                key = theirs + key[len(ours) :]
-                break
-        state[key] = value.clone()
-    state["paligemma_with_expert.gemma_expert.lm_head.weight"] = torch.randn(260, 32)
-    for name in (
-        "paligemma_with_expert.paligemma.model.vision_tower.vision_model.embeddings.patch_embedding.weight",
-        "paligemma_with_expert.paligemma.model.multi_modal_projector.linear.weight",
-        "paligemma_with_expert.paligemma.model.language_model.layers.0.self_attn.q_proj.weight",
-        "paligemma_with_expert.gemma_expert.model.layers.0.input_layernorm.dense.weight",
-        "paligemma_with_expert.gemma_expert.model.norm.dense.bias",
-        "action_in_proj.weight",
-        "time_mlp_out.bias",
-    ):
-        assert name in state, name
-    save_file(
-        {key_prefix + k: v.contiguous() for k, v in state.items()}, str(root / "model.safetensors")
-    )
-    config = config or {
-        "type": "pi05",
-        "chunk_size": CHUNK,
-        "max_action_dim": 32,
-        "num_inference_steps": 5,
-        "image_resolution": [64, 64],
-    }
-    (root / "config.json").write_text(json.dumps(config))
-    return root
-
-
-@pytest.mark.parametrize("key_prefix", ["", "model."])
-def test_from_original_loads_the_pi05_base_layout(
-    tiny: Pi05, tmp_path: Path, key_prefix: str
-) -> None:
-    root = write_pi05_base(tiny, tmp_path / "pi05_base", key_prefix)
-    imported = Pi05.from_original(root, preset="pi05-tiny")
-    loaded = imported.model
-    assert imported.upstream_config["config.json"]["type"] == "pi05"
-    assert loaded.config.num_inference_steps == 5  # config.json applied
-    batch = make_batch(2, actions=False)
-    noise = noise_like(batch)
-    expected = tiny.sample_actions(batch, noise, num_steps=5)
-    torch.testing.assert_close(loaded.eval().predict_action(batch, noise), expected.detach())
-
-
-def test_from_original_names_a_missing_key(tiny: Pi05, tmp_path: Path) -> None:
-    from safetensors.torch import load_file
-
-    root = write_pi05_base(tiny, tmp_path / "pi05_base")
-    state = load_file(str(root / "model.safetensors"))
-    del state["paligemma_with_expert.gemma_expert.model.layers.1.mlp.up_proj.weight"]
-    save_file(state, str(root / "model.safetensors"))
-    with pytest.raises(
-        BackboneError,
-        match=r"lacks 1 tensor.*`paligemma_with_expert\.gemma_expert\.model\.layers\.1\.mlp\.up_proj\.weight`",
-    ):
-        Pi05.from_original(root, preset="pi05-tiny")
-
-
-def test_from_original_rejects_other_policies_and_extra_keys(tiny: Pi05, tmp_path: Path) -> None:
-    root = write_pi05_base(tiny, tmp_path / "pi0", config={"type": "pi0"})
-    with pytest.raises(BackboneError, match="'pi0' policy, not pi05"):
-        Pi05.from_original(root, preset="pi05-tiny")
-    from safetensors.torch import load_file
-
-    root = write_pi05_base(tiny, tmp_path / "extra")
-    state = load_file(str(root / "model.safetensors"))
-    state["state_proj.weight"] = torch.zeros(32, 32)  # a Pi0 projection
-    save_file(state, str(root / "model.safetensors"))
-    with pytest.raises(BackboneError, match=r"1 unexpected key.*`state_proj\.weight`"):
-        Pi05.from_original(root, preset="pi05-tiny")
 
 
 # -- Pi0.5's normalisation (openpi / LeRobot quantiles) ------------------------------------------------
