@@ -9,7 +9,7 @@ from capvector.backbones import build_backbone, list_presets
 from capvector.backbones.starvla import HALF, tiny_qwen_architecture
 from capvector.cli import main
 from capvector.errors import CapVectorError
-from capvector.lora import set_trainable
+from capvector.lora import cast_frozen_parameters, set_trainable
 from capvector.memory import (
     efficient_attention,
     estimate_memory,
@@ -110,9 +110,7 @@ def test_planner_total_is_within_25_percent_of_a_real_step(preset: str, frozen_d
     torch.manual_seed(0)
     model = build_backbone(preset)
     set_trainable(model, lora_settings(4))
-    for param in model.parameters():
-        if not param.requires_grad:
-            param.data = param.data.to(getattr(torch, frozen_dtype))
+    cast_frozen_parameters(model, getattr(torch, frozen_dtype), keep=set())
     optimizer = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], foreach=True)
     batch = synthetic_batch(model, 2, "cpu")
 
