@@ -20,11 +20,11 @@ from pathlib import Path
 import torch
 
 from capvector.data.hdf5 import HDF5RobotDataset
-from capvector.memory import saved_activation_bytes
 from capvector.module import VLAModule
 from capvector.objectives import ReasoningCoTraining, SpatialAlignment
 from capvector.objectives.orthogonality import OrthogonalityLoss
 from capvector.vectors import extract
+from capvector.workflows.memory import saved_activation_bytes
 
 
 def make_data(root: Path) -> Path:

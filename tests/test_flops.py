@@ -11,7 +11,7 @@ from torch.utils.flop_counter import FlopCounterMode
 from capvector.backbones import build_backbone, list_presets
 from capvector.cli import main
 from capvector.lora import set_trainable
-from capvector.memory import (
+from capvector.workflows.memory import (
     FlopsEstimate,
     estimate_flops,
     make_objective,

@@ -10,7 +10,7 @@ from capvector.backbones.starvla import HALF, tiny_qwen_architecture
 from capvector.cli import main
 from capvector.errors import CapVectorError
 from capvector.lora import cast_frozen_parameters, set_trainable
-from capvector.memory import (
+from capvector.workflows.memory import (
     efficient_attention,
     estimate_memory,
     lora_settings,

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from capvector.errors import CapVectorError
-from capvector.recipe import (
+from capvector.workflows.recipe import (
     command_line,
     dependencies,
     expand_seeds,

@@ -9,7 +9,7 @@ import pytest
 from lightning.pytorch.loggers import CSVLogger
 
 from capvector.errors import CapVectorError
-from capvector.report import main, report
+from capvector.workflows.report import main, report
 
 
 def write_fit(run_dir: Path, stage: str, success: dict[int, float], l1: dict[int, float]) -> None:

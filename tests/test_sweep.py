@@ -12,8 +12,8 @@ import torch
 from capvector.cli import main
 from capvector.data.datamodule import RobotDataModule
 from capvector.module import VLAModule
-from capvector.sweep import best_scale, sweep
 from capvector.vectors import extract
+from capvector.workflows.sweep import best_scale, sweep
 from conftest import write_demo_file
 
 

@@ -28,10 +28,18 @@ TOOLS: dict[str, tuple[str, str, str]] = {
         "original checkpoint -> export folder",
     ),
     "demos": ("capvector.sim.demos", "main", "record scripted robosuite demonstrations"),
-    "evaluate": ("capvector.evaluate", "main", "MuJoCo rollouts of a checkpoint, success table"),
-    "recipe": ("capvector.recipe", "main", "run the whole recipe: stages of capvector commands"),
+    "evaluate": (
+        "capvector.workflows.evaluate",
+        "main",
+        "MuJoCo rollouts of a checkpoint, success table",
+    ),
+    "recipe": (
+        "capvector.workflows.recipe",
+        "main",
+        "run the whole recipe: stages of capvector commands",
+    ),
     "sweep-scale": (
-        "capvector.sweep",
+        "capvector.workflows.sweep",
         "main",
         "choose the merge scale λ by rollouts / held-out L1",
     ),
@@ -39,7 +47,11 @@ TOOLS: dict[str, tuple[str, str, str]] = {
     "merge": ("capvector.vectors.cli", "merge_main", "base + sum of scaled vectors"),
     "compose": ("capvector.vectors.cli", "compose_main", "combine vectors (sum, TIES)"),
     "inspect": ("capvector.vectors.cli", "inspect_main", "norms, cosines and plots of vectors"),
-    "report": ("capvector.report", "main", "success vs steps of a recipe's arms: table + plot"),
+    "report": (
+        "capvector.workflows.report",
+        "main",
+        "success vs steps of a recipe's arms: table + plot",
+    ),
 }
 
 
@@ -170,7 +182,7 @@ def backbone_info_main(argv: list[str]) -> int:
     import torch
 
     from capvector.backbones import build_backbone, list_presets
-    from capvector.memory import ATTENTION_PATHS, FROZEN_DTYPES, PRECISIONS, STRATEGIES
+    from capvector.workflows.memory import ATTENTION_PATHS, FROZEN_DTYPES, PRECISIONS, STRATEGIES
 
     parser = ToolParser(prog="capvector backbone-info", description=backbone_info_main.__doc__)
     parser.add_argument("preset", nargs="?", help="a registered preset; omit with --list")
@@ -224,7 +236,7 @@ def backbone_info_main(argv: list[str]) -> int:
     print(f"  {'total':<{width}}  {total:>15,}")
     print(f"  {'capability':<{width}}  {in_vector:>15,}  (parameters a capability vector covers)")
     if args.memory:
-        from capvector.memory import describe, estimate_memory
+        from capvector.workflows.memory import describe, estimate_memory
 
         settings = {
             "batch_size": args.batch, "precision": args.precision, "strategy": args.strategy,
@@ -234,7 +246,7 @@ def backbone_info_main(argv: list[str]) -> int:
         }  # fmt: skip
         print(describe(estimate_memory(args.preset, **settings), **settings))
     if args.flops:
-        from capvector.memory import estimate_flops
+        from capvector.workflows.memory import estimate_flops
 
         flops = estimate_flops(args.preset, batch_size=args.batch, lora_rank=args.lora_rank)
         print(

@@ -5,7 +5,7 @@ fit resumed from a checkpoint into the same folder (what ``capvector recipe`` do
 interruption) loses every metric logged before the interruption: the rollout evaluations at earlier
 steps vanish from the success-against-steps curves. This logger appends instead. Steps between the
 last checkpoint and the interruption are trained and logged again, so they appear twice; readers
-take the last row of a step (``capvector.report`` does).
+take the last row of a step (``capvector.workflows.report`` does).
 """
 
 from __future__ import annotations

@@ -70,7 +70,7 @@ def stage_outputs(run_dir: Path, name: str) -> dict[str, str]:
 
 def _best_scale(sweep_dir: str) -> str:
     """Resolver ``${best_scale:DIR}``: the best λ of a finished ``sweep-scale`` stage."""
-    from capvector.sweep import best_scale
+    from capvector.workflows.sweep import best_scale
 
     path = Path(sweep_dir) / "sweep.json"
     if not path.is_file():

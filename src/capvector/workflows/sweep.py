@@ -18,9 +18,9 @@ from tqdm import tqdm
 
 from capvector.data.episodes import EvalTask
 from capvector.errors import ToolParser
-from capvector.evaluate import wilson_interval
 from capvector.fileio import atomic_write_bytes
 from capvector.module import load_module
+from capvector.workflows.evaluate import wilson_interval
 
 VALIDATION_SEED_START = 2_000_000
 """Sweep episodes start here: disjoint from demo seeds and from evaluation seeds (1,000,000+)."""
