@@ -1,4 +1,5 @@
-"""Shared fixtures: small real HDF5 demo files written with h5py."""
+"""Shared test helpers: small real HDF5 demo files written with h5py, a quiet CPU ``Trainer``, the
+distributed fit script, and the ``slow``/``sim`` markers."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import sys
 from pathlib import Path
 
 import h5py
+import lightning as L
 import numpy as np
 import pytest
 import torch
@@ -81,3 +83,19 @@ def run_fit_script(out: Path, data: Path, *args: str) -> list[float]:
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-4000:]
     return json.loads((out / "losses.json").read_text())
+
+
+def cpu_trainer(max_steps: int, root: Path | None = None, **overrides: object) -> L.Trainer:
+    """A quiet single-process CPU ``Trainer`` for ``max_steps``: no logger, progress bar, model
+    summary, checkpoints or validation unless ``overrides`` ask for them."""
+    settings: dict = {
+        "max_steps": max_steps,
+        "accelerator": "cpu",
+        "logger": False,
+        "enable_progress_bar": False,
+        "enable_model_summary": False,
+        "enable_checkpointing": False,
+        "limit_val_batches": 0,
+        "default_root_dir": root,
+    }
+    return L.Trainer(**{**settings, **overrides})
