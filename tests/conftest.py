@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import h5py
@@ -13,6 +15,8 @@ import lightning as L
 import numpy as np
 import pytest
 import torch
+
+from capvector.backbones import base as backbone_registry
 
 CAMERAS = ("agentview", "robot0_eye_in_hand")
 
@@ -99,3 +103,24 @@ def cpu_trainer(max_steps: int, root: Path | None = None, **overrides: object) -
         "default_root_dir": root,
     }
     return L.Trainer(**{**settings, **overrides})
+
+
+@contextmanager
+def restored_registry() -> Iterator[None]:
+    """Backbone families and presets registered inside the block are unregistered after it."""
+    backbone_registry.list_presets()  # import the built-in families first: they stay registered
+    saved = {name: dict(getattr(backbone_registry, name)) for name in ("_PRESETS", "_FAMILIES")}
+    try:
+        yield
+    finally:
+        for name, entries in saved.items():
+            registry = getattr(backbone_registry, name)
+            registry.clear()
+            registry.update(entries)
+
+
+@pytest.fixture
+def scoped_registry() -> Iterator[None]:
+    """Undo the test's backbone registrations (a preset would otherwise outlive its test)."""
+    with restored_registry():
+        yield
