@@ -551,17 +551,19 @@ class PrefixCache:
 @register_family
 class Pi05(VLABackbone):
     config_class = Pi05Config
+
     # peft full-match regex: the linear layers of both Gemma streams (attention and MLP), as openpi's
     # LoRA variants (``gemma_2b_lora`` + ``gemma_300m_lora``). SigLIP and the adaRMS condition
     # layers stay frozen there too. Left out: what only the LM output reads (see
     # ``language_head_parameter_names``), whose LoRA would get no gradient and stop DDP.
     @property
     def lora_target_modules(self) -> str:  # type: ignore[override]
+        linear = r"(self_attn\.(q|k|v|o)_proj|mlp\.(gate|up|down)_proj)"
         last = self.num_layers - 1
         return (
-            rf"(language_model\.layers\.(?!{last}\.)\d+\.(self_attn\.(q|k|v|o)_proj|mlp\.(gate|up|down)_proj)"
+            rf"action_expert\.layers\.\d+\.{linear}"
+            rf"|language_model\.layers\.(?!{last}\.)\d+\.{linear}"
             rf"|language_model\.layers\.{last}\.self_attn\.(q|k|v)_proj"
-            r"|action_expert\.layers\.\d+\.(self_attn\.(q|k|v|o)_proj|mlp\.(gate|up|down)_proj))"
         )
 
     lora_trainable_modules = (
@@ -660,7 +662,9 @@ class Pi05(VLABackbone):
             f"{last}{part}." for part in ("self_attn.o_proj", "post_attention_layernorm", "mlp")
         )
         return [
-            n for n, _ in self.named_parameters() if n.startswith((*lm_only, "language_model.norm."))
+            n
+            for n, _ in self.named_parameters()
+            if n.startswith((*lm_only, "language_model.norm."))
         ]
 
     def shard_units(self) -> list[nn.Module]:
