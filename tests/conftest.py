@@ -1,16 +1,22 @@
-"""Shared fixtures: small real HDF5 demo files written with h5py."""
+"""Shared test helpers: small real HDF5 demo files written with h5py, a quiet CPU ``Trainer``, the
+distributed fit script, and the ``slow``/``sim`` markers."""
 
 from __future__ import annotations
 
 import json
 import subprocess
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import h5py
+import lightning as L
 import numpy as np
 import pytest
 import torch
+
+from capvector.backbones import base as backbone_registry
 
 CAMERAS = ("agentview", "robot0_eye_in_hand")
 
@@ -81,3 +87,40 @@ def run_fit_script(out: Path, data: Path, *args: str) -> list[float]:
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-4000:]
     return json.loads((out / "losses.json").read_text())
+
+
+def cpu_trainer(max_steps: int, root: Path | None = None, **overrides: object) -> L.Trainer:
+    """A quiet single-process CPU ``Trainer`` for ``max_steps``: no logger, progress bar, model
+    summary, checkpoints or validation unless ``overrides`` ask for them."""
+    settings: dict = {
+        "max_steps": max_steps,
+        "accelerator": "cpu",
+        "logger": False,
+        "enable_progress_bar": False,
+        "enable_model_summary": False,
+        "enable_checkpointing": False,
+        "limit_val_batches": 0,
+        "default_root_dir": root,
+    }
+    return L.Trainer(**{**settings, **overrides})
+
+
+@contextmanager
+def restored_registry() -> Iterator[None]:
+    """Backbone families and presets registered inside the block are unregistered after it."""
+    backbone_registry.list_presets()  # import the built-in families first: they stay registered
+    saved = {name: dict(getattr(backbone_registry, name)) for name in ("_PRESETS", "_FAMILIES")}
+    try:
+        yield
+    finally:
+        for name, entries in saved.items():
+            registry = getattr(backbone_registry, name)
+            registry.clear()
+            registry.update(entries)
+
+
+@pytest.fixture
+def scoped_registry() -> Iterator[None]:
+    """Undo the test's backbone registrations (a preset would otherwise outlive its test)."""
+    with restored_registry():
+        yield

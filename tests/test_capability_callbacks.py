@@ -17,7 +17,7 @@ from capvector.data.datamodule import RobotDataModule
 from capvector.errors import CapVectorError
 from capvector.module import VLAModule
 from capvector.vectors import extract, merge
-from conftest import run_fit_script, write_demo_file
+from conftest import cpu_trainer, run_fit_script, write_demo_file
 
 run = run_fit_script
 
@@ -155,11 +155,7 @@ def test_lora_merge_and_orthogonality_under_fsdp2_match_one_process(
 def fit(
     module: VLAModule, dm: RobotDataModule, callbacks: list, steps: int, root: Path
 ) -> L.Trainer:
-    trainer = L.Trainer(
-        max_steps=steps, accelerator="cpu", logger=False, enable_progress_bar=False,
-        enable_model_summary=False, default_root_dir=root, limit_val_batches=0,
-        enable_checkpointing=False, callbacks=callbacks,
-    )  # fmt: skip
+    trainer = cpu_trainer(steps, root, callbacks=callbacks)
     trainer.fit(module, dm)
     return trainer
 
@@ -192,11 +188,7 @@ def test_orthogonality_is_anchored_at_the_merged_weights(setup: dict, tmp_path: 
         MergeCapabilityVector(str(setup["vector"]), scale=0.5),
         OrthogonalRegularization(str(setup["vector"]), weight=10.0),
     ]
-    trainer = L.Trainer(
-        max_steps=4, accelerator="cpu", logger=CSVLogger(tmp_path), log_every_n_steps=1,
-        enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
-        enable_checkpointing=False, callbacks=callbacks,
-    )  # fmt: skip
+    trainer = cpu_trainer(4, logger=CSVLogger(tmp_path), log_every_n_steps=1, callbacks=callbacks)
     trainer.fit(module, dm)
     rows = list(csv.DictReader((Path(trainer.log_dir) / "metrics.csv").open()))
     penalty = [
@@ -230,11 +222,7 @@ def merge_fit(
         MergeCapabilityVector(vector, scale=scale),
         OrthogonalRegularization(vector, weight=100.0),
     ]
-    trainer = L.Trainer(
-        max_steps=steps, accelerator="cpu", logger=False, enable_progress_bar=False,
-        enable_model_summary=False, limit_val_batches=0, enable_checkpointing=False,
-        default_root_dir=root, callbacks=callbacks,
-    )  # fmt: skip
+    trainer = cpu_trainer(steps, root, callbacks=callbacks)
     trainer.fit(module, dm, ckpt_path=ckpt)
     trainer.save_checkpoint(root / "last.ckpt")
     return module
@@ -358,11 +346,7 @@ def test_bf16_frozen_export_keeps_what_trained_in_float32(setup: dict, tmp_path:
         pretrained=str(setup["initial"]), data_spec=dm.spec, lora=LoraSettings(r=4, alpha=8),
         frozen_dtype="bfloat16",
     )  # fmt: skip
-    trainer = L.Trainer(
-        max_steps=2, accelerator="cpu", precision="bf16-mixed", logger=False,
-        enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
-        enable_checkpointing=False,
-    )  # fmt: skip
+    trainer = cpu_trainer(2, precision="bf16-mixed")
     trainer.fit(module, dm)
     module.export(tmp_path / "export")
     weights = load_file(tmp_path / "export" / "model.safetensors")
@@ -394,11 +378,7 @@ def test_bf16_frozen_weights_with_full_fine_tuning_of_a_subset(setup: dict, tmp_
     before = {n: p.detach().clone() for n, p in module.backbone.named_parameters()}
     frozen = {n for n, p in module.backbone.named_parameters() if not p.requires_grad}
     assert any(n.startswith("vision_backbone.") for n in frozen)  # and the unused LM head
-    trainer = L.Trainer(
-        max_steps=2, accelerator="cpu", precision="bf16-mixed", logger=False,
-        enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
-        enable_checkpointing=False,
-    )  # fmt: skip
+    trainer = cpu_trainer(2, precision="bf16-mixed")
     trainer.fit(module, dm)
     for name, param in module.backbone.named_parameters():
         assert param.dtype == (torch.bfloat16 if name in frozen else torch.float32), name

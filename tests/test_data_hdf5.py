@@ -17,7 +17,7 @@ from capvector.data.datamodule import RobotDataModule, noise_seeds
 from capvector.data.hdf5 import DatasetError, HDF5RobotDataset
 from capvector.data.statistics import Normalizer, compute_statistics
 from capvector.data.transforms import ImageTransform
-from conftest import CAMERAS, write_demo_file
+from conftest import CAMERAS, cpu_trainer, write_demo_file
 
 PROPRIO = ["robot0_eef_pos", "robot0_eef_axis_angle", "robot0_gripper_qpos"]
 
@@ -118,11 +118,7 @@ def test_training_batches_carry_their_noise_seeds(demo_file: Path, tmp_path: Pat
         train_files=[str(demo_file)], val_files=[str(demo_file)], batch_size=4, seed=7
     )
     module = SeedRecorder()
-    trainer = L.Trainer(
-        max_steps=4, accelerator="cpu", logger=False, enable_progress_bar=False,
-        enable_model_summary=False, enable_checkpointing=False, default_root_dir=tmp_path,
-        limit_val_batches=1, num_sanity_val_steps=0,
-    )  # fmt: skip
+    trainer = cpu_trainer(4, tmp_path, limit_val_batches=1, num_sanity_val_steps=0)
     trainer.fit(module, dm)
     assert [epoch for epoch, _ in module.train_batches] == [0, 0, 1, 1]  # 8 samples, batch 4
     for epoch, batch in module.train_batches:

@@ -18,7 +18,7 @@ from capvector.lora import LoraSettings
 from capvector.module import VLAModule
 from capvector.objectives import ReasoningCoTraining, SpatialAlignment
 from capvector.vectors import extract, merge
-from conftest import write_demo_file
+from conftest import cpu_trainer, write_demo_file
 
 PRESETS = [
     "openvla-oft-tiny",
@@ -38,12 +38,7 @@ def fit(
         def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:  # noqa: ANN001
             losses.append(float(outputs["loss"]))
 
-    trainer = L.Trainer(
-        max_steps=steps, accelerator="cpu", logger=False, enable_progress_bar=False,
-        enable_model_summary=False, default_root_dir=root, limit_val_batches=0,
-        enable_checkpointing=False, callbacks=[*callbacks, Record()],
-    )  # fmt: skip
-    trainer.fit(module, dm)
+    cpu_trainer(steps, root, callbacks=[*callbacks, Record()]).fit(module, dm)
     return losses
 
 

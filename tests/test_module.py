@@ -14,7 +14,7 @@ from capvector.cli import main
 from capvector.data.datamodule import RobotDataModule
 from capvector.lora import LoraSettings
 from capvector.module import OptimizerSettings, VLAModule, load_module
-from conftest import write_demo_file
+from conftest import cpu_trainer, write_demo_file
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -24,10 +24,7 @@ def datamodule(path: Path, **kwargs) -> RobotDataModule:
 
 
 def fit(module: VLAModule, dm: RobotDataModule, root: Path, steps: int = 4) -> L.Trainer:
-    trainer = L.Trainer(
-        max_steps=steps, accelerator="cpu", logger=False, enable_progress_bar=False,
-        enable_model_summary=False, default_root_dir=root, limit_val_batches=0,
-    )  # fmt: skip
+    trainer = cpu_trainer(steps, root)
     trainer.fit(module, dm)
     return trainer
 

@@ -22,7 +22,7 @@ from capvector.objectives import (
     SpatialAlignment,
     TimmTeacher,
 )
-from conftest import write_demo_file
+from conftest import cpu_trainer, write_demo_file
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -37,11 +37,7 @@ def fit(
     module: VLAModule, dm: RobotDataModule, root: Path, callbacks: list, steps: int = 4
 ) -> L.Trainer:
     L.seed_everything(0)
-    trainer = L.Trainer(
-        max_steps=steps, accelerator="cpu", logger=False, enable_progress_bar=False,
-        enable_model_summary=False, default_root_dir=root, limit_val_batches=0,
-        enable_checkpointing=False, callbacks=callbacks,
-    )  # fmt: skip
+    trainer = cpu_trainer(steps, root, callbacks=callbacks)
     trainer.fit(module, dm)
     return trainer
 

@@ -7,21 +7,29 @@ import sys
 import types
 from pathlib import Path
 
+import pytest
 import torch
 
-from capvector.backbones import build_backbone
+from capvector.backbones import build_backbone, list_presets
 from capvector.data import keys
 from capvector.module import VLAModule
+from conftest import restored_registry
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 
 
-def test_readme_backbone_example_builds_and_trains() -> None:
+def run_backbone_example(monkeypatch: pytest.MonkeyPatch) -> None:
     blocks = re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
     example = next(b for b in blocks if "register_family" in b)
     module = types.ModuleType("readme_example")  # dataclasses look their module up in sys.modules
-    sys.modules[module.__name__] = module
+    monkeypatch.setitem(sys.modules, module.__name__, module)
     exec(compile(example, "README.md", "exec"), module.__dict__)
+
+
+def test_readme_backbone_example_builds_and_trains(
+    monkeypatch: pytest.MonkeyPatch, scoped_registry: None
+) -> None:
+    run_backbone_example(monkeypatch)
     model = build_backbone("tiny-mlp")
     batch = {
         keys.IMAGES: torch.rand(4, 2, 3, 64, 64),
@@ -39,6 +47,15 @@ def test_readme_backbone_example_builds_and_trains() -> None:
         optimizer.step()
     assert loss.item() < first
     assert model.capability_parameter_names() == ["body.0.weight", "body.0.bias"]
+
+
+def test_the_example_preset_is_registered_only_inside_its_test(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    with restored_registry():
+        run_backbone_example(monkeypatch)
+        assert "tiny-mlp" in list_presets()
+    assert "tiny-mlp" not in list_presets() and "openvla-oft-tiny" in list_presets()
 
 
 def test_readme_peft_snippet_names_real_functions() -> None:

@@ -57,6 +57,7 @@ def test_gripper_conventions() -> None:
         libero.to_libero_action(np.zeros(7), "inverted")  # type: ignore[arg-type]
 
 
+@pytest.mark.sim
 def test_proprio_matches_robosuite_axis_angle() -> None:
     from robosuite.utils.transform_utils import quat2axisangle
 

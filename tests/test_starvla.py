@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import lightning as L
 import numpy as np
 import pytest
 import torch
@@ -33,7 +32,7 @@ from capvector.data.datamodule import RobotDataModule
 from capvector.data.hdf5 import HDF5RobotDataset
 from capvector.lora import LoraSettings
 from capvector.module import VLAModule, load_module
-from conftest import CAMERAS
+from conftest import CAMERAS, cpu_trainer
 
 REPO = Path(__file__).resolve().parents[1]
 PROPRIO_KEYS = ["robot0_eef_pos", "robot0_eef_axis_angle", "robot0_gripper_qpos"]
@@ -461,11 +460,7 @@ def test_lora_trains_only_lora_and_heads_and_exports_identically(
         assert any(part in n and ".lora_" in n for n in trainable), part
     frozen = {n: p.detach().clone() for n, p in module.named_parameters() if not p.requires_grad}
     lora_b = {n: p.detach().clone() for n, p in module.named_parameters() if "lora_B" in n}
-    trainer = L.Trainer(
-        max_steps=3, accelerator="cpu", logger=False, enable_progress_bar=False,
-        enable_model_summary=False, default_root_dir=tmp_path, limit_val_batches=0,
-    )  # fmt: skip
-    trainer.fit(module, dm)
+    cpu_trainer(3, tmp_path).fit(module, dm)
     assert all(torch.equal(v, module.get_parameter(n)) for n, v in frozen.items())
     assert any(not torch.equal(v, module.get_parameter(n)) for n, v in lora_b.items())
     export = module.export(tmp_path / "export")

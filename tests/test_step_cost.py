@@ -5,24 +5,19 @@ from __future__ import annotations
 import csv
 from pathlib import Path
 
-import lightning as L
 from lightning.pytorch.loggers import CSVLogger
 
 from capvector.callbacks import StepCost
 from capvector.data.datamodule import RobotDataModule
 from capvector.module import VLAModule
+from conftest import cpu_trainer
 
 
 def test_step_cost_logs_step_seconds_and_peak_memory(tmp_path: Path, demo_file: Path) -> None:
     dm = RobotDataModule(train_files=[str(demo_file)], batch_size=4)
     module = VLAModule(backbone="openvla-oft-tiny", data_spec=dm.spec)
     logger = CSVLogger(tmp_path, name="fit", version="v")
-    trainer = L.Trainer(
-        max_steps=4, accelerator="cpu", logger=logger, log_every_n_steps=2,
-        enable_progress_bar=False, enable_model_summary=False, enable_checkpointing=False,
-        limit_val_batches=0, callbacks=[StepCost()],
-    )  # fmt: skip
-    trainer.fit(module, dm)
+    cpu_trainer(4, logger=logger, log_every_n_steps=2, callbacks=[StepCost()]).fit(module, dm)
     with open(tmp_path / "fit" / "v" / "metrics.csv") as f:
         rows = [r for r in csv.DictReader(f) if r["perf/step_seconds"]]
     assert [int(r["step"]) for r in rows] == [1, 3]  # at the trainer's logging interval

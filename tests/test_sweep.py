@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import lightning as L
 import pytest
 import torch
 
@@ -14,7 +13,7 @@ from capvector.data.datamodule import RobotDataModule
 from capvector.module import VLAModule
 from capvector.vectors import extract
 from capvector.workflows.sweep import best_scale, sweep
-from conftest import write_demo_file
+from conftest import cpu_trainer, write_demo_file
 
 
 def test_exact_difference_vector_is_best_at_scale_one(tmp_path: Path) -> None:
@@ -23,11 +22,7 @@ def test_exact_difference_vector_is_best_at_scale_one(tmp_path: Path) -> None:
     torch.manual_seed(0)
     module = VLAModule(data_spec=dm.spec)
     module.export(tmp_path / "pre")
-    trainer = L.Trainer(
-        max_steps=40, accelerator="cpu", logger=False, enable_progress_bar=False,
-        enable_model_summary=False, enable_checkpointing=False, limit_val_batches=0,
-    )  # fmt: skip
-    trainer.fit(module, dm)  # fits the demos: the model that "solves" them
+    cpu_trainer(40).fit(module, dm)  # fits the demos: the model that "solves" them
     module.export(tmp_path / "solved")
     # c = θ_solved − θ_pre over every parameter: θ_pre + 1·c is exactly the solved model.
     extract(aux=tmp_path / "solved", sft=tmp_path / "pre", out=tmp_path / "vector", include=["*"])

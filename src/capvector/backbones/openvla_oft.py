@@ -378,7 +378,7 @@ class OpenVLAOFT(VLABackbone):
             return "|".join(str(i) for i in range(spec.depth - 1))
 
         return (
-            r".*(language_model\.model\.layers\.\d+\.(self_attn\.[qkvo]_proj|mlp\.(gate|up|down)_proj)"
+            r"(language_model\.model\.layers\.\d+\.(self_attn\.[qkvo]_proj|mlp\.(gate|up|down)_proj)"
             rf"|vision_backbone\.featurizer\.blocks\.({blocks(self.config.featurizer)})\.(attn\.(qkv|proj)|mlp\.fc[12])"
             rf"|vision_backbone\.fused_featurizer\.blocks\.({blocks(self.config.fused_featurizer)})\.(attn\.(qkv|proj)|mlp\.fc[12])"
             r"|projector\.fc[123])"
@@ -582,9 +582,11 @@ class OpenVLAOFT(VLABackbone):
         ids, text_valid = _right_pad(rows, tok.pad_token_id, device)
         text_labels, _ = _right_pad(label_rows, -100, device)
         text = self.language_model.get_input_embeddings()(ids)
-        # Upstream has no text pass with FiLM; this one conditions on the whole row (prompt and
-        # answer), as OFT conditions on every non-action token of its row.
-        language = _mean_embedding(text, text_valid) if self.config.film else None
+        # Upstream has no text pass with FiLM; this one conditions on BOS and the prompt, as OFT
+        # conditions on every non-action token of its row. Not on the answer: the visual tokens
+        # precede it, so every answer position would see the tokens it is trained to predict.
+        prompt_only = text_valid & (text_labels == -100)
+        language = _mean_embedding(text, prompt_only) if self.config.film else None
         prefix_tokens = self._prefix_tokens(batch, language)
         embeds, valid = _splice_after_bos(text, text_valid, prefix_tokens)
         n_prefix = prefix_tokens.shape[1]

@@ -551,13 +551,21 @@ class PrefixCache:
 @register_family
 class Pi05(VLABackbone):
     config_class = Pi05Config
+
     # peft full-match regex: the linear layers of both Gemma streams (attention and MLP), as openpi's
     # LoRA variants (``gemma_2b_lora`` + ``gemma_300m_lora``). SigLIP and the adaRMS condition
-    # layers stay frozen there too.
-    lora_target_modules = (
-        r"(language_model|action_expert)\.layers\.\d+\."
-        r"(self_attn\.(q|k|v|o)_proj|mlp\.(gate|up|down)_proj)"
-    )
+    # layers stay frozen there too. Left out: what only the LM output reads (see
+    # ``language_head_parameter_names``), whose LoRA would get no gradient and stop DDP.
+    @property
+    def lora_target_modules(self) -> str:  # type: ignore[override]
+        linear = r"(self_attn\.(q|k|v|o)_proj|mlp\.(gate|up|down)_proj)"
+        last = self.num_layers - 1
+        return (
+            rf"action_expert\.layers\.\d+\.{linear}"
+            rf"|language_model\.layers\.(?!{last}\.)\d+\.{linear}"
+            rf"|language_model\.layers\.{last}\.self_attn\.(q|k|v)_proj"
+        )
+
     lora_trainable_modules = (
         "action_in_proj.*",
         "action_out_proj.*",
@@ -643,6 +651,21 @@ class Pi05(VLABackbone):
 
     def make_tokenizer(self, folder: str) -> Any:
         return _load_tokenizer(folder)
+
+    def language_head_parameter_names(self) -> list[str]:
+        """The action expert reads only the VLM's keys and values, so the last VLM layer's
+        attention output and MLP and the final norm feed the LM logits (and hidden state
+        ``num_layers``) alone: frozen until a text objective trains them, as OFT's ``lm_head``
+        (the embedding is tied but also embeds the prompt, so it trains with the actions)."""
+        last = f"language_model.layers.{self.num_layers - 1}."
+        lm_only = tuple(
+            f"{last}{part}." for part in ("self_attn.o_proj", "post_attention_layernorm", "mlp")
+        )
+        return [
+            n
+            for n, _ in self.named_parameters()
+            if n.startswith((*lm_only, "language_model.norm."))
+        ]
 
     def shard_units(self) -> list[nn.Module]:
         """SigLIP's encoder layers and the joint decoder layers (each VLM layer runs its joint
