@@ -1,13 +1,13 @@
-"""LoRA through peft: injection into a backbone and the merged (plain-key) state dict for export."""
+"""LoRA through peft: injection into a backbone, what trains, frozen dtypes (merging LoRA into
+plain weights is :mod:`capvector.lora_layers`)."""
 
 from __future__ import annotations
 
 import fnmatch
-from collections.abc import Mapping
 from dataclasses import dataclass
 
 import torch
-from torch import Tensor, nn
+from torch import nn
 
 from capvector.backbones.base import VLABackbone
 
@@ -44,29 +44,6 @@ def inject_lora(backbone: VLABackbone, settings: LoraSettings) -> None:
         is_lora = ".lora_" in name
         is_head = any(fnmatch.fnmatchcase(name, g) for g in backbone.lora_trainable_modules)
         param.requires_grad_(is_lora or is_head)
-
-
-def merge_lora_state_dict(state: Mapping[str, Tensor], scaling: float) -> dict[str, Tensor]:
-    """A state dict with LoRA merged in and peft's key changes undone.
-
-    ``X.base_layer.weight`` + scaling * B @ A becomes ``X.weight`` (computed and stored in fp32, or
-    float64 for a float64 base), so exports of LoRA and of full fine-tuning have the same keys and capability
-    vectors subtract them directly. Works on plain state dicts, so the same code serves a single
-    process and a state dict gathered from FSDP2 shards.
-    """
-    merged = {k: v for k, v in state.items() if ".lora_" not in k}
-    suffix = f".lora_A.{ADAPTER}.weight"
-    for key in state:
-        if not key.endswith(suffix):
-            continue
-        prefix = key[: -len(suffix)]
-        base_key = f"{prefix}.base_layer.weight"
-        lora_b = state[f"{prefix}.lora_B.{ADAPTER}.weight"].float()
-        base = merged[base_key]
-        # A bf16 frozen base keeps its LoRA update in float32: bf16 would round much of it away.
-        dtype = torch.promote_types(base.dtype, torch.float32)
-        merged[base_key] = (base.float() + scaling * (lora_b @ state[key].float())).to(dtype)
-    return {k.replace(".base_layer.", "."): v for k, v in merged.items()}
 
 
 FROZEN_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}

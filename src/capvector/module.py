@@ -32,9 +32,9 @@ from capvector.lora import (
     LoraSettings,
     cast_frozen_parameters,
     frozen_dtype_of,
-    merge_lora_state_dict,
     set_trainable,
 )
+from capvector.lora_layers import constant_scaling, merge_lora
 from capvector.metrics import SuccessRate
 from capvector.objectives.base import Objective
 from capvector.policy import VLAPolicy
@@ -355,7 +355,7 @@ class VLAModule(L.LightningModule):
             return Path(folder)
         lora_settings = self.lora_settings
         if lora_settings is not None:
-            state = merge_lora_state_dict(state, lora_settings.scaling)
+            state = merge_lora(state, constant_scaling(lora_settings.scaling))
         extra = {
             "capvector_data_spec.json": dataclasses.asdict(self.data_spec),
             STATISTICS_FILE: self.data_spec.statistics,

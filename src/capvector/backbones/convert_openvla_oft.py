@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -48,6 +48,7 @@ from capvector.backbones.base import (
     read_sharded,
 )
 from capvector.data.statistics import BOUNDS, BOUNDS_Q99
+from capvector.lora_layers import LoraFormatError, adapter_scaling, merge_lora, split_lora
 
 if TYPE_CHECKING:
     from capvector.backbones.openvla_oft import OpenVLAOFT
@@ -377,19 +378,15 @@ def read_film_vision_backbone(root: Path) -> dict[str, Tensor]:
         k.removeprefix("vision_backbone."): v
         for k, v in _load_component(root, "vision_backbone").items()
     }
-    scaling = _lora_scaling(root, raw)
+    try:
+        merged = merge_lora(raw, _lora_scaling(root))
+    except LoraFormatError as err:
+        raise BackboneError(f"{root}: vision_backbone file: {err}") from err
     state: dict[str, Tensor] = {}
-    for key, value in raw.items():
-        if ".lora_A." in key or ".lora_B." in key:
-            continue
-        if ".lora_" in key or ".lora_embedding_" in key:
-            raise BackboneError(
-                f"vision_backbone file has LoRA tensor {key} of a kind not supported"
-            )
-        if ".base_layer." in key:
-            module, leaf = key.split(".base_layer.")
-            value = _merge_lora_pair(raw, module, value, leaf, scaling)
-            key = f"{module}.{leaf}"
+    # Merged LoRA weights stay float32, not cast back to the file's bf16: upstream's inference
+    # runs the LoRA branch unmerged beside the bf16 base weight, so rounding the sum to bf16 would
+    # differ (~1e-2).
+    for key, value in merged.items():
         parts = key.split(".")
         if parts[0] not in ("featurizer", "fused_featurizer"):
             raise BackboneError(f"vision_backbone file has key {key} outside the two ViTs")
@@ -401,54 +398,22 @@ def read_film_vision_backbone(root: Path) -> dict[str, Tensor]:
     return state
 
 
-def _lora_scaling(root: Path, raw: Mapping[str, Tensor]) -> float:
+def _lora_scaling(root: Path) -> Callable[[str, int], float]:
     """alpha / r of the vision LoRA: from ``lora_adapter/adapter_config.json`` when present, else
     upstream inference's own rule (``_apply_film_to_vla``: ``lora_alpha=min(rank, 16)``)."""
     path = root / "lora_adapter" / "adapter_config.json"
     if path.is_file():
-        return _adapter_scaling(json.loads(path.read_text()))
-    ranks = {v.shape[0] for k, v in raw.items() if ".lora_A." in k}
-    if not ranks:
-        return 1.0
-    if len(ranks) > 1:
-        raise BackboneError(
-            f"vision_backbone file mixes LoRA ranks {sorted(ranks)} without an adapter_config.json"
-        )
-    (rank,) = ranks
-    return min(rank, 16) / rank
+        return _adapter_scaling(path)
+    return lambda module, rank: min(rank, 16) / rank
 
 
-def _adapter_scaling(config: Mapping[str, Any]) -> float:
-    for name in ("rank_pattern", "alpha_pattern"):
-        if config.get(name):
-            raise BackboneError(
-                f"adapter_config.json {name} is not supported (one r and alpha only)"
-            )
+def _adapter_scaling(config_path: Path) -> Callable[[str, int], float]:
+    config = json.loads(config_path.read_text())
     if config.get("use_dora"):
-        raise BackboneError("adapter_config.json use_dora is not supported")
-    rank, alpha = config["r"], config["lora_alpha"]
-    return alpha / math.sqrt(rank) if config.get("use_rslora") else alpha / rank
-
-
-def _merge_lora_pair(
-    raw: Mapping[str, Tensor], module: str, base: Tensor, leaf: str, scaling: float
-) -> Tensor:
-    """``base`` + scaling * B @ A for a weight with a LoRA pair (any adapter name); biases and
-    weights without one pass through. Conv2d pairs (peft's LoRA on ``patch_embed.proj``) merge the
-    same way: B is (out, r, 1, 1), A (r, in, kh, kw)."""
-    if leaf != "weight":
-        return base
-    a_keys = [k for k in raw if k.startswith(f"{module}.lora_A.")]
-    if not a_keys:
-        return base
-    if len(a_keys) > 1:
-        raise BackboneError(f"{module} has several LoRA adapters ({a_keys}); merge them first")
-    lora_a = raw[a_keys[0]].float()
-    lora_b = raw[a_keys[0].replace(".lora_A.", ".lora_B.")].float()
-    delta = (lora_b.flatten(1) @ lora_a.flatten(1)).reshape(base.shape)
-    # Kept in fp32, not cast back to the file's bf16: upstream's inference runs the LoRA branch
-    # unmerged beside the bf16 base weight, so rounding the sum to bf16 would differ (~1e-2).
-    return base.float() + scaling * delta
+        raise BackboneError(
+            f"{config_path}: use_dora is not supported (DoRA is not a weight delta)"
+        )
+    return adapter_scaling(config)
 
 
 def merge_peft_adapter(state: dict[str, Tensor], adapter_dir: Path) -> None:
@@ -459,7 +424,7 @@ def merge_peft_adapter(state: dict[str, Tensor], adapter_dir: Path) -> None:
     config_path = adapter_dir / "adapter_config.json"
     if not config_path.is_file():
         raise BackboneError(f"{adapter_dir} is not a PEFT adapter folder (no adapter_config.json)")
-    scaling = _adapter_scaling(json.loads(config_path.read_text()))
+    scaling = _adapter_scaling(config_path)
     weights_path = adapter_dir / "adapter_model.safetensors"
     if weights_path.is_file():
         weights = load_file(str(weights_path))
@@ -471,13 +436,18 @@ def merge_peft_adapter(state: dict[str, Tensor], adapter_dir: Path) -> None:
         raise BackboneError(
             f"{adapter_dir} has no adapter weights (adapter_model.safetensors or .bin) to merge"
         )
-    for key, lora_a in weights.items():
-        if not key.endswith(".lora_A.weight"):
-            continue
-        module = key.removeprefix("base_model.model.").removesuffix(".lora_A.weight")
-        lora_b = weights[key.replace(".lora_A.", ".lora_B.")]
-        target = f"{module}.weight"
-        if target not in state:
-            raise BackboneError(f"LoRA adapter targets {target}, which the checkpoint lacks")
-        delta = (lora_b.float().flatten(1) @ lora_a.float().flatten(1)).reshape(state[target].shape)
-        state[target] = (state[target].float() + scaling * delta).to(state[target].dtype)
+    try:
+        _, layers = split_lora(
+            {k.removeprefix("base_model.model."): v for k, v in weights.items()},
+            scaling,
+            fan_in_fan_out=bool(json.loads(config_path.read_text()).get("fan_in_fan_out")),
+        )
+        for module, layer in layers.items():
+            target = f"{module}.weight"
+            if target not in state:
+                raise BackboneError(f"LoRA adapter targets {target}, which the checkpoint lacks")
+            state[target] = layer.merged(state[target]).to(state[target].dtype)
+            if (bias := layer.merged_bias(state.get(f"{module}.bias"))) is not None:
+                state[f"{module}.bias"] = bias.to(state[f"{module}.bias"].dtype)
+    except LoraFormatError as err:
+        raise BackboneError(f"{adapter_dir}: {err}") from err

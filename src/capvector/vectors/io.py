@@ -15,7 +15,6 @@ import hashlib
 import json
 import math
 import os
-import re
 import struct
 from abc import ABC, abstractmethod
 from collections.abc import Iterable, Iterator, Mapping, Sequence
@@ -29,6 +28,7 @@ from torch import Tensor
 
 from capvector.errors import CapVectorError  # noqa: F401 (re-exported: the vector tools' error)
 from capvector.fileio import atomic_directory, check_new_output
+from capvector.lora_layers import LoraFormatError, LoraLayer, split_lora
 
 # File names of an export folder; the writer is ``capvector.backbones.base`` (``VLABackbone.
 # save_pretrained``). Repeated here because ``vectors`` sits below ``backbones`` and imports nothing
@@ -374,32 +374,6 @@ class SafetensorsFolder(WeightSource):
         return "sha256:" + hasher.hexdigest()
 
 
-@dataclass
-class _LoraMerge:
-    """``weight = base + scaling * B @ A`` (transposed for peft's embedding LoRA)."""
-
-    base: Tensor
-    lora_a: Tensor
-    lora_b: Tensor
-    scaling: float
-    transposed: bool
-
-    def rows(self, rows: slice | None) -> Tensor:
-        base = self.base if rows is None else self.base[rows]
-        a, b = self.lora_a.float(), self.lora_b.float()
-        if self.transposed:
-            delta = (a if rows is None else a[:, rows]).T @ b.T
-        else:
-            delta = (b if rows is None else b[rows]) @ a
-        return (base.to(compute_dtype(base.dtype)) + self.scaling * delta).to(base.dtype)
-
-
-_LORA_KEY = re.compile(
-    r"^(?P<module>.+)\.(?P<part>lora_A|lora_B|lora_embedding_A|lora_embedding_B)\.(?P<adapter>[^.]+)"
-    r"(?P<param>\.weight|\.bias)?$"
-)
-
-
 class CheckpointSource(WeightSource):
     """A Lightning ``.ckpt`` seen as plain backbone keys, with peft LoRA layers merged.
 
@@ -443,58 +417,38 @@ class CheckpointSource(WeightSource):
                 f"{self.path} has no `{CHECKPOINT_MODEL_PREFIX}*` tensors in its state_dict; "
                 "is it a capvector checkpoint?"
             )
-        self._tensors: dict[str, Tensor | _LoraMerge] = {}
+        self._tensors: dict[str, Tensor | tuple[Tensor, LoraLayer]] = {}
         self._merge_lora(model, meta.get("lora"))
 
     def _merge_lora(self, model: dict[str, Tensor], lora: Mapping[str, Any] | None) -> None:
-        parts: dict[str, dict[str, Tensor]] = {}
-        adapters: set[str] = set()
-        plain: dict[str, Tensor] = {}
-        for key, tensor in model.items():
-            if ".lora_magnitude_vector." in key:
+        # Lazily: a weight with LoRA is kept as (base, layer) and merged rows at a time on read.
+        scaling = None if not lora or lora.get("scaling") is None else float(lora["scaling"])
+
+        def layer_scaling(module: str, rank: int) -> float:
+            if scaling is None:
                 raise CapVectorError(
-                    f"{self.path}: `{key}` is a DoRA magnitude; DoRA checkpoints are not supported, "
-                    "export the merged model and extract from the export folder"
+                    f"{self.path} has LoRA layers (e.g. `{module}`) but no "
+                    "checkpoint['capvector']['lora']['scaling'] to merge them with"
                 )
-            match = _LORA_KEY.match(key)
-            if match:
-                adapters.add(match["adapter"])
-                parts.setdefault(match["module"], {})[match["part"] + (match["param"] or "")] = (
-                    tensor
-                )
-            else:
-                plain[key.replace(".base_layer.", ".")] = tensor
-        if len(adapters) > 1:
+            return scaling
+
+        try:
+            fan_in_fan_out = bool(lora and lora.get("fan_in_fan_out"))
+            plain, layers = split_lora(model, layer_scaling, fan_in_fan_out)
+            tensors: dict[str, Tensor | tuple[Tensor, LoraLayer]] = dict(plain)
+            for module, layer in layers.items():
+                weight = plain.get(f"{module}.weight")
+                if weight is None:
+                    raise LoraFormatError(f"LoRA layer `{module}` has no base weight")
+                tensors[f"{module}.weight"] = (weight, layer)
+                bias = layer.merged_bias(plain.get(f"{module}.bias"))
+                if bias is not None:
+                    tensors[f"{module}.bias"] = bias.to(plain[f"{module}.bias"].dtype)
+        except LoraFormatError as err:
             raise CapVectorError(
-                f"{self.path} has several LoRA adapters {sorted(adapters)}; expected one"
-            )
-        if parts and (not lora or lora.get("scaling") is None):
-            raise CapVectorError(
-                f"{self.path} has LoRA layers (e.g. `{next(iter(parts))}`) but no "
-                "checkpoint['capvector']['lora']['scaling'] to merge them with"
-            )
-        for module, p in parts.items():
-            weight = plain.get(f"{module}.weight")
-            embedding = "lora_embedding_A" in p
-            a = p.get("lora_embedding_A" if embedding else "lora_A.weight")
-            b = p.get("lora_embedding_B" if embedding else "lora_B.weight")
-            if weight is None or a is None or b is None:
-                raise CapVectorError(
-                    f"{self.path}: LoRA layer `{module}` is incomplete (needs base_layer.weight, "
-                    "lora_A and lora_B)"
-                )
-            scaling = float(lora["scaling"])  # type: ignore[index]
-            plain[f"{module}.weight"] = _LoraMerge(weight, a, b, scaling, transposed=embedding)  # type: ignore[assignment]
-            if "lora_B.bias" in p:
-                bias = plain.get(f"{module}.bias")
-                if bias is None:
-                    raise CapVectorError(
-                        f"{self.path}: `{module}` has a LoRA bias but no base bias"
-                    )
-                plain[f"{module}.bias"] = (bias.float() + scaling * p["lora_B.bias"].float()).to(
-                    bias.dtype
-                )
-        self._tensors = dict(plain)
+                f"{self.path}: {err}; export the merged model and extract from the export folder"
+            ) from err
+        self._tensors = tensors
 
     def keys(self) -> list[str]:
         return list(self._tensors)
@@ -504,13 +458,14 @@ class CheckpointSource(WeightSource):
 
     def info(self, key: str) -> TensorInfo:
         t = self._tensors[key]
-        base = t.base if isinstance(t, _LoraMerge) else t
+        base = t[0] if isinstance(t, tuple) else t
         return TensorInfo(base.dtype, tuple(base.shape))
 
     def read(self, key: str, rows: slice | None = None) -> Tensor:
         t = self._tensors[key]
-        if isinstance(t, _LoraMerge):
-            return t.rows(rows)
+        if isinstance(t, tuple):
+            base, layer = t
+            return layer.merged(base, rows).to(base.dtype)
         return (t if rows is None else t[rows]).clone()
 
     def fingerprint(self) -> str:

@@ -15,7 +15,6 @@ embeddings comes from the export's ``embedding_parameters`` (the backbone record
 
 from __future__ import annotations
 
-import math
 import re
 from collections.abc import Collection, Mapping
 from dataclasses import dataclass
@@ -25,6 +24,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from capvector.lora_layers import LoraFormatError, adapter_scaling, split_lora
 from capvector.vectors.io import (
     ADAPTER_CONFIG,
     ADAPTER_WEIGHTS,
@@ -164,11 +164,6 @@ def write_adapter(
     return config
 
 
-_ADAPTER_KEY = re.compile(
-    r"^(?P<module>.+)\.(?P<part>lora_A\.weight|lora_B\.weight|lora_B\.bias|lora_embedding_A|lora_embedding_B)$"
-)
-
-
 def read_adapter(folder: Path) -> tuple[dict[str, LoraFactors], dict[str, Tensor]]:
     """A PEFT LoRA adapter folder as deltas: {``X.weight``: factors} and {``X.bias``: dense delta}.
 
@@ -200,40 +195,25 @@ def read_adapter(folder: Path) -> tuple[dict[str, LoraFactors], dict[str, Tensor
     except Exception as err:
         raise CapVectorError(f"{weights} is not a readable safetensors file ({err})") from err
 
-    parts: dict[str, dict[str, Tensor]] = {}
-    unknown = []
-    for key, tensor in state.items():
-        match = _ADAPTER_KEY.match(key.removeprefix(PEFT_PREFIX))
-        if not match or not key.startswith(PEFT_PREFIX):
-            unknown.append(key)
-            continue
-        parts.setdefault(match["module"], {})[match["part"]] = tensor
+    unknown = [k for k in state if not k.startswith(PEFT_PREFIX) or ".lora_" not in k]
     if unknown:
         raise CapVectorError(
             f"{weights} has {len(unknown)} tensor(s) that are not LoRA factors, e.g. "
             f"{examples(sorted(unknown))}"
         )
-
-    lora_alpha = float(config.get("lora_alpha", config.get("r", 8)))
-    alpha_pattern = config.get("alpha_pattern") or {}
+    try:
+        _, layers = split_lora(
+            {k.removeprefix(PEFT_PREFIX): v for k, v in state.items()},
+            adapter_scaling(config),
+            fan_in_fan_out=bool(config.get("fan_in_fan_out")),
+        )
+    except LoraFormatError as err:
+        raise CapVectorError(f"{weights}: {err}") from err
     factors: dict[str, LoraFactors] = {}
     biases: dict[str, Tensor] = {}
-    for module, p in parts.items():
-        embedding = "lora_embedding_A" in p
-        a = p.get("lora_embedding_A" if embedding else "lora_A.weight")
-        b = p.get("lora_embedding_B" if embedding else "lora_B.weight")
-        if a is None or b is None:
-            raise CapVectorError(f"{weights}: LoRA layer `{module}` lacks its A or B factor")
-        rank = int(a.shape[0])
-        alpha = next(
-            (float(v) for pat, v in alpha_pattern.items() if re.match(rf"(.*\.)?({pat})$", module)),
-            lora_alpha,
-        )
-        scale = alpha / math.sqrt(rank) if config.get("use_rslora") else alpha / rank
-        if embedding or config.get("fan_in_fan_out"):
-            # peft's delta is (B @ A)ᵀ = Aᵀ @ Bᵀ here; store it in the plain B @ A form.
-            a, b = b.T.contiguous(), a.T.contiguous()
-        factors[f"{module}.weight"] = LoraFactors(b, a, scale)
-        if "lora_B.bias" in p:
-            biases[f"{module}.bias"] = p["lora_B.bias"].float() * scale
+    for module, layer in layers.items():
+        b, a = layer.factors()  # peft's orientation undone: B @ A is the delta in W's layout
+        factors[f"{module}.weight"] = LoraFactors(b, a, layer.scaling)
+        if layer.bias is not None:
+            biases[f"{module}.bias"] = layer.bias.float() * layer.scaling
     return factors, biases
