@@ -20,6 +20,7 @@ from transformers.pytorch_utils import Conv1D
 
 from capvector.backbones.convert_openvla_oft import merge_peft_adapter
 from capvector.lora_layers import constant_scaling, merge_lora
+from capvector.names import CheckpointMetadata
 from capvector.vectors.io import CheckpointSource
 from capvector.vectors.lowrank import read_adapter
 
@@ -95,7 +96,8 @@ def test_checkpoint_source_equals_peft(peft_model, tmp_path: Path) -> None:
     state = {f"backbone.{k}": v for k, v in _inner_state(model).items()}
     path = tmp_path / "lora.ckpt"
     lora = {"scaling": ALPHA / R, "fan_in_fan_out": _fan_in_fan_out(model)}
-    torch.save({"state_dict": state, "capvector": {"lora": lora}}, path)
+    meta = CheckpointMetadata(family="peft-test", backbone_config={"preset": "net"}, lora=lora)
+    torch.save({"state_dict": state, "capvector": meta.to_dict()}, path)
     source = CheckpointSource(path)
     names = source.keys()
     _assert_weights({k: source.read(k) for k in names}, expected)
@@ -121,3 +123,15 @@ def test_adapter_folder_paths_equal_peft(peft_model, tmp_path: Path) -> None:
     imported = dict(base)
     merge_peft_adapter(imported, tmp_path / "adapter")
     _assert_weights(imported, expected)
+
+
+def test_checkpoint_metadata_errors_name_what_is_missing(tmp_path: Path) -> None:
+    from capvector.errors import CapVectorError
+
+    path = tmp_path / "x.ckpt"
+    torch.save({"state_dict": {"backbone.w": torch.zeros(1)}}, path)
+    with pytest.raises(CapVectorError, match="not a capvector checkpoint .no `capvector`"):
+        CheckpointSource(path)
+    torch.save({"state_dict": {"backbone.w": torch.zeros(1)}, "capvector": {"family": "x"}}, path)
+    with pytest.raises(CapVectorError, match="metadata lacks backbone_config"):
+        CheckpointSource(path)

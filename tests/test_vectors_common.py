@@ -12,6 +12,8 @@ import torch
 from safetensors.torch import save_file
 from torch import Tensor, nn
 
+from capvector.names import CheckpointMetadata
+
 CAPABILITY = ("language_model.*",)
 HIDDEN, FFN, VOCAB = 16, 24, 32
 
@@ -139,10 +141,12 @@ def write_checkpoint(
         "epoch": 1,
         "global_step": 10,
         "state_dict": state,
-        "capvector": {
-            "lora": dict(lora) if lora else None,
-            "capability_parameters": list(capability_parameters),
-        },
+        "capvector": CheckpointMetadata(
+            family="openvla-oft",
+            backbone_config={"preset": "openvla-oft-tiny"},
+            capability_parameters=list(capability_parameters),
+            lora=dict(lora) if lora else None,
+        ).to_dict(),
     }
     torch.save(checkpoint, path)
     return path

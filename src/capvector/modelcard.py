@@ -13,7 +13,8 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-MODEL_CARD = "README.md"
+from capvector.names import MODEL_CARD
+
 LIBRARY = "capvector"
 
 

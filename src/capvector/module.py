@@ -36,12 +36,17 @@ from capvector.lora import (
 )
 from capvector.lora_layers import constant_scaling, merge_lora
 from capvector.metrics import SuccessRate
+from capvector.names import (
+    CHECKPOINT_METADATA,
+    DATA_SPEC_FILE,
+    MERGED_VECTORS,
+    STATISTICS_FILE,
+    CheckpointMetadata,
+)
 from capvector.objectives.base import Objective
 from capvector.policy import VLAPolicy
 from capvector.vectors.io import dtype_name
-from capvector.vectors.record import MERGED_VECTORS, MergedVector, read_record, record_dicts
-
-STATISTICS_FILE = "dataset_statistics.json"
+from capvector.vectors.record import MergedVector, read_record, record_dicts
 
 
 @dataclass
@@ -323,27 +328,29 @@ class VLAModule(L.LightningModule):
 
     # -- persistence ---------------------------------------------------------------------------
 
-    def checkpoint_metadata(self) -> dict[str, Any]:
+    def checkpoint_metadata(self) -> CheckpointMetadata:
         """What tools outside Lightning need to read a checkpoint (``capvector.vectors``, eval)."""
         lora = self.lora_settings
-        return {
-            "family": self.backbone.config_class.family,
-            "backbone_config": self.backbone.config.to_dict(),
-            "capability_parameters": list(self.backbone.capability_parameters),
-            "embedding_parameters": self.backbone.embedding_parameter_names(),
-            "lora": None
+        return CheckpointMetadata(
+            family=self.backbone.config_class.family,
+            backbone_config=self.backbone.config.to_dict(),
+            capability_parameters=list(self.backbone.capability_parameters),
+            embedding_parameters=self.backbone.embedding_parameter_names(),
+            lora=None
             if lora is None
             else {"r": lora.r, "alpha": lora.alpha, "scaling": lora.scaling},
-            "data_spec": dataclasses.asdict(self.data_spec),
-            "objectives": sorted(self.objectives),
-            MERGED_VECTORS: record_dicts(self.merged_vectors),
-        }
+            data_spec=dataclasses.asdict(self.data_spec),
+            objectives=sorted(self.objectives),
+            merged_vectors=record_dicts(self.merged_vectors),
+        )
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        checkpoint["capvector"] = self.checkpoint_metadata()
+        checkpoint[CHECKPOINT_METADATA] = self.checkpoint_metadata().to_dict()
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        self.merged_vectors = read_record(checkpoint.get("capvector", {}).get(MERGED_VECTORS))
+        self.merged_vectors = read_record(
+            checkpoint.get(CHECKPOINT_METADATA, {}).get(MERGED_VECTORS)
+        )
 
     def export(self, folder: str | Path, overwrite: bool = False) -> Path:
         """An export folder: ``model.safetensors`` (LoRA merged) + config + statistics + tokenizer.
@@ -357,7 +364,7 @@ class VLAModule(L.LightningModule):
         if lora_settings is not None:
             state = merge_lora(state, constant_scaling(lora_settings.scaling))
         extra = {
-            "capvector_data_spec.json": dataclasses.asdict(self.data_spec),
+            DATA_SPEC_FILE: dataclasses.asdict(self.data_spec),
             STATISTICS_FILE: self.data_spec.statistics,
         }
         return self.backbone.save_pretrained(
@@ -420,27 +427,23 @@ def load_module(checkpoint: str | Path, map_location: str = "cpu") -> VLAModule:
     """A trained module from a Lightning checkpoint or an export folder (objectives, which are
     training-only, are dropped)."""
     if Path(checkpoint).is_dir():
-        spec_file = Path(checkpoint) / "capvector_data_spec.json"
+        spec_file = Path(checkpoint) / DATA_SPEC_FILE
         if not spec_file.is_file():
-            raise BackboneError(
-                f"{checkpoint} has no capvector_data_spec.json: export it with capvector"
-            )
+            raise BackboneError(f"{checkpoint} has no {DATA_SPEC_FILE}: export it with capvector")
         return VLAModule(pretrained=str(checkpoint), data_spec=json.loads(spec_file.read_text()))
     if not Path(checkpoint).is_file():
         raise BackboneError(f"checkpoint {checkpoint} does not exist")
     ckpt = torch.load(checkpoint, map_location=map_location, weights_only=False)
-    if "capvector" not in ckpt:
-        raise BackboneError(f"{checkpoint} is not a capvector checkpoint (no `capvector` metadata)")
+    meta = CheckpointMetadata.from_checkpoint(ckpt, str(checkpoint))
     accepted = inspect.signature(VLAModule.__init__).parameters
     # LightningCLI adds bookkeeping entries (`_instantiator`, `_class_path`) to the hparams.
     hparams = {k: v for k, v in ckpt.get("hyper_parameters", {}).items() if k in accepted}
-    meta = ckpt["capvector"]
-    backbone_class(meta["family"])  # clear error for an unknown family
+    backbone_class(meta.family)  # clear error for an unknown family
     # The checkpoint holds every weight and the resolved architecture: the θ_pre folder it started
     # from may be gone, so rebuild from the saved config instead of from `pretrained`.
     hparams["pretrained"] = None
-    hparams["backbone"] = meta["backbone_config"]["preset"]
-    hparams["backbone_overrides"] = dict(meta["backbone_config"])
+    hparams["backbone"] = meta.backbone_config["preset"]
+    hparams["backbone_overrides"] = dict(meta.backbone_config)
     module = VLAModule(**hparams)
     module.on_load_checkpoint(ckpt)
     state = {k: v for k, v in ckpt["state_dict"].items() if not k.startswith("objectives.")}

@@ -29,10 +29,8 @@ from torch import Tensor, nn
 from capvector.errors import CapVectorError
 from capvector.fileio import atomic_directory
 from capvector.modelcard import render_model_card, write_model_card
+from capvector.names import EXPORT_CONFIG, EXPORT_FORMAT, EXPORT_INDEX, EXPORT_WEIGHTS
 
-EXPORT_FORMAT = "capvector-export"
-CONFIG_FILE = "config.json"
-WEIGHTS_FILE = "model.safetensors"
 EMBEDDING_PARAMETERS = "embedding_parameters"
 
 
@@ -240,9 +238,9 @@ class VLABackbone(nn.Module, ABC):
         tensors = dict(state_dict if state_dict is not None else self.state_dict())
         tensors = {k: v.detach().to("cpu").contiguous() for k, v in tensors.items()}
         with atomic_directory(folder, overwrite=overwrite) as tmp:
-            save_file(tensors, str(tmp / WEIGHTS_FILE), metadata={"format": "pt"})
+            save_file(tensors, str(tmp / EXPORT_WEIGHTS), metadata={"format": "pt"})
             config = {**self.export_config(), **(config_extra or {})}
-            (tmp / CONFIG_FILE).write_text(json.dumps(config, indent=2))
+            (tmp / EXPORT_CONFIG).write_text(json.dumps(config, indent=2))
             for name, content in (extra_json or {}).items():
                 (tmp / name).write_text(json.dumps(content, indent=2))
             if self.tokenizer is not None:
@@ -429,9 +427,9 @@ def build_backbone(preset: str, /, **overrides: Any) -> VLABackbone:
 
 
 def load_export_config(folder: str | Path) -> dict[str, Any]:
-    path = Path(folder) / CONFIG_FILE
+    path = Path(folder) / EXPORT_CONFIG
     if not path.is_file():
-        raise BackboneError(f"{folder} has no {CONFIG_FILE}: it is not a capvector export folder")
+        raise BackboneError(f"{folder} has no {EXPORT_CONFIG}: it is not a capvector export folder")
     config = json.loads(path.read_text())
     if config.get("format") != EXPORT_FORMAT:
         raise BackboneError(
@@ -450,7 +448,7 @@ def from_pretrained(folder: str | Path, **overrides: Any) -> VLABackbone:
     model = cls.from_config_dict(merge_nested(config["backbone_config"], overrides))
     model.load_tokenizer(folder)
     state = (
-        load_file(str(Path(folder) / WEIGHTS_FILE))
+        load_file(str(Path(folder) / EXPORT_WEIGHTS))
         if _single_file(folder)
         else read_sharded(folder)
     )
@@ -459,18 +457,16 @@ def from_pretrained(folder: str | Path, **overrides: Any) -> VLABackbone:
 
 
 def _single_file(folder: str | Path) -> bool:
-    return (Path(folder) / WEIGHTS_FILE).is_file()
+    return (Path(folder) / EXPORT_WEIGHTS).is_file()
 
 
-def read_sharded(
-    folder: str | Path, index_name: str = "model.safetensors.index.json"
-) -> dict[str, Tensor]:
+def read_sharded(folder: str | Path, index_name: str = EXPORT_INDEX) -> dict[str, Tensor]:
     """All tensors of a sharded safetensors folder (HF layout: index JSON + shards)."""
     from safetensors.torch import load_file
 
     index_path = Path(folder) / index_name
     if not index_path.is_file():
-        raise BackboneError(f"{folder} has neither {WEIGHTS_FILE} nor {index_name}")
+        raise BackboneError(f"{folder} has neither {EXPORT_WEIGHTS} nor {index_name}")
     weight_map: dict[str, str] = json.loads(index_path.read_text())["weight_map"]
     state: dict[str, Tensor] = {}
     for shard in sorted(set(weight_map.values())):

@@ -29,31 +29,27 @@ from torch import Tensor
 from capvector.errors import CapVectorError  # noqa: F401 (re-exported: the vector tools' error)
 from capvector.fileio import atomic_directory, check_new_output
 from capvector.lora_layers import LoraFormatError, LoraLayer, split_lora
-
-# File names of an export folder; the writer is ``capvector.backbones.base`` (``VLABackbone.
-# save_pretrained``). Repeated here because ``vectors`` sits below ``backbones`` and imports nothing
-# from it.
-EXPORT_FORMAT = "capvector-export"
-EXPORT_CONFIG = "config.json"
-EXPORT_WEIGHTS = "model.safetensors"
-EXPORT_INDEX = "model.safetensors.index.json"
-
-VECTOR_FORMAT = "capvector-vector"
-VECTOR_META = "capability_vector.json"
-VECTOR_WEIGHTS = "capability_vector.safetensors"
-VECTOR_INDEX = "capability_vector.safetensors.index.json"
-ADAPTER_CONFIG = "adapter_config.json"
-ADAPTER_WEIGHTS = "adapter_model.safetensors"
+from capvector.names import (  # noqa: F401 (re-exported: the vector modules' names)
+    ADAPTER_CONFIG,
+    ADAPTER_WEIGHTS,
+    CHECKPOINT_MODEL_PREFIX,
+    CHECKPOINT_OBJECTIVES_PREFIX,
+    EXPORT_CONFIG,
+    EXPORT_FORMAT,
+    EXPORT_INDEX,
+    EXPORT_WEIGHTS,
+    VECTOR_FORMAT,
+    VECTOR_INDEX,
+    VECTOR_META,
+    VECTOR_WEIGHTS,
+    CheckpointMetadata,
+)
 
 DEFAULT_MAX_SHARD_SIZE = 2 * 10**9
 """2 GB, counted like transformers' ``max_shard_size="2GB"``."""
 CHUNK_BYTES = 32 * 1024**2
 """Row chunks are sized so that one chunk in float32 takes about this many bytes: a handful of
 chunk-sized temporaries stay well under the 1 GB budget next to torch's own ~0.5 GB."""
-
-# Names of the checkpoint's top-level modules (``VLAModule``): the model and the auxiliary losses.
-CHECKPOINT_MODEL_PREFIX = "backbone."
-CHECKPOINT_OBJECTIVES_PREFIX = "objectives."
 
 
 def examples(items: Sequence[str], n: int = 3) -> str:
@@ -397,16 +393,17 @@ class CheckpointSource(WeightSource):
             raise CapVectorError(
                 f"{self.path} has no `state_dict`: it is not a Lightning checkpoint"
             )
-        meta = checkpoint.get("capvector") or {}
+        meta = CheckpointMetadata.from_checkpoint(checkpoint, str(self.path))
         self.config = {
-            k: v
-            for k, v in meta.items()
-            if k in ("capability_parameters", "embedding_parameters", "family", "preset")
+            "family": meta.family,
+            "preset": meta.backbone_config.get("preset"),
+            "capability_parameters": meta.capability_parameters,
+            "embedding_parameters": meta.embedding_parameters,
         }
         objective_names = sorted(
             {k.split(".")[1] for k in state if k.startswith(CHECKPOINT_OBJECTIVES_PREFIX)}
         )
-        self.config["objectives"] = meta.get("objectives", objective_names) or None
+        self.config["objectives"] = meta.objectives or objective_names or None
         model = {
             k[len(CHECKPOINT_MODEL_PREFIX) :]: v
             for k, v in state.items()
@@ -418,7 +415,7 @@ class CheckpointSource(WeightSource):
                 "is it a capvector checkpoint?"
             )
         self._tensors: dict[str, Tensor | tuple[Tensor, LoraLayer]] = {}
-        self._merge_lora(model, meta.get("lora"))
+        self._merge_lora(model, meta.lora)
 
     def _merge_lora(self, model: dict[str, Tensor], lora: Mapping[str, Any] | None) -> None:
         # Lazily: a weight with LoRA is kept as (base, layer) and merged rows at a time on read.

@@ -16,7 +16,8 @@ import torch
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
-from capvector.modelcard import MODEL_CARD, render_model_card, write_model_card
+from capvector.modelcard import render_model_card, write_model_card
+from capvector.names import MODEL_CARD
 from capvector.vectors.io import (
     EXPORT_CONFIG,
     CapVectorError,

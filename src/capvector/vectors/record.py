@@ -13,11 +13,9 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from capvector.names import MERGED_VECTORS  # noqa: F401 (re-exported: the record's field)
 from capvector.vectors.io import CapVectorError
 from capvector.vectors.vector import VectorFolder
-
-MERGED_VECTORS = "merged_vectors"
-"""The field of ``config.json`` / checkpoint metadata that holds the record."""
 
 BY_MERGE = "capvector merge"
 BY_FIT_START = "MergeCapabilityVector"

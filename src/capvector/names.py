@@ -1,0 +1,77 @@
+"""File names of the folders capvector writes, and the metadata record of its checkpoints.
+
+One leaf module that imports nothing of the project: the writers (``VLABackbone.save_pretrained``,
+``VLAModule``) and the readers (``capvector.vectors``, which must not import Lightning or the
+backbones) take their names from here, so a renamed file cannot leave a reader behind.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+from capvector.errors import CapVectorError
+
+# An export folder (VLABackbone.save_pretrained, VLAModule.export, capvector merge).
+EXPORT_FORMAT = "capvector-export"
+EXPORT_CONFIG = "config.json"
+EXPORT_WEIGHTS = "model.safetensors"
+EXPORT_INDEX = "model.safetensors.index.json"
+DATA_SPEC_FILE = "capvector_data_spec.json"
+STATISTICS_FILE = "dataset_statistics.json"
+MODEL_CARD = "README.md"
+
+# A capability vector folder (capvector extract / compose), and its PEFT LoRA adapter form.
+VECTOR_FORMAT = "capvector-vector"
+VECTOR_META = "capability_vector.json"
+VECTOR_WEIGHTS = "capability_vector.safetensors"
+VECTOR_INDEX = "capability_vector.safetensors.index.json"
+ADAPTER_CONFIG = "adapter_config.json"
+ADAPTER_WEIGHTS = "adapter_model.safetensors"
+
+# A Lightning checkpoint of VLAModule: its top-level modules, and where the metadata sits.
+CHECKPOINT_MODEL_PREFIX = "backbone."
+CHECKPOINT_OBJECTIVES_PREFIX = "objectives."
+CHECKPOINT_METADATA = "capvector"
+MERGED_VECTORS = "merged_vectors"
+
+
+@dataclass(frozen=True)
+class CheckpointMetadata:
+    """``checkpoint["capvector"]``: what tools outside Lightning need to read a checkpoint.
+
+    ``VLAModule.on_save_checkpoint`` writes it; ``load_module`` and ``vectors.io`` read it.
+    """
+
+    family: str
+    backbone_config: Mapping[str, Any]
+    capability_parameters: list[str] = field(default_factory=list)
+    embedding_parameters: list[str] = field(default_factory=list)
+    lora: Mapping[str, Any] | None = None
+    """``{r, alpha, scaling}`` when the checkpoint holds unmerged LoRA layers."""
+    data_spec: Mapping[str, Any] = field(default_factory=dict)
+    objectives: list[str] = field(default_factory=list)
+    merged_vectors: list[Mapping[str, Any]] = field(default_factory=list)
+    """``capvector.vectors.record`` entries: the vectors merged into these weights."""
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_checkpoint(cls, checkpoint: Mapping[str, Any], source: str) -> CheckpointMetadata:
+        """The record of a loaded checkpoint; a clear error when it is not a capvector one."""
+        meta = checkpoint.get(CHECKPOINT_METADATA) if isinstance(checkpoint, Mapping) else None
+        if not isinstance(meta, Mapping):
+            raise CapVectorError(
+                f"{source} is not a capvector checkpoint (no `{CHECKPOINT_METADATA}` metadata); "
+                "train it with `capvector fit` or pass an export folder"
+            )
+        missing = [k for k in ("family", "backbone_config") if k not in meta]
+        if missing:
+            raise CapVectorError(
+                f"{source}: checkpoint metadata lacks {', '.join(missing)}; it was not written by "
+                "capvector's VLAModule"
+            )
+        known = cls.__dataclass_fields__
+        return cls(**{k: v for k, v in meta.items() if k in known and v is not None})
