@@ -57,3 +57,32 @@ def test_variant_seed_depends_on_name_and_seed_only() -> None:
 def test_unknown_variant_names_the_known_ones() -> None:
     with pytest.raises(KeyError, match="known: camera, camera-strong"):
         get_variant("fog")
+
+
+def test_the_evaluator_runs_variants_and_names_them_in_rows_and_videos(tmp_path) -> None:
+    from capvector.evaluation import format_success_table, success_rows
+    from capvector.sim.episodes import eval_specs
+    from capvector.sim.rollout import EnvCache, RolloutEvaluator
+
+    def still(observation):
+        return np.zeros((4, 7))
+
+    specs = eval_specs("Lift", 1, max_steps=4) + eval_specs("Lift", 1, max_steps=4, variant="all")
+    arm = eval_specs("Lift", 1, max_steps=4, variant="ur5e")
+    assert (arm[0].robot, arm[0].gripper, arm[0].variant) == ("UR5e", "PandaGripper", None)
+    envs = EnvCache()
+    evaluator = RolloutEvaluator(("agentview",), 32, videos=2, video_dir=tmp_path, envs=envs)
+    try:
+        plain, varied = evaluator.run(still, specs)
+    finally:
+        envs.close()
+    assert (plain.variant, varied.variant) == (None, "all") and plain.seed == varied.seed
+    assert np.abs(plain.frames[0].astype(int) - varied.frames[0].astype(int)).mean() > 1.0
+    assert sorted(p.name for p in tmp_path.glob("*.mp4")) == [
+        f"Lift_Panda_all_seed{SEED}.mp4",
+        f"Lift_Panda_seed{SEED}.mp4",
+    ]
+    rows = success_rows([plain, varied])
+    assert [r.variant for r in rows] == [None, "all"]
+    assert rows[1].outcomes == ((SEED, False),)
+    assert "| Lift | Panda | all | 0% (0/1; 0%–79%) | 4.0 |" in format_success_table(rows)

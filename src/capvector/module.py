@@ -25,7 +25,7 @@ from capvector.backbones.base import (
     from_pretrained,
     load_export_config,
 )
-from capvector.data.episodes import EpisodeItem
+from capvector.data.episodes import EpisodeDataset, EpisodeItem
 from capvector.data.spec import DataSpec
 from capvector.distributed import full_state_dict, is_rank_zero, parallelize
 from capvector.lora import (
@@ -45,6 +45,7 @@ from capvector.names import (
 )
 from capvector.objectives.base import Objective
 from capvector.policy import VLAPolicy
+from capvector.sim.episodes import DEFAULT_ROBOT, EpisodeSpec
 from capvector.vectors.io import dtype_name
 from capvector.vectors.record import MergedVector, read_record, record_dicts
 
@@ -235,8 +236,8 @@ class VLAModule(L.LightningModule):
         datamodule = (
             getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
         )
-        for task in getattr(datamodule, "eval_tasks", None) or []:
-            key = _task_key(task.task, task.robot)
+        for spec in EpisodeDataset(getattr(datamodule, "eval_tasks", None) or []).specs:
+            key = _task_key(spec)
             if key not in self.success_rates:
                 self.success_rates[key] = SuccessRate()
         if self.success_rates and "all" not in self.success_rates:
@@ -259,20 +260,9 @@ class VLAModule(L.LightningModule):
         )  # fmt: skip
 
     def _rollout(self, item: EpisodeItem) -> None:
-        from capvector.sim.rollout import run_episode
-
-        spec = self.data_spec
-        result = run_episode(
-            VLAPolicy(self.backbone, spec),
-            item.spec,
-            cameras=spec.cameras,
-            image_size=spec.image_size,
-            camera_fovy=spec.camera_fovy,
-            video=item.index < self.rollout.videos,
-            execute_steps=self.rollout.execute_steps,
+        (result,) = self._evaluator().run(
+            VLAPolicy(self.backbone, self.data_spec), [item.spec], [item.index]
         )
-        if result.frames:
-            self._write_video(result)
         if not item.counted:
             return  # padding that keeps ranks in step
         self.episode_count.update(1.0)
@@ -284,7 +274,7 @@ class VLAModule(L.LightningModule):
             reduce_fx="sum",
             add_dataloader_idx=False,
         )
-        for key in (_task_key(item.spec.task, item.spec.robot), "all"):
+        for key in (_task_key(item.spec), "all"):
             metric = self.success_rates[key]
             metric.update(result.success)
             name = "val/success_rate" if key == "all" else f"val/success_rate/{key}"
@@ -302,14 +292,18 @@ class VLAModule(L.LightningModule):
         root = Path(self.trainer.log_dir or self.trainer.default_root_dir)
         self._video_dir = root / "videos" / f"step{self.global_step:06d}"
 
-    def _write_video(self, result: Any) -> None:
-        from capvector.sim.video import write_video
+    def _evaluator(self) -> Any:
+        from capvector.sim.rollout import RolloutEvaluator
 
-        write_video(
-            result.frames, self._video_dir / f"{result.task}_{result.robot}_seed{result.seed}.mp4"
+        spec = self.data_spec
+        return RolloutEvaluator(
+            cameras=spec.cameras,
+            image_size=spec.image_size,
+            camera_fovy=spec.camera_fovy,
+            execute_steps=self.rollout.execute_steps,
+            videos=self.rollout.videos,
+            video_dir=self._video_dir,
         )
-
-    # -- optimisation ------------------------------------------------------------------------
 
     # -- optimisation ------------------------------------------------------------------------
 
@@ -396,8 +390,10 @@ def _as(cls: type[T], value: T | Mapping[str, Any] | None) -> T | None:
     return cls(**value) if isinstance(value, Mapping) else value
 
 
-def _task_key(task: str, robot: str) -> str:
-    return task if robot == "Panda" else f"{task}_{robot}"
+def _task_key(spec: EpisodeSpec) -> str:
+    """The metric's name: the task, then the arm and the scene variant when not the defaults."""
+    robot = "" if spec.robot == DEFAULT_ROBOT else f"_{spec.robot}"
+    return f"{spec.task}{robot}" + (f"_{spec.variant}" if spec.variant else "")
 
 
 def _schedule(settings: OptimizerSettings, total_steps: int | None) -> Any:

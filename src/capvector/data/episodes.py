@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 from torch.utils.data import Dataset, DistributedSampler
 
-from capvector.sim.rollout import EVAL_SEED_START, EpisodeSpec, eval_specs
+from capvector.sim.episodes import DEFAULT_ROBOT, EVAL_SEED_START, EpisodeSpec, eval_specs
 
 
 @dataclass
@@ -22,12 +22,15 @@ class EvalTask:
 
     task: str
     episodes: int = 10
-    robot: str = "Panda"
+    robot: str = DEFAULT_ROBOT
     start_seed: int = EVAL_SEED_START
     max_steps: int | None = None
     gripper: str | None = None
     """Gripper override for arms whose own gripper lacks 2 finger joints (IIWA, UR5e, Kinova3,
     Jaco take PandaGripper), as the demos were recorded."""
+    variant: str | None = None
+    """A zero-shot scene variant (``capvector.sim.variants``: camera, lighting, color, all,
+    sawyer, ur5e, ...); None evaluates the scene as trained."""
 
 
 @dataclass(frozen=True)
@@ -45,7 +48,7 @@ class EpisodeDataset(Dataset):
         for t in tasks:
             self.specs += eval_specs(
                 t.task, t.episodes, robot=t.robot, start_seed=t.start_seed, max_steps=t.max_steps,
-                gripper=t.gripper,
+                gripper=t.gripper, variant=t.variant,
             )  # fmt: skip
 
     def __len__(self) -> int:

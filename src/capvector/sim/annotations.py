@@ -18,8 +18,8 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from capvector.sim.envs import TaskSpec
 from capvector.sim.experts import ExpertAction
+from capvector.sim.tasks import TaskSpec
 
 # Where a place task puts its object: (position key, "onto ..." phrase, "over ..." phrase).
 _GOALS: dict[str, tuple[str, str, str]] = {

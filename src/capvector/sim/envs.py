@@ -22,13 +22,22 @@ import logging
 import math
 import os
 import weakref
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Mapping, Sequence
 from types import ModuleType
 from typing import Any
 
-import mujoco
-import numpy as np
+# MuJoCo picks its OpenGL backend from MUJOCO_GL when `mujoco` is first imported and defaults to
+# GLFW, which needs a display. Our machines are headless (and may have no GPU: EGL then runs on
+# Mesa's software rasteriser), so default to EGL before mujoco is imported here. robosuite forces
+# EGL too, but only at its own import and only when the variable is not osmesa/glx; a user who
+# exports MUJOCO_GL=osmesa keeps it. Set here, not at package import, so that only code that
+# builds a simulator changes the process environment.
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+
+from capvector.sim.tasks import TASKS, TaskSpec, get_task  # noqa: E402,F401 (re-exported)
 
 # robosuite logs five notices at import and one per controller load; none applies to us (no
 # private macro file is needed, robosuite_models and mink only matter for GR1/humanoids).
@@ -71,64 +80,6 @@ PROPRIO_KEYS: tuple[str, ...] = ("robot0_eef_pos", "robot0_eef_axis_angle", "rob
 """The 8-d proprio, as in OpenVLA-OFT/openpi LIBERO: eef position, axis-angle, 2 finger joints."""
 
 
-def _pick_place_can_target(env: Any) -> dict[str, np.ndarray]:
-    # Centre of the can's compartment in the goal bin (robosuite PickPlace.target_bin_placements).
-    return {"Can_target_pos": np.array(env.target_bin_placements[env.object_id], dtype=np.float64)}
-
-
-@dataclass(frozen=True)
-class TaskSpec:
-    """A robosuite task as the toolkit uses it."""
-
-    env_name: str
-    instruction: str
-    objects: Mapping[str, str]
-    """Position key -> how the annotations name it, e.g. ``{"cube_pos": "red cube"}``."""
-    orientations: tuple[str, ...]
-    """robosuite observation keys of object quaternions (xyzw) kept in the observation."""
-    max_steps: int
-    """Rollout step limit: room above the expert's longest demo, as OFT sets LIBERO's limits."""
-    camera_fovy: Mapping[str, float] = field(default_factory=dict)
-    """Vertical field of view overrides (degrees), applied to the model before rendering."""
-    extra_positions: Callable[[Any], dict[str, np.ndarray]] | None = None
-    """Positions that are not robosuite observations (e.g. a goal), computed from the env."""
-
-
-# Step limits: over 200 seeds (DART noise 0.1) the scripted expert's longest run to success is
-# 57 steps for Lift, 133 for Stack and 209 for PickPlaceCan. OFT puts LIBERO's limits ~10% above
-# the longest *human* demo; a scripted expert is faster and more direct than a learned policy,
-# so these leave 2-2.6x room (Lift 150 and Stack 300 as in the feasibility study's evaluations).
-# agentview fovy: at robosuite's 45 degrees Lift's cube covers ~35 px of a 64x64 image (its
-# geom's pixels at reset); at 35 degrees ~63 px, and the gripper's whole path (start pose to lift
-# height) stays in view. PickPlaceCan's two bins fill the default view already: it keeps 45.
-TASKS: dict[str, TaskSpec] = {
-    "Lift": TaskSpec(
-        env_name="Lift",
-        instruction="lift the red cube",
-        objects={"cube_pos": "red cube"},
-        orientations=("cube_quat",),
-        max_steps=150,
-        camera_fovy={"agentview": 35.0},
-    ),
-    "Stack": TaskSpec(
-        env_name="Stack",
-        instruction="stack the red cube on the green cube",
-        objects={"cubeA_pos": "red cube", "cubeB_pos": "green cube"},
-        orientations=("cubeA_quat", "cubeB_quat"),
-        max_steps=300,
-        camera_fovy={"agentview": 35.0},
-    ),
-    "PickPlaceCan": TaskSpec(
-        env_name="PickPlaceCan",
-        instruction="put the red can in its compartment of the dark bin",
-        objects={"Can_pos": "red can", "Can_target_pos": "can's compartment"},
-        orientations=("Can_quat",),
-        max_steps=400,
-        extra_positions=_pick_place_can_target,
-    ),
-}
-
-
 # Model bugs of robosuite 1.5.2 that stop our controllers, patched after the model is built
 # (and recorded in the demo files' `model_fixes` attr): robot -> [(geom, what was done and why)].
 MODEL_FIXES: dict[str, list[tuple[str, str]]] = {
@@ -140,14 +91,6 @@ MODEL_FIXES: dict[str, list[tuple[str, str]]] = {
         )
     ],
 }
-
-
-def get_task(name: str) -> TaskSpec:
-    """The :class:`TaskSpec` called ``name``, with the known names in the error."""
-    try:
-        return TASKS[name]
-    except KeyError:
-        raise KeyError(f"unknown task {name!r}; known tasks: {', '.join(TASKS)}") from None
 
 
 def make_env_kwargs(

@@ -45,6 +45,8 @@ class EpisodeResult:
     """The seed of the initial state (robosuite) or the index of the fixed init state (LIBERO)."""
     task: str
     robot: str
+    variant: str | None = None
+    """The scene variant the episode ran in (``capvector.sim.variants``); None: as trained."""
 
 
 def as_chunk(actions: Any) -> np.ndarray:

@@ -14,22 +14,25 @@ dimension is binarised: > 0 closes (+1), otherwise opens (-1), the convention of
 robosuite. Success is ``env._check_success()`` after every step; the episode ends at the first
 success or at the step limit (``EpisodeSpec.max_steps``, else the task's default limit).
 
-Seeds: an episode's initial state is a function of its seed alone. Evaluation seeds must not be
-seeds a training demo used; demos start at ``--seed`` (default 0), ``eval_specs`` starts at
-``EVAL_SEED_START`` = 1,000,000.
+Episodes are described by :class:`~capvector.sim.episodes.EpisodeSpec` (seeds, arm, scene
+variant; no simulator import). :class:`RolloutEvaluator` is the one loop every evaluation runs: the
+validation loop of ``VLAModule``, ``capvector evaluate`` and ``capvector sweep-scale``.
 """
 
 from __future__ import annotations
 
 import logging
 from collections import OrderedDict
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
-from capvector.sim.envs import SimEnv, SimulationFault, get_task
+from capvector.sim.envs import SimEnv, SimulationFault
+from capvector.sim.episodes import EVAL_SEED_START, EpisodeSpec, eval_specs
 from capvector.sim.policy import EpisodeResult, Observation, Policy, as_chunk
+from capvector.sim.variants import SceneRandomizer, get_variant
 
 __all__ = [
     "EVAL_SEED_START",
@@ -38,50 +41,14 @@ __all__ = [
     "EpisodeSpec",
     "Observation",
     "Policy",
+    "RolloutEvaluator",
     "close_envs",
     "eval_specs",
     "run_episode",
-    "run_episodes",
     "to_env_action",
 ]
 
 log = logging.getLogger(__name__)
-
-EVAL_SEED_START = 1_000_000
-"""First default evaluation seed; keep demo seeds below it."""
-
-
-@dataclass(frozen=True)
-class EpisodeSpec:
-    """One evaluation episode: the task, the seed of its initial state, the arm."""
-
-    task: str
-    seed: int
-    robot: str = "Panda"
-    max_steps: int | None = None
-    """Step limit; None uses the task's default (``TaskSpec.max_steps``)."""
-    gripper: str | None = None
-    """Gripper override for arms whose default gripper lacks 2 finger joints, e.g. PandaGripper."""
-
-    @property
-    def step_limit(self) -> int:
-        return self.max_steps if self.max_steps is not None else get_task(self.task).max_steps
-
-
-def eval_specs(
-    task: str,
-    episodes: int,
-    *,
-    robot: str = "Panda",
-    start_seed: int = EVAL_SEED_START,
-    max_steps: int | None = None,
-    gripper: str | None = None,
-) -> list[EpisodeSpec]:
-    """``episodes`` specs with consecutive seeds from ``start_seed`` (disjoint from demo seeds)."""
-    return [
-        EpisodeSpec(task, start_seed + i, robot=robot, max_steps=max_steps, gripper=gripper)
-        for i in range(episodes)
-    ]
 
 
 def to_env_action(action: np.ndarray) -> np.ndarray:
@@ -97,13 +64,15 @@ def to_env_action(action: np.ndarray) -> np.ndarray:
 class EnvCache:
     """Keeps built :class:`SimEnv` s for reuse across episodes (``robosuite.make`` costs seconds).
 
-    Keyed by everything that changes the env: task, arm, gripper, cameras, size, depth, fovy.
+    Keyed by everything that changes the env: task, arm, gripper, cameras, size, depth, fovy and
+    scene variant (a variant's env carries its :class:`SceneRandomizer`, see :meth:`randomizer`).
     At most ``max_envs`` are kept; the least recently used one is closed beyond that.
     """
 
     def __init__(self, max_envs: int = 4) -> None:
         self.max_envs = max_envs
         self._envs: OrderedDict[tuple, SimEnv] = OrderedDict()
+        self._randomizers: dict[int, SceneRandomizer] = {}
 
     def get(
         self,
@@ -115,6 +84,7 @@ class EnvCache:
         image_size: int,
         depth: bool = False,
         camera_fovy: Mapping[str, float] | None = None,
+        variant: str | None = None,
     ) -> SimEnv:
         key = (
             task,
@@ -124,6 +94,7 @@ class EnvCache:
             image_size,
             depth,
             tuple(sorted((camera_fovy or {}).items())),
+            variant,
         )
         if key in self._envs:
             self._envs.move_to_end(key)
@@ -138,15 +109,25 @@ class EnvCache:
             camera_fovy=camera_fovy,
         )
         self._envs[key] = sim
+        if variant is not None:
+            self._randomizers[id(sim)] = SceneRandomizer(sim, get_variant(variant))
         while len(self._envs) > self.max_envs:
             _, old = self._envs.popitem(last=False)
-            old.close()
+            self._close(old)
         return sim
+
+    def randomizer(self, sim: SimEnv) -> SceneRandomizer | None:
+        """The scene variant's randomizer of an env this cache built (None: no variant)."""
+        return self._randomizers.get(id(sim))
+
+    def _close(self, sim: SimEnv) -> None:
+        self._randomizers.pop(id(sim), None)
+        sim.close()
 
     def close(self) -> None:
         while self._envs:
             _, sim = self._envs.popitem()
-            sim.close()
+            self._close(sim)
 
     def __len__(self) -> int:
         return len(self._envs)
@@ -197,15 +178,22 @@ def run_episode(
         image_size=image_size,
         depth=depth,
         camera_fovy=camera_fovy,
+        variant=spec.variant,
     )
     limit = spec.step_limit
     sim.reset(spec.seed)
+    if (randomizer := cache.randomizer(sim)) is not None:
+        randomizer.apply(
+            spec.seed
+        )  # the variant's perturbation for this seed, as trained otherwise
     frames: list[np.ndarray] | None = [] if video else None
 
     def result(success: bool, reason: str | None) -> EpisodeResult:
         if reason is not None and not reason.startswith("step limit"):
             log.warning("%s seed %d (%s): %s", spec.task, spec.seed, spec.robot, reason)
-        return EpisodeResult(success, sim.steps, reason, frames, spec.seed, spec.task, spec.robot)
+        return EpisodeResult(
+            success, sim.steps, reason, frames, spec.seed, spec.task, spec.robot, spec.variant
+        )
 
     while sim.steps < limit:
         images, dep = sim.render()
@@ -232,30 +220,59 @@ def run_episode(
     return result(False, f"step limit ({limit}) reached")
 
 
-def run_episodes(
-    policy: Policy,
-    specs: Iterable[EpisodeSpec],
-    *,
-    cameras: Sequence[str],
-    image_size: int,
-    depth: bool = False,
-    videos: int = 0,
-    execute_steps: int | None = None,
-    camera_fovy: Mapping[str, float] | None = None,
-    envs: EnvCache | None = None,
-) -> list[EpisodeResult]:
-    """:func:`run_episode` over ``specs``, keeping video frames for the first ``videos`` ones."""
-    return [
-        run_episode(
-            policy,
-            spec,
-            cameras=cameras,
-            image_size=image_size,
-            depth=depth,
-            video=i < videos,
-            execute_steps=execute_steps,
-            camera_fovy=camera_fovy,
-            envs=envs,
+@dataclass
+class RolloutEvaluator:
+    """The one rollout loop: a policy on a list of episodes, with the settings it was trained for.
+
+    ``cameras``/``image_size``/``camera_fovy`` come from the data spec the policy was trained on;
+    ``execute_steps`` executes only the first k actions of each chunk; the first ``videos``
+    episodes (by their index in the full list) are written as mp4s to ``video_dir``.
+    """
+
+    cameras: Sequence[str]
+    image_size: int
+    camera_fovy: Mapping[str, float] | None = None
+    execute_steps: int | None = None
+    videos: int = 0
+    video_dir: Path | None = None
+    envs: EnvCache | None = None
+
+    def run(
+        self,
+        policy: Policy,
+        specs: Sequence[EpisodeSpec],
+        indices: Sequence[int] | None = None,
+        progress: bool = False,
+    ) -> list[EpisodeResult]:
+        """Results in the order of ``specs``; ``indices`` are their positions in the full episode
+        list (for video selection) when ``specs`` is a part of it."""
+        from tqdm import tqdm
+
+        positions = range(len(specs)) if indices is None else indices
+        bar = tqdm(
+            list(zip(positions, specs, strict=True)),
+            desc="evaluate",
+            unit="episode",
+            disable=not progress,
         )
-        for i, spec in enumerate(specs)
-    ]
+        results = []
+        for index, spec in bar:
+            bar.set_postfix(task=spec.task, seed=spec.seed)
+            video = self.video_dir is not None and index < self.videos
+            result = run_episode(
+                policy, spec, cameras=self.cameras, image_size=self.image_size, depth=False,
+                video=video, execute_steps=self.execute_steps, camera_fovy=self.camera_fovy,
+                envs=self.envs,
+            )  # fmt: skip
+            if result.frames:
+                self._write_video(result)
+            results.append(result)
+        return results
+
+    def _write_video(self, result: EpisodeResult) -> None:
+        from capvector.sim.video import write_video
+
+        assert self.video_dir is not None and result.frames
+        variant = f"_{result.variant}" if result.variant else ""
+        name = f"{result.task}_{result.robot}{variant}_seed{result.seed}.mp4"
+        write_video(result.frames, Path(self.video_dir) / name)

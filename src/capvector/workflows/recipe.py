@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from capvector.errors import CapVectorError, ToolParser
+from capvector.evaluation import SuccessRow, format_success_table
 from capvector.fileio import atomic_write_bytes
 
 DONE = ".done"
@@ -309,27 +310,16 @@ def run(
     return collect_results([stages[n] for n in names])
 
 
-def collect_results(stages: list[Stage]) -> list[dict]:
-    """Rows of every evaluate stage's ``--json`` output, tagged with the stage name."""
+def collect_results(stages: list[Stage]) -> list[SuccessRow]:
+    """Rows of every evaluate stage's ``--json`` output, labelled with the stage name."""
     rows = []
     for stage in stages:
         if stage.command != "evaluate" or "--json" not in stage.args:
             continue
         path = Path(stage.args[stage.args.index("--json") + 1])
         if path.is_file():
-            rows += [{"stage": stage.name, **row} for row in json.loads(path.read_text())]
+            rows += [SuccessRow.from_dict(r, stage.name) for r in json.loads(path.read_text())]
     return rows
-
-
-def format_results(rows: list[dict]) -> str:
-    lines = ["| stage | task | robot | episodes | success | 95% CI |", "|---|---|---|---|---|---|"]
-    for r in rows:
-        low, high = r["ci95"]
-        lines.append(
-            f"| {r['stage']} | {r['task']} | {r['robot']} | {r['episodes']} | "
-            f"{r['success_rate']:.0%} | {low:.0%}–{high:.0%} |"
-        )
-    return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -348,5 +338,5 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     rows = run(args.config, args.overrides, args.dry_run, args.jobs, args.only)
     if rows:
-        print("\nResults\n" + format_results(rows))
+        print("\nResults\n" + format_success_table(rows))
     return 0

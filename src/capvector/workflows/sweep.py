@@ -18,12 +18,10 @@ from tqdm import tqdm
 
 from capvector.data.episodes import EvalTask
 from capvector.errors import ToolParser
+from capvector.evaluation import success_cell, wilson_interval
 from capvector.fileio import atomic_write_bytes
 from capvector.module import load_module
-from capvector.workflows.evaluate import wilson_interval
-
-VALIDATION_SEED_START = 2_000_000
-"""Sweep episodes start here: disjoint from demo seeds and from evaluation seeds (1,000,000+)."""
+from capvector.sim.episodes import VALIDATION_SEED_START
 
 
 def held_out_l1(module: Any, demos: str, batch_size: int = 16) -> float:
@@ -79,7 +77,7 @@ def sweep(
 ) -> list[dict[str, Any]]:
     from capvector.data.episodes import EpisodeDataset
     from capvector.policy import VLAPolicy
-    from capvector.sim.rollout import run_episode
+    from capvector.sim.rollout import RolloutEvaluator
     from capvector.vectors import apply_vector_, load_vector
     from capvector.vectors.precision import MergePrecision
 
@@ -111,13 +109,10 @@ def sweep(
         if demos:
             row["held_out_l1"] = held_out_l1(module, demos)
         if specs:
-            policy = VLAPolicy(module.backbone, module.data_spec)
-            successes = 0
-            for spec in tqdm(specs, desc=f"λ={scale:g} episodes", leave=False):
-                successes += run_episode(
-                    policy, spec, cameras=module.data_spec.cameras, image_size=module.data_spec.image_size,
-                    camera_fovy=module.data_spec.camera_fovy,
-                ).success  # fmt: skip
+            spec = module.data_spec
+            evaluator = RolloutEvaluator(spec.cameras, spec.image_size, spec.camera_fovy)
+            results = evaluator.run(VLAPolicy(module.backbone, spec), specs)
+            successes = sum(r.success for r in results)
             row.update(episodes=len(specs), successes=successes, success_rate=successes / len(specs),
                        ci95=list(wilson_interval(successes, len(specs))))  # fmt: skip
         rows.append(row)
@@ -134,12 +129,9 @@ def best_scale(rows: list[dict[str, Any]]) -> float:
 
 
 def format_table(rows: list[dict[str, Any]]) -> str:
-    lines = ["| λ | success (95% CI) | held-out L1 |", "|---|---|---|"]
+    lines = ["| λ | success (n; 95% CI) | held-out L1 |", "|---|---|---|"]
     for r in rows:
-        success = "–"
-        if "success_rate" in r:
-            low, high = r["ci95"]
-            success = f"{r['success_rate']:.0%} ({low:.0%}–{high:.0%}, {r['episodes']} episodes)"
+        success = success_cell(r["successes"], r["episodes"]) if "successes" in r else "–"
         l1 = f"{r['held_out_l1']:.4f}" if "held_out_l1" in r else "–"
         lines.append(f"| {r['scale']:g} | {success} | {l1} |")
     return "\n".join(lines)

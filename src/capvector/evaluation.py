@@ -1,0 +1,117 @@
+"""Success rates of rollouts: the typed row, its 95% interval and the one table writer.
+
+Every evaluation path (the validation loop's logs aside) ends here: ``capvector evaluate`` and
+``capvector recipe`` print :func:`format_success_table`, ``capvector sweep-scale`` puts
+:func:`success_cell` in its λ table. No simulator or torch import: reading results is cheap.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """95% Wilson score interval of a success rate (robust at 0 and 1 with few episodes)."""
+    if n == 0:
+        return 0.0, 0.0
+    p = successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def success_cell(successes: int, episodes: int) -> str:
+    """``40% (4/10; 17%–69%)``: rate, counts and the 95% Wilson interval in one table cell."""
+    if episodes == 0:
+        return "–"
+    low, high = wilson_interval(successes, episodes)
+    return f"{successes / episodes:.0%} ({successes}/{episodes}; {low:.0%}–{high:.0%})"
+
+
+class _Episode(Protocol):
+    success: bool
+    steps: int
+    reason: str | None
+    task: str
+    robot: str
+    variant: str | None
+    seed: int
+
+
+@dataclass(frozen=True)
+class SuccessRow:
+    """The episodes of one (task, robot, variant): how many, how many succeeded, why others not."""
+
+    task: str
+    robot: str
+    episodes: int
+    successes: int
+    mean_steps: float
+    variant: str | None = None
+    failures: tuple[str, ...] = ()
+    label: str | None = None
+    """Whose row it is in a table of several runs (e.g. a recipe's stage)."""
+    outcomes: tuple[tuple[int, bool], ...] = field(default=(), compare=False)
+    """(seed, success) of every episode, so intervals paired by seed can be recomputed."""
+
+    @property
+    def success_rate(self) -> float:
+        return self.successes / self.episodes if self.episodes else 0.0
+
+    @property
+    def ci95(self) -> tuple[float, float]:
+        return wilson_interval(self.successes, self.episodes)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON form; ``success_rate`` and ``ci95`` are included for readers without this class."""
+        return {
+            "task": self.task, "robot": self.robot, "variant": self.variant,
+            "episodes": self.episodes, "successes": self.successes,
+            "success_rate": self.success_rate, "ci95": list(self.ci95),
+            "mean_steps": self.mean_steps, "failures": list(self.failures),
+            "outcomes": [[seed, bool(ok)] for seed, ok in self.outcomes],
+        }  # fmt: skip
+
+    @classmethod
+    def from_dict(cls, row: Mapping[str, Any], label: str | None = None) -> SuccessRow:
+        return cls(
+            task=row["task"], robot=row["robot"], episodes=int(row["episodes"]),
+            successes=int(row["successes"]), mean_steps=float(row.get("mean_steps", 0.0)),
+            variant=row.get("variant"), failures=tuple(row.get("failures", ())),
+            label=label, outcomes=tuple((int(a), bool(b)) for a, b in row.get("outcomes", ())),
+        )  # fmt: skip
+
+
+def success_rows(results: Iterable[_Episode]) -> list[SuccessRow]:
+    """One row per (task, robot, variant), in the order they first appear."""
+    groups: dict[tuple[str, str, str | None], list[_Episode]] = {}
+    for r in results:
+        groups.setdefault((r.task, r.robot, r.variant), []).append(r)
+    rows = []
+    for (task, robot, variant), episodes in groups.items():
+        rows.append(
+            SuccessRow(
+                task, robot, len(episodes), sum(r.success for r in episodes),
+                sum(r.steps for r in episodes) / len(episodes), variant,
+                tuple(sorted({r.reason for r in episodes if r.reason})),
+                outcomes=tuple((r.seed, r.success) for r in episodes),
+            )
+        )  # fmt: skip
+    return rows
+
+
+def format_success_table(rows: Sequence[SuccessRow]) -> str:
+    """Markdown: a label column when rows carry labels, a variant column when any has one."""
+    labelled = any(r.label for r in rows)
+    varied = any(r.variant for r in rows)
+    head = ["stage"] * labelled + ["task", "robot"] + ["variant"] * varied
+    head += ["success (n; 95% CI)", "mean steps"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        cells = [r.label or ""] * labelled + [r.task, r.robot] + [r.variant or "–"] * varied
+        cells += [success_cell(r.successes, r.episodes), f"{r.mean_steps:.1f}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
