@@ -155,8 +155,8 @@ def test_flow_heads_sample_with_the_configured_steps(head: str) -> None:
     vlm_calls.clear()
     model.train()
     model(batch).loss.backward()
-    # One VLM pass serves the 5 repeated noise samples of the loss, then 3 sampling steps.
-    assert vlm_calls == [1] and calls == [10, 2, 2, 2]
+    # One VLM pass serves the 5 repeated noise samples of the loss; training does not sample.
+    assert vlm_calls == [1] and calls == [10]
 
 
 def test_flow_head_ignores_vlm_padding() -> None:
@@ -503,3 +503,30 @@ def test_cli_composes_the_config_fragment(tmp_path: Path) -> None:
     # The Lightning checkpoint reloads strictly (the tied lm_head is restored from the embeddings).
     restored = load_module(next((version / "checkpoints").glob("*.ckpt"))).eval()
     assert isinstance(restored.backbone, StarVLA)
+
+
+@pytest.mark.parametrize("head", ["gr00t", "layerwise"])
+def test_flow_heads_sample_only_when_actions_are_asked_for(head: str) -> None:
+    """Training never runs the sampler (every denoising step) to throw its actions away; a
+    held-out L1 asks for them (one sampler run), inference always gets them."""
+    model = tiny(head).eval()
+    batch = make_batch()
+    calls = []
+    sample = model.action_head.sample
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return sample(*args, **kwargs)
+
+    model.action_head.sample = counted
+    with torch.no_grad():
+        torch.manual_seed(0)
+        trained = model(batch)
+        assert trained.actions is None and trained.loss.ndim == 0 and not calls
+        torch.manual_seed(0)
+        asked = model(batch, OutputRequest(actions=True))
+        assert len(calls) == 1 and asked.actions.shape == (2, 8, 7)
+        torch.testing.assert_close(asked.loss, trained.loss)  # same seeded noise
+        assert torch.isfinite(asked.actions).all()
+        inference = {k: v for k, v in batch.items() if k != keys.ACTIONS}
+        assert model.predict_action(inference).shape == (2, 8, 7) and len(calls) == 2

@@ -25,6 +25,7 @@ from capvector.backbones.base import (
     from_pretrained,
     load_export_config,
 )
+from capvector.data import keys
 from capvector.data.episodes import EpisodeDataset, EpisodeItem
 from capvector.data.spec import DataSpec
 from capvector.distributed import full_state_dict, is_rank_zero, parallelize
@@ -253,10 +254,9 @@ class VLAModule(L.LightningModule):
         if isinstance(batch, EpisodeItem):
             self._rollout(batch)
             return
-        output = self.backbone(batch)
         self.log(
-            "val/action_l1", output.loss, prog_bar=True, sync_dist=True,
-            batch_size=len(batch["instruction"]), add_dataloader_idx=False,
+            "val/action_l1", held_out_action_l1(self.backbone, batch), prog_bar=True,
+            sync_dist=True, batch_size=len(batch["instruction"]), add_dataloader_idx=False,
         )  # fmt: skip
 
     def _rollout(self, item: EpisodeItem) -> None:
@@ -384,6 +384,20 @@ class VLAModule(L.LightningModule):
 
 
 T = TypeVar("T")
+
+
+def held_out_action_l1(backbone: VLABackbone, batch: Mapping[str, Any]) -> Tensor:
+    """Mean L1 between the predicted and the target actions (normalised space).
+
+    For an L1 head this is its loss; for a flow-matching head it is the L1 of the actions its
+    sampler produces (the ones a rollout would execute), not its velocity loss. Pi0.5 returns its
+    one-step denoised estimate with targets (``Pi05.forward``): a cheap stand-in for sampling.
+    """
+    output = backbone(batch, OutputRequest(actions=True))
+    target = batch[keys.ACTIONS]
+    return torch.nn.functional.l1_loss(
+        output.actions.float(), target.to(output.actions.device).float()
+    )
 
 
 def _as(cls: type[T], value: T | Mapping[str, Any] | None) -> T | None:

@@ -86,6 +86,9 @@ class ActionHead(nn.Module, ABC):
     """Whether ``HeadInput.layers`` must hold every VLM layer (else only the last is computed)."""
     accepts_state: ClassVar[bool] = False
     """Whether the head can take the state as an input token (``state_mode='head'``)."""
+    loss_predicts_actions: ClassVar[bool] = False
+    """Whether the training loss computes the predicted actions anyway (an L1 head), so returning
+    them costs nothing; a flow head's loss does not, and predicting would mean sampling."""
 
     def __init__(self, config: Any, dims: HeadDims) -> None:
         super().__init__()
@@ -216,6 +219,7 @@ class OFTHead(ActionHead):
     """Each of the T query tokens' last-layer state -> MLP-ResNet -> one action (B, T, A)."""
 
     config_class = OFTHeadConfig
+    loss_predicts_actions = True
 
     def __init__(self, config: OFTHeadConfig, dims: HeadDims) -> None:
         super().__init__(config, dims)

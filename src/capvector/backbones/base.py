@@ -69,18 +69,27 @@ class OutputRequest:
     """Hidden-state indices to keep: 0 = input embeddings, k = output of decoder layer k (1-based,
     before the final norm). Only these are kept."""
     lm_logits: bool = False
+    actions: bool = False
+    """Predicted actions as well as the loss when the batch has targets (a held-out L1). Without
+    targets (inference) actions always come back; with targets a head returns them only when they
+    cost nothing beyond the loss (an L1 head) or when asked: a flow head would sample for them."""
 
     def merged(self, other: OutputRequest) -> OutputRequest:
         layers = tuple(sorted(set(self.hidden_layers) | set(other.hidden_layers)))
-        return OutputRequest(hidden_layers=layers, lm_logits=self.lm_logits or other.lm_logits)
+        return OutputRequest(
+            hidden_layers=layers,
+            lm_logits=self.lm_logits or other.lm_logits,
+            actions=self.actions or other.actions,
+        )
 
 
 @dataclass
 class VLAOutput:
     """What a forward pass returns. Shapes: B batch, S sequence, H hidden, T chunk, A action dim."""
 
-    actions: Tensor
-    """(B, T, A) predicted actions in normalised action space."""
+    actions: Tensor | None
+    """(B, T, A) predicted actions in normalised action space; None in a training forward whose
+    head would have to sample for them (see ``OutputRequest.actions``)."""
     loss: Tensor | None = None
     """Scalar action loss, when the batch carries target actions."""
     hidden_states: dict[int, Tensor] = field(default_factory=dict)

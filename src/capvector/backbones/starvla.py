@@ -499,7 +499,10 @@ class StarVLA(VLABackbone):
             if keys.ACTIONS in batch:
                 target = batch[keys.ACTIONS].to(head_dtype)
                 seeds = batch.get(keys.NOISE_SEED)  # per-sample flow noise, see draw_flow_noise
-                loss, actions = head.loss_and_actions(cond, target, state, seeds)
+                if request.actions or head.loss_predicts_actions:
+                    loss, actions = head.loss_and_actions(cond, target, state, seeds)
+                else:  # training: a flow head would run every denoising step for nothing
+                    loss, actions = head.loss(cond, target, state, seeds), None
             else:
                 loss, actions = None, head.sample(cond, state)
         logits = self.vlm.lm_head(encoding.normed_last) if request.lm_logits else None

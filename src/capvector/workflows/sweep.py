@@ -20,7 +20,7 @@ from capvector.data.episodes import EvalTask
 from capvector.errors import ToolParser
 from capvector.evaluation import success_cell, wilson_interval
 from capvector.fileio import atomic_write_bytes
-from capvector.module import load_module
+from capvector.module import held_out_action_l1, load_module
 from capvector.sim.episodes import VALIDATION_SEED_START
 
 
@@ -38,7 +38,7 @@ def held_out_l1(module: Any, demos: str, batch_size: int = 16) -> float:
     with torch.no_grad():
         for batch in torch.utils.data.DataLoader(dataset, batch_size=batch_size):
             n = len(batch["instruction"])
-            total += float(module.backbone(batch).loss) * n
+            total += float(held_out_action_l1(module.backbone, batch)) * n
             count += n
     return total / count
 
