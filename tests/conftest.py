@@ -3,6 +3,7 @@ distributed fit script, and the ``slow``/``sim`` markers."""
 
 from __future__ import annotations
 
+import copy
 import json
 import subprocess
 import sys
@@ -109,7 +110,8 @@ def cpu_trainer(max_steps: int, root: Path | None = None, **overrides: object) -
 def restored_registry() -> Iterator[None]:
     """Backbone families and presets registered inside the block are unregistered after it."""
     backbone_registry.list_presets()  # import the built-in families first: they stay registered
-    saved = {name: dict(getattr(backbone_registry, name)) for name in ("_PRESETS", "_FAMILIES")}
+    names = ("_PRESETS", "_FAMILIES", "_loaded")  # _loaded: modules imported for the registry
+    saved = {name: copy.copy(getattr(backbone_registry, name)) for name in names}
     try:
         yield
     finally:

@@ -31,7 +31,9 @@ def fit(module: VLAModule, dm: RobotDataModule, root: Path, steps: int = 4) -> L
 
 def test_lora_trains_only_lora_and_heads(demo_file: Path, tmp_path: Path) -> None:
     dm = datamodule(demo_file)
-    module = VLAModule(data_spec=dm.spec, lora=LoraSettings(r=4, alpha=4))
+    module = VLAModule(
+        backbone="openvla-oft-tiny", data_spec=dm.spec, lora=LoraSettings(r=4, alpha=4)
+    )
     trainable = {n for n, p in module.named_parameters() if p.requires_grad}
     assert trainable and all(
         ".lora_" in n or n.startswith(("backbone.action_head.", "backbone.proprio_projector."))
@@ -53,7 +55,9 @@ def test_lora_trains_only_lora_and_heads(demo_file: Path, tmp_path: Path) -> Non
 
 def test_export_merges_lora_and_reloads_identically(demo_file: Path, tmp_path: Path) -> None:
     dm = datamodule(demo_file)
-    module = VLAModule(data_spec=dm.spec, lora=LoraSettings(r=4, alpha=8))
+    module = VLAModule(
+        backbone="openvla-oft-tiny", data_spec=dm.spec, lora=LoraSettings(r=4, alpha=8)
+    )
     fit(module, dm, tmp_path)
     folder = module.export(tmp_path / "export")
     config = json.loads((folder / "config.json").read_text())
@@ -76,7 +80,9 @@ def test_export_merges_lora_and_reloads_identically(demo_file: Path, tmp_path: P
 
 def test_checkpoint_round_trip_gives_identical_predictions(demo_file: Path, tmp_path: Path) -> None:
     dm = datamodule(demo_file)
-    module = VLAModule(data_spec=dm.spec, lora=LoraSettings(r=4, alpha=4))
+    module = VLAModule(
+        backbone="openvla-oft-tiny", data_spec=dm.spec, lora=LoraSettings(r=4, alpha=4)
+    )
     trainer = fit(module, dm, tmp_path)
     ckpt = tmp_path / "model.ckpt"
     trainer.save_checkpoint(ckpt)
@@ -93,7 +99,7 @@ def test_checkpoint_round_trip_gives_identical_predictions(demo_file: Path, tmp_
 
 def test_pretrained_start_and_data_mismatch(demo_file: Path, tmp_path: Path) -> None:
     dm = datamodule(demo_file)
-    module = VLAModule(data_spec=dm.spec)
+    module = VLAModule(backbone="openvla-oft-tiny", data_spec=dm.spec)
     folder = module.export(tmp_path / "pre")
     started = VLAModule(pretrained=str(folder), data_spec=dm.spec)
     for (name, a), b in zip(
@@ -103,6 +109,12 @@ def test_pretrained_start_and_data_mismatch(demo_file: Path, tmp_path: Path) -> 
     short = RobotDataModule(train_files=[str(demo_file)], chunk_size=4)
     with pytest.raises(BackboneError, match="chunk_size is 8 in the model but 4 in the data"):
         VLAModule(pretrained=str(folder), data_spec=short.spec)
+    same = VLAModule(backbone="openvla-oft-tiny", pretrained=str(folder), data_spec=dm.spec)
+    assert torch.equal(next(same.parameters()), next(started.parameters()))
+    with pytest.raises(BackboneError, match="model.backbone is 'pi05-tiny' but model.pretrained"):
+        VLAModule(backbone="pi05-tiny", pretrained=str(folder), data_spec=dm.spec)
+    with pytest.raises(BackboneError, match="set model.backbone to a preset"):
+        VLAModule(data_spec=dm.spec)
 
 
 def test_schedules() -> None:

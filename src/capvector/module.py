@@ -82,7 +82,7 @@ class VLAModule(L.LightningModule):
 
     def __init__(
         self,
-        backbone: str = "openvla-oft-tiny",
+        backbone: str | None = None,
         backbone_overrides: dict[str, Any] | None = None,
         pretrained: str | None = None,
         data_spec: DataSpec | None = None,
@@ -94,10 +94,12 @@ class VLAModule(L.LightningModule):
     ) -> None:
         """
         Args:
-            backbone: a registered preset (``capvector backbone-info --list``).
+            backbone: a registered preset (``capvector backbone-info --list``), or
+                ``module:preset`` for a backbone defined in any importable module. Give this or
+                ``pretrained``; when both are given they must name the same preset.
             backbone_overrides: config fields to change, e.g. ``{head_blocks: 1}``.
             pretrained: an export folder (θ_pre) to start from instead of random weights; its
-                architecture wins over ``backbone``.
+                architecture is the model's.
             data_spec: cameras, shapes and statistics; the CLI links it from the datamodule.
             lora: fine-tune with LoRA (only LoRA and the heads train) instead of all weights.
             optimizer: AdamW and learning-rate schedule.
@@ -149,11 +151,22 @@ class VLAModule(L.LightningModule):
 
     @staticmethod
     def _build_backbone(
-        preset: str, pretrained: str | None, overrides: dict[str, Any]
+        preset: str | None, pretrained: str | None, overrides: dict[str, Any]
     ) -> VLABackbone:
         if pretrained is None:
+            if preset is None:
+                raise BackboneError(
+                    "no model: set model.backbone to a preset (capvector backbone-info --list) or "
+                    "model.pretrained to an export folder"
+                )
             return build_backbone(preset, **overrides)
         config = load_export_config(pretrained)["backbone_config"]
+        if preset is not None and preset != config["preset"]:
+            raise BackboneError(
+                f"model.backbone is {preset!r} but model.pretrained {pretrained} is a "
+                f"{config['preset']!r} model: drop model.backbone (the export decides the "
+                "architecture) or point model.pretrained at a model of that preset"
+            )
         clashes = {
             k: (config[k], v) for k, v in overrides.items() if k in config and config[k] != v
         }
@@ -448,7 +461,7 @@ def load_module(checkpoint: str | Path, map_location: str = "cpu") -> VLAModule:
     accepted = inspect.signature(VLAModule.__init__).parameters
     # LightningCLI adds bookkeeping entries (`_instantiator`, `_class_path`) to the hparams.
     hparams = {k: v for k, v in ckpt.get("hyper_parameters", {}).items() if k in accepted}
-    backbone_class(meta.family)  # clear error for an unknown family
+    backbone_class(meta.family, meta.backbone_config.get("preset"))  # clear error if unknown
     # The checkpoint holds every weight and the resolved architecture: the θ_pre folder it started
     # from may be gone, so rebuild from the saved config instead of from `pretrained`.
     hparams["pretrained"] = None

@@ -311,14 +311,22 @@ class VLABackbone(nn.Module, ABC):
 
 # -- registry --------------------------------------------------------------------------------
 
-# Family modules are imported on first lookup so `import capvector` stays light.
-_FAMILY_MODULES = (
+# The registry is open: a backbone defined anywhere registers itself with ``register_family`` and
+# ``register_preset`` when its module is imported. Modules are found three ways, all lazily so that
+# `import capvector` stays light: the built-in families below; installed packages that declare an
+# entry point in ENTRY_POINT_GROUP (``[project.entry-points."capvector.backbones"] my_vla =
+# "my_pkg.my_vla"``); and a preset named ``module:preset`` (``my_pkg.my_vla:my-preset``), which
+# imports the module first. The qualified name is what configs, checkpoints and exports record,
+# so they load again wherever the module is importable.
+_BUILTIN_FAMILY_MODULES = (
     "capvector.backbones.openvla_oft",
     "capvector.backbones.pi05",
     "capvector.backbones.starvla",
 )
+ENTRY_POINT_GROUP = "capvector.backbones"
 _FAMILIES: dict[str, type[VLABackbone]] = {}
 _PRESETS: dict[str, Callable[[], BackboneConfig]] = {}
+_loaded: set[str] = set()
 
 B = TypeVar("B", bound=type[VLABackbone])
 
@@ -341,29 +349,71 @@ def register_preset(name: str) -> Callable[[Callable[[], ConfigT]], Callable[[],
     return decorate
 
 
-def _load_families() -> None:
-    for module in _FAMILY_MODULES:
+def _load_families(everything: bool = False) -> None:
+    """Import the built-in family modules; with ``everything`` also the installed entry points
+    (only when a name is not found, so a broken third-party package cannot break the built-ins)."""
+    for module in _BUILTIN_FAMILY_MODULES:
+        _import_family_module(module)
+    if everything and "entry points" not in _loaded:
+        _loaded.add("entry points")
+        from importlib.metadata import entry_points
+
+        for point in entry_points(group=ENTRY_POINT_GROUP):
+            try:
+                point.load()
+            except Exception as err:
+                raise BackboneError(
+                    f"backbone entry point {point.name!r} = {point.value!r} (group "
+                    f"{ENTRY_POINT_GROUP!r}) failed to import: {err}"
+                ) from err
+
+
+def _import_family_module(module: str) -> None:
+    if module in _loaded:
+        return
+    try:
         importlib.import_module(module)
+    except ImportError as err:
+        raise BackboneError(
+            f"cannot import backbone module {module!r} ({err}); install the package that defines "
+            "it or put it on PYTHONPATH"
+        ) from err
+    _loaded.add(module)
+
+
+def _split_preset(preset: str) -> tuple[str | None, str]:
+    """``pkg.mod:name`` -> (``pkg.mod``, ``name``); a plain name has no module."""
+    module, sep, name = preset.rpartition(":")
+    return (module, name) if sep else (None, preset)
 
 
 def list_presets() -> list[str]:
-    _load_families()
+    _load_families(everything=True)
     return sorted(_PRESETS)
 
 
 def preset_config(preset: str, /, **overrides: Any) -> BackboneConfig:
-    """The config of ``preset`` with ``overrides`` applied; unknown names give a clear error."""
+    """The config of ``preset`` (a registered name, or ``module:name`` for a backbone defined in
+    any importable module) with ``overrides`` applied; unknown names give a clear error."""
+    module, name = _split_preset(preset)
     _load_families()
-    if preset not in _PRESETS:
-        close = difflib.get_close_matches(preset, _PRESETS, n=3)
+    if module is not None:
+        _import_family_module(module)
+    if name not in _PRESETS:
+        _load_families(everything=True)
+    if name not in _PRESETS:
+        close = difflib.get_close_matches(name, _PRESETS, n=3)
         hint = f" Did you mean {', '.join(close)}?" if close else ""
         raise BackboneError(
             f"unknown backbone preset {preset!r}.{hint} Known presets: {', '.join(sorted(_PRESETS))}."
+            " A backbone of your own: name it `your.module:preset` or register an entry point "
+            f"in the {ENTRY_POINT_GROUP!r} group."
         )
-    config = _PRESETS[preset]()
+    config = _PRESETS[name]()
     known = {f.name for f in dataclasses.fields(config)}
     values = merge_nested(config.to_dict(), overrides)
-    values["preset"] = values.get("preset") or preset
+    # Recorded as given: a module-qualified name lets checkpoints and exports find the module again.
+    values["preset"] = preset if module is not None else values.get("preset") or preset
     return _config_from_dict(type(config), values, known, preset)
 
 
@@ -422,17 +472,27 @@ def nested_config(cls: type[ConfigT]) -> type[ConfigT]:
     return cls
 
 
-def backbone_class(family: str) -> type[VLABackbone]:
+def backbone_class(family: str, preset: str | None = None) -> type[VLABackbone]:
+    """The class of ``family``; ``preset`` (as a config records it) names the module to import
+    when the family is defined outside the package."""
     _load_families()
+    module, _ = _split_preset(preset or "")
+    if family not in _FAMILIES and module is not None:
+        _import_family_module(module)
     if family not in _FAMILIES:
-        raise BackboneError(f"unknown backbone family {family!r}; known: {sorted(_FAMILIES)}")
+        _load_families(everything=True)
+    if family not in _FAMILIES:
+        raise BackboneError(
+            f"unknown backbone family {family!r}; known: {sorted(_FAMILIES)}. Import the module "
+            f"that defines it, or install its package (entry point group {ENTRY_POINT_GROUP!r})"
+        )
     return _FAMILIES[family]
 
 
 def build_backbone(preset: str, /, **overrides: Any) -> VLABackbone:
     """Build a preset with random weights (use ``torch.device('meta')`` to only count parameters)."""
     config = preset_config(preset, **overrides)
-    return backbone_class(config.family)(config)
+    return backbone_class(config.family, config.preset)(config)
 
 
 def load_export_config(folder: str | Path) -> dict[str, Any]:
@@ -453,7 +513,7 @@ def from_pretrained(folder: str | Path, **overrides: Any) -> VLABackbone:
     from safetensors.torch import load_file
 
     config = load_export_config(folder)
-    cls = backbone_class(config["family"])
+    cls = backbone_class(config["family"], config["backbone_config"].get("preset"))
     model = cls.from_config_dict(merge_nested(config["backbone_config"], overrides))
     model.load_tokenizer(folder)
     state = (
