@@ -18,6 +18,7 @@ import pytest
 import torch
 
 from capvector.backbones import base as backbone_registry
+from capvector.data import keys
 
 CAMERAS = ("agentview", "robot0_eye_in_hand")
 
@@ -126,3 +127,28 @@ def scoped_registry() -> Iterator[None]:
     """Undo the test's backbone registrations (a preset would otherwise outlive its test)."""
     with restored_registry():
         yield
+
+
+def assert_field_changes_the_model(preset: str, overrides: dict, batch: dict) -> None:
+    """Changing config ``overrides`` of ``preset`` changes something: the parameters (names or
+    shapes), or, on the same weights, the training loss or the predicted actions (same seeds)."""
+    from capvector.backbones import build_backbone
+
+    torch.manual_seed(0)
+    base = build_backbone(preset).eval()
+    changed = build_backbone(preset, **overrides).eval()
+    shapes = {k: v.shape for k, v in base.state_dict().items()}
+    if shapes != {k: v.shape for k, v in changed.state_dict().items()}:
+        return  # an architectural field: it changes the parameters themselves
+    changed.load_state_dict(base.state_dict())
+    inference = {k: v for k, v in batch.items() if k != keys.ACTIONS}
+
+    def outputs(model: torch.nn.Module) -> tuple[torch.Tensor, torch.Tensor]:
+        with torch.no_grad():
+            torch.manual_seed(0)
+            loss = model(batch).loss
+            torch.manual_seed(0)
+            return loss, model.predict_action(inference)
+
+    (loss_a, act_a), (loss_b, act_b) = outputs(base), outputs(changed)
+    assert not torch.allclose(loss_a, loss_b) or not torch.allclose(act_a, act_b), overrides

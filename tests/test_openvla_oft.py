@@ -14,6 +14,7 @@ from safetensors.torch import save_file
 from capvector.backbones import BackboneError, OutputRequest, build_backbone, list_presets
 from capvector.backbones.openvla_oft import OpenVLAOFT
 from capvector.data import keys
+from conftest import assert_field_changes_the_model
 
 
 def make_batch(batch_size: int = 2, instructions: list[str] | None = None, seed: int = 0) -> dict:
@@ -314,3 +315,24 @@ def test_a_partial_nested_override_changes_only_the_fields_it_names() -> None:
         backbone="openvla-oft-tiny", backbone_overrides={"featurizer": {"embed_dim": 32}}
     )
     assert module.backbone.config.featurizer == changed.featurizer
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        {"head_blocks": 3},
+        {"film": True},
+        {"prompt_template": "In: {instruction}\nOut: "},
+        {"image_size": 32},
+        {"llm": {"rope_theta": 50.0}},
+        {"llm": {"rms_norm_eps": 0.5}},
+        {"llm": {"num_kv_heads": 2}},
+        {"featurizer": {"act_layer": "gelu_tanh"}},
+        {"featurizer": {"mlp_ratio": 2.0}},
+        {"fused_featurizer": {"global_pool": "avg"}},
+        {"fused_featurizer": {"reg_tokens": 2}},
+    ],
+    ids=lambda o: json.dumps(o),
+)
+def test_config_fields_have_an_effect(overrides: dict) -> None:
+    assert_field_changes_the_model("openvla-oft-tiny", overrides, make_batch())

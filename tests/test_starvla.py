@@ -32,7 +32,7 @@ from capvector.data.datamodule import RobotDataModule
 from capvector.data.hdf5 import HDF5RobotDataset
 from capvector.lora import LoraSettings
 from capvector.module import VLAModule, load_module
-from conftest import CAMERAS, cpu_trainer
+from conftest import CAMERAS, assert_field_changes_the_model, cpu_trainer
 
 REPO = Path(__file__).resolve().parents[1]
 PROPRIO_KEYS = ["robot0_eef_pos", "robot0_eef_axis_angle", "robot0_gripper_qpos"]
@@ -530,3 +530,26 @@ def test_flow_heads_sample_only_when_actions_are_asked_for(head: str) -> None:
         assert torch.isfinite(asked.actions).all()
         inference = {k: v for k, v in batch.items() if k != keys.ACTIONS}
         assert model.predict_action(inference).shape == (2, 8, 7) and len(calls) == 2
+
+
+@pytest.mark.parametrize(
+    ("preset", "overrides"),
+    [
+        ("starvla-tiny-gr00t", {"prompt_template": "task: {instruction}"}),
+        ("starvla-tiny-gr00t", {"image_mean": (0.5, 0.5, 0.5)}),
+        ("starvla-tiny-gr00t", {"image_std": (0.5, 0.5, 0.5)}),
+        ("starvla-tiny-gr00t", {"state_mode": "head"}),
+        ("starvla-tiny-gr00t", {"head_args": {"num_inference_steps": 2}}),
+        ("starvla-tiny-gr00t", {"head_args": {"noise_s": 0.5}}),
+        ("starvla-tiny-gr00t", {"head_args": {"num_future_tokens": 2}}),
+        ("starvla-tiny-gr00t", {"qwen": {"text_config": {"rms_norm_eps": 0.5}}}),
+        ("starvla-tiny-gr00t", {"qwen_version": "qwen3-vl"}),
+        ("starvla-tiny-layerwise", {"head_args": {"num_inference_steps": 2}}),
+        ("starvla-tiny-oft", {"state_mode": "prompt"}),
+        ("starvla-tiny-oft", {"state_mode": "prompt", "state_bins": 8}),
+        ("starvla-tiny-oft", {"head_args": {"num_blocks": 1}}),
+    ],
+    ids=lambda v: v if isinstance(v, str) else json.dumps(v),
+)
+def test_config_fields_have_an_effect(preset: str, overrides: dict) -> None:
+    assert_field_changes_the_model(preset, overrides, make_batch())

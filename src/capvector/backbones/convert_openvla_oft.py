@@ -80,7 +80,7 @@ _NO_EFFECT = {
     "norm_stats": "the same statistics as dataset_statistics.json, which is read",
     "output_projector_states": "a debugging output of the HF class",
     "pad_token_id": "the tokenizer's <PAD>, read with the tokenizer",
-    "pad_to_multiple_of": "copied to the config: the vocabulary padding of the embeddings",
+    "pad_to_multiple_of": "the vocabulary it padded is text_config.vocab_size, which is read",
 }
 # Llama ``text_config`` fields that change the computation, with the only value we support.
 _LLAMA_FIXED = {
@@ -230,7 +230,6 @@ def config_values(
     acts = upstream.get("timm_override_act_layers", [None, None])
     values: dict[str, Any] = {
         "image_size": sizes[0],
-        "pad_to_multiple_of": upstream.get("pad_to_multiple_of", 64),
         "film": film,
         "featurizer": {**_vit_geometry(state, "featurizer"), "act_layer": acts[0] or "gelu"},
         "fused_featurizer": {

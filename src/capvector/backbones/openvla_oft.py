@@ -98,7 +98,6 @@ class OpenVLAOFTConfig(BackboneConfig):
     """The trailing space tokenizes to Llama-2's '▁' (29871), the id OFT's ``predict_action``
     appends to ``...Out:`` and its training prompts carry before the action tokens
     (``PurePromptBuilder``); the parity fixtures check both give the same ids."""
-    pad_to_multiple_of: int = 64
     film: bool = False
     """OFT+: FiLM language conditioning of every ViT block (``prismatic/models/film_vit_wrapper.py``):
     after the attention residual, ``x * (1 + scale(l)) + shift(l)`` with ``l`` the mean input
