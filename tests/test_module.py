@@ -113,8 +113,7 @@ def test_pretrained_start_and_data_mismatch(demo_file: Path, tmp_path: Path) -> 
     assert torch.equal(next(same.parameters()), next(started.parameters()))
     with pytest.raises(BackboneError, match="model.backbone is 'pi05-tiny' but model.pretrained"):
         VLAModule(backbone="pi05-tiny", pretrained=str(folder), data_spec=dm.spec)
-    with pytest.raises(BackboneError, match="set model.backbone to a preset"):
-        VLAModule(data_spec=dm.spec)
+    assert VLAModule(data_spec=dm.spec).backbone.config.preset == "openvla-oft-tiny"
 
 
 def test_schedules() -> None:

@@ -95,8 +95,9 @@ class VLAModule(L.LightningModule):
         """
         Args:
             backbone: a registered preset (``capvector backbone-info --list``), or
-                ``module:preset`` for a backbone defined in any importable module. Give this or
-                ``pretrained``; when both are given they must name the same preset.
+                ``module:preset`` for a backbone defined in any importable module; unset, the
+                architecture is ``pretrained``'s, or ``openvla-oft-tiny`` without ``pretrained``.
+                When both are given they must name the same preset.
             backbone_overrides: config fields to change, e.g. ``{head_blocks: 1}``.
             pretrained: an export folder (θ_pre) to start from instead of random weights; its
                 architecture is the model's.
@@ -154,12 +155,7 @@ class VLAModule(L.LightningModule):
         preset: str | None, pretrained: str | None, overrides: dict[str, Any]
     ) -> VLABackbone:
         if pretrained is None:
-            if preset is None:
-                raise BackboneError(
-                    "no model: set model.backbone to a preset (capvector backbone-info --list) or "
-                    "model.pretrained to an export folder"
-                )
-            return build_backbone(preset, **overrides)
+            return build_backbone(preset or DEFAULT_PRESET, **overrides)
         config = load_export_config(pretrained)["backbone_config"]
         if preset is not None and preset != config["preset"]:
             raise BackboneError(
@@ -397,6 +393,9 @@ class VLAModule(L.LightningModule):
 
 
 T = TypeVar("T")
+
+DEFAULT_PRESET = "openvla-oft-tiny"
+"""What ``capvector fit`` trains when neither ``model.backbone`` nor ``model.pretrained`` is set."""
 
 
 def held_out_action_l1(backbone: VLABackbone, batch: Mapping[str, Any]) -> Tensor:

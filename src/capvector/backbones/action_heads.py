@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from capvector.backbones.base import BackboneError, draw_flow_noise
-from capvector.backbones.openvla_oft import MLPResNet
+from capvector.backbones.common import MLPResNet
 
 # -- the interface -------------------------------------------------------------------------------
 

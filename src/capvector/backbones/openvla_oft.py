@@ -37,6 +37,7 @@ from capvector.backbones.base import (
     register_family,
     register_preset,
 )
+from capvector.backbones.common import IGNORE_INDEX, MLPResNet, check_cameras, right_pad
 from capvector.data import keys
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -320,34 +321,6 @@ class ProprioProjector(nn.Module):
         return self.fc2(F.gelu(self.fc1(proprio)))
 
 
-class MLPResNetBlock(nn.Module):
-    def __init__(self, dim: int) -> None:
-        super().__init__()
-        self.ffn = nn.Sequential(nn.LayerNorm(dim), nn.Linear(dim, dim), nn.ReLU())
-
-    def forward(self, x: Tensor) -> Tensor:
-        return x + self.ffn(x)
-
-
-class MLPResNet(nn.Module):
-    def __init__(self, num_blocks: int, input_dim: int, hidden_dim: int, output_dim: int) -> None:
-        super().__init__()
-        self.layer_norm1 = nn.LayerNorm(input_dim)
-        self.fc1 = nn.Linear(input_dim, hidden_dim)
-        self.relu = nn.ReLU()
-        self.mlp_resnet_blocks = nn.ModuleList(
-            MLPResNetBlock(hidden_dim) for _ in range(num_blocks)
-        )
-        self.layer_norm2 = nn.LayerNorm(hidden_dim)
-        self.fc2 = nn.Linear(hidden_dim, output_dim)
-
-    def forward(self, x: Tensor) -> Tensor:
-        x = self.relu(self.fc1(self.layer_norm1(x)))
-        for block in self.mlp_resnet_blocks:
-            x = block(x)
-        return self.fc2(self.layer_norm2(x))
-
-
 class L1RegressionActionHead(nn.Module):
     """The A hidden states of one timestep, concatenated, -> MLP-ResNet -> A action values."""
 
@@ -527,11 +500,7 @@ class OpenVLAOFT(VLABackbone):
         """
         images: Tensor = batch[keys.IMAGES]
         b, n_cam = images.shape[:2]
-        if n_cam != self.config.num_images:
-            raise BackboneError(
-                f"batch has {n_cam} camera(s) but the backbone was built for "
-                f"num_images={self.config.num_images}; set it to the dataset's camera count"
-            )
+        check_cameras(images, self.config.num_images)
         flat = images.flatten(0, 1)
         size = self.config.image_size
         if flat.shape[-2:] != (size, size):
@@ -577,14 +546,14 @@ class OpenVLAOFT(VLABackbone):
             prompt_ids = tok(prompt, add_special_tokens=False)["input_ids"]
             answer_ids = [*tok(answer, add_special_tokens=False)["input_ids"], tok.eos_token_id]
             rows.append([tok.bos_token_id, *prompt_ids, *answer_ids])
-            label_rows.append([-100] * (1 + len(prompt_ids)) + answer_ids)
-        ids, text_valid = _right_pad(rows, tok.pad_token_id, device)
-        text_labels, _ = _right_pad(label_rows, -100, device)
+            label_rows.append([IGNORE_INDEX] * (1 + len(prompt_ids)) + answer_ids)
+        ids, text_valid = right_pad(rows, tok.pad_token_id, device)
+        text_labels, _ = right_pad(label_rows, IGNORE_INDEX, device)
         text = self.language_model.get_input_embeddings()(ids)
         # Upstream has no text pass with FiLM; this one conditions on BOS and the prompt, as OFT
         # conditions on every non-action token of its row. Not on the answer: the visual tokens
         # precede it, so every answer position would see the tokens it is trained to predict.
-        prompt_only = text_valid & (text_labels == -100)
+        prompt_only = text_valid & (text_labels == IGNORE_INDEX)
         language = _mean_embedding(text, prompt_only) if self.config.film else None
         prefix_tokens = self._prefix_tokens(batch, language)
         embeds, valid = _splice_after_bos(text, text_valid, prefix_tokens)
@@ -592,7 +561,7 @@ class OpenVLAOFT(VLABackbone):
         labels = torch.cat(
             [
                 text_labels[:, :1],
-                text_labels.new_full((ids.shape[0], n_prefix), -100),
+                text_labels.new_full((ids.shape[0], n_prefix), IGNORE_INDEX),
                 text_labels[:, 1:],
             ],
             1,
@@ -627,7 +596,7 @@ class OpenVLAOFT(VLABackbone):
             prompt = self.config.prompt_template.format(instruction=instruction.lower().strip())
             ids = tok(prompt, add_special_tokens=False)["input_ids"]
             rows.append([tok.bos_token_id, *ids, *([tok.pad_token_id] * n_slots), tok.eos_token_id])
-        ids, valid = _right_pad(rows, tok.pad_token_id, device)
+        ids, valid = right_pad(rows, tok.pad_token_id, device)
         starts = torch.tensor([len(r) - 1 - n_slots for r in rows], device=device)
         slots = starts[:, None] + torch.arange(n_slots, device=device)
         return ids, valid, slots
@@ -650,16 +619,6 @@ class OpenVLAOFT(VLABackbone):
         from capvector.backbones.convert_openvla_oft import load_original
 
         return load_original(cls, source, preset, overrides, apply_lora_adapter)
-
-
-def _right_pad(rows: list[list[int]], pad: int, device: torch.device) -> tuple[Tensor, Tensor]:
-    length = max(len(r) for r in rows)
-    ids = torch.full((len(rows), length), pad, dtype=torch.long)
-    valid = torch.zeros((len(rows), length), dtype=torch.bool)
-    for i, row in enumerate(rows):
-        ids[i, : len(row)] = torch.tensor(row)
-        valid[i, : len(row)] = True
-    return ids.to(device), valid.to(device)
 
 
 def _mean_embedding(text: Tensor, keep: Tensor) -> Tensor:

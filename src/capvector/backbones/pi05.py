@@ -50,6 +50,12 @@ from capvector.backbones.base import (
     register_family,
     register_preset,
 )
+from capvector.backbones.common import (
+    IGNORE_INDEX,
+    check_cameras,
+    discretize_state,
+    right_pad,
+)
 from capvector.data import keys
 
 IMAGE_MASK = "image_mask"
@@ -179,23 +185,6 @@ def make_attention_mask(valid: Tensor, ar: Tensor) -> Tensor:
 def positions_from_valid(valid: Tensor) -> Tensor:
     """(B, L) bool -> (B, L) RoPE positions: cumsum(valid) - 1, so padding does not advance them."""
     return torch.cumsum(valid.to(torch.long), dim=1) - 1
-
-
-def discretize_state(state: Tensor, bins: int = 256) -> Tensor:
-    """(B, P) normalised state -> (B, P) integer bins, -1 .. bins - 1.
-
-    openpi ``PaligemmaTokenizer.tokenize`` (``src/openpi/models/tokenizer.py``) and LeRobot
-    ``Pi05PrepareStateTokenizerProcessorStep`` (``processor_pi05.py``):
-    ``np.digitize(s, linspace(-1, 1, bins + 1)[:-1]) - 1``. Inside [-1, 1) that is bin
-    floor((s + 1) / 2 * bins); a value below -1 gives -1 (written "-1" into the prompt) and one at or
-    above 1 gives bins - 1, as upstream: neither clamps, and the quantile normalisation does not
-    clip (``capvector.data.statistics``), so trained checkpoints have seen these values. Edges in
-    float64 as numpy's, so values on a bin edge land in the same bin.
-    """
-    edges = torch.linspace(-1.0, 1.0, bins + 1, dtype=torch.float64, device=state.device)[:-1]
-    values = state.detach().to(torch.float64)
-    # torch.bucketize(right=True) returns i with edges[i-1] <= x < edges[i], as np.digitize.
-    return torch.bucketize(values, edges, right=True) - 1
 
 
 def clean_task(task: str) -> str:
@@ -879,11 +868,7 @@ class Pi05(VLABackbone):
         """Images -> SigLIP -> projector, not scaled: (B, N_cam * patches, W_vlm) and validity."""
         images: Tensor = batch[keys.IMAGES]
         b, n_cam = images.shape[:2]
-        if n_cam != self.config.num_images:
-            raise BackboneError(
-                f"batch has {n_cam} camera(s) but the backbone was built for "
-                f"num_images={self.config.num_images}; set it to the dataset's camera count"
-            )
+        check_cameras(images, self.config.num_images)
         proj = self.multi_modal_projector.linear
         flat = resize_with_pad(images.flatten(0, 1), self.config.image_size)
         features = self.vision_tower((flat * 2 - 1).to(proj.weight.dtype))  # [0, 1] -> [-1, 1]
@@ -958,7 +943,7 @@ class Pi05(VLABackbone):
                 ids = ids[:limit]
             rows.append(ids)
         pad_id = tok.pad_token_id if tok.pad_token_id is not None else 0
-        return _right_pad(rows, pad_id, device)
+        return right_pad(rows, pad_id, device)
 
     def _require_tokenizer(self) -> Any:
         if self.tokenizer is None:
@@ -983,7 +968,7 @@ class Pi05(VLABackbone):
         ``[images] [BOS prompt]`` form one bidirectional block and every answer token (then EOS)
         starts its own block, i.e. causal: the layout of PaliGemma and of openpi's FAST postfix
         (``tokenizer.py`` ``FASTTokenizer``). Logits use the tied embedding; labels are the answer
-        ids at their own positions and -100 elsewhere.
+        ids at their own positions and IGNORE_INDEX elsewhere.
         """
         tok = self._require_tokenizer()
         visual, visual_valid = self.embed_images(batch)
@@ -993,12 +978,12 @@ class Pi05(VLABackbone):
             answer_ids = [*tok(answer, add_special_tokens=False)["input_ids"], tok.eos_token_id]
             rows.append(prompt_ids + answer_ids)
             ar_rows.append([0] * len(prompt_ids) + [1] * len(answer_ids))
-            label_rows.append([-100] * len(prompt_ids) + answer_ids)
+            label_rows.append([IGNORE_INDEX] * len(prompt_ids) + answer_ids)
         device = visual.device
         pad_id = tok.pad_token_id if tok.pad_token_id is not None else 0
-        ids, text_valid = _right_pad(rows, pad_id, device)
-        text_ar, _ = _right_pad(ar_rows, 0, device)
-        text_labels, _ = _right_pad(label_rows, -100, device)
+        ids, text_valid = right_pad(rows, pad_id, device)
+        text_ar, _ = right_pad(ar_rows, 0, device)
+        text_labels, _ = right_pad(label_rows, IGNORE_INDEX, device)
         embeds = torch.cat([visual, self.embed_text(ids).to(visual.dtype)], dim=1)
         valid = torch.cat([visual_valid, text_valid], dim=1)
         ar = torch.cat([torch.zeros_like(visual_valid, dtype=torch.long), text_ar], dim=1)
@@ -1007,7 +992,7 @@ class Pi05(VLABackbone):
         )
         logits = F.linear(self.language_model.norm(out), self.language_model.embed_tokens.weight)
         labels = torch.cat(
-            [torch.full_like(visual_valid, -100, dtype=torch.long), text_labels], dim=1
+            [torch.full_like(visual_valid, IGNORE_INDEX, dtype=torch.long), text_labels], dim=1
         )
         return logits, labels
 
@@ -1075,19 +1060,6 @@ class Pi05(VLABackbone):
         return load_original(
             cls, source, preset, overrides, None if tokenizer is None else str(tokenizer)
         )
-
-
-def _right_pad(
-    rows: Sequence[Sequence[int]], value: int, device: torch.device
-) -> tuple[Tensor, Tensor]:
-    """Ragged rows -> (B, L) right-padded with ``value`` and the (B, L) bool mask of real entries."""
-    length = max(len(r) for r in rows)
-    out = torch.full((len(rows), length), value, dtype=torch.long)
-    valid = torch.zeros((len(rows), length), dtype=torch.bool)
-    for i, row in enumerate(rows):
-        out[i, : len(row)] = torch.tensor(row, dtype=torch.long)
-        valid[i, : len(row)] = True
-    return out.to(device), valid.to(device)
 
 
 def _load_tokenizer(spec: str) -> Any:

@@ -55,6 +55,7 @@ from capvector.backbones.base import (
     register_family,
     register_preset,
 )
+from capvector.backbones.common import IGNORE_INDEX, check_cameras, discretize_state
 from capvector.data import keys
 
 OPENAI_CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)
@@ -529,11 +530,7 @@ class StarVLA(VLABackbone):
         """
         images: Tensor = batch[keys.IMAGES]
         n_cam = images.shape[1]
-        if n_cam != self.config.num_images:
-            raise BackboneError(
-                f"batch has {n_cam} camera(s) but the backbone was built for "
-                f"num_images={self.config.num_images}; set it to the dataset's camera count"
-            )
+        check_cameras(images, self.config.num_images)
         instructions: list[str] = list(batch[keys.INSTRUCTION])
         state = _state(batch) if self.config.state_mode == "prompt" else None
         texts = [
@@ -607,8 +604,7 @@ class StarVLA(VLABackbone):
         only (``gr00t_lerobot/transform/state_action.py``), so states outside [-1, 1] reach the
         prompt. Computed in float64, where the bin edges -1 + 2k/n are exact.
         """
-        n = self.config.state_bins
-        return ((state.double() + 1) * (n / 2)).floor().clamp(-1, n - 1).long()
+        return discretize_state(state, self.config.state_bins)
 
     def tokenize(
         self, texts: Sequence[str], n_images: int, device: torch.device
@@ -653,7 +649,7 @@ class StarVLA(VLABackbone):
         """Qwen's own LM head over a user turn (cameras + prompt) and an assistant turn (answer),
         as StarVLA's VLM co-training (``build_qwenvl_inputs(..., solutions=...)``).
 
-        Labels are -100 except on the answer tokens and the ``<|im_end|>`` closing the turn; rows
+        Labels are IGNORE_INDEX except on the answer tokens and the ``<|im_end|>`` closing the turn; rows
         are left padded like the action pass. The prompt carries no action queries or state: this
         is the VLM's plain next-token objective.
         """
@@ -665,10 +661,10 @@ class StarVLA(VLABackbone):
             prompt_ids = tok.encode(self.render_chat(prompt, n_cam), add_special_tokens=False)
             answer_ids = tok.encode(answer + "<|im_end|>", add_special_tokens=False)
             rows.append(prompt_ids + answer_ids)
-            label_rows.append([-100] * len(prompt_ids) + answer_ids)
+            label_rows.append([IGNORE_INDEX] * len(prompt_ids) + answer_ids)
         length = max(len(r) for r in rows)
         ids = torch.full((len(rows), length), tok.pad_token_id, dtype=torch.long)
-        labels = torch.full((len(rows), length), -100, dtype=torch.long)
+        labels = torch.full((len(rows), length), IGNORE_INDEX, dtype=torch.long)
         for i, (row, label) in enumerate(zip(rows, label_rows, strict=True)):
             ids[i, length - len(row) :] = torch.tensor(row)
             labels[i, length - len(row) :] = torch.tensor(label)
