@@ -128,6 +128,8 @@ class VLABackbone(nn.Module, ABC):
     """peft ``target_modules`` (a list of names or a full-match regex) for LoRA fine-tuning."""
     lora_trainable_modules: ClassVar[tuple[str, ...]] = ()
     """Globs of parameters trained from scratch (heads, projectors) that stay trainable under LoRA."""
+    original_loader: ClassVar[str | None] = None
+    """Module with ``load_original`` for the original project's checkpoints (``from_original``)."""
     capability_parameters: ClassVar[tuple[str, ...]] = ("*",)
     """Globs of the parameters a capability vector covers by default: the pretrained VLM, not task
     heads that a pretrained model does not have."""
@@ -294,14 +296,18 @@ class VLABackbone(nn.Module, ABC):
         architecture comes from the upstream config files that travel with it; ``preset`` names the
         preset those values start from and ``overrides`` changes named fields (a nested mapping
         changes only the fields it names). A config field we do not support is an error naming it.
-        ``options`` are the family's loader options (e.g. StarVLA's ``qwen_folder``). Families that
-        read another project's checkpoints override this; their conversion code lives in a module
-        of its own beside the model file (``convert_<family>.py``).
+        ``options`` are the family's loader options (OpenVLA-OFT's ``apply_lora_adapter``,
+        Pi0.5's ``tokenizer``, StarVLA's ``qwen_folder``). The conversion code lives in the module
+        ``original_loader`` names (``convert_<family>.py`` beside the model file), whose
+        ``load_original(cls, source, preset, overrides, **options)`` documents them.
         """
-        raise BackboneError(
-            f"{cls.__name__} has no loader for an original project's checkpoint; use "
-            "capvector.backbones.from_pretrained for a capvector export folder"
-        )
+        if cls.original_loader is None:
+            raise BackboneError(
+                f"{cls.__name__} has no loader for an original project's checkpoint; use "
+                "capvector.backbones.from_pretrained for a capvector export folder"
+            )
+        loader = importlib.import_module(cls.original_loader)
+        return loader.load_original(cls, source, preset, overrides, **options)
 
     @classmethod
     def from_config_dict(cls, config: Mapping[str, Any]) -> VLABackbone:

@@ -1,7 +1,7 @@
 """Conversion of LeRobot's pi05 policy folders (openpi's PyTorch key layout) into ``Pi05``.
 
 Kept apart from the model file, as HF keeps ``convert_*_original_to_hf.py`` beside ``modeling_*``:
-loading another project's layout is not model code. ``Pi05.from_original`` is the entry point and
+loading another project's layout is not model code. ``Pi05.from_original`` (``VLABackbone.from_original``) is the entry point and
 delegates to ``load_lerobot_policy``.
 
 A LeRobot policy folder (``PI05Policy.save_pretrained`` + the processors' ``save_pretrained``):
@@ -403,15 +403,32 @@ def load_original(
     source: str | Path,
     preset: str | None = None,
     overrides: Mapping[str, Any] | None = None,
-    tokenizer: str | None = None,
+    tokenizer: str | Path | None = None,
 ) -> OriginalCheckpoint:
-    """A LeRobot policy folder or an openpi PyTorch checkpoint folder (told apart by config.json);
-    see ``Pi05.from_original``."""
+    """Load a LeRobot pi05 policy folder or an openpi PyTorch checkpoint strictly, with its
+    config and statistics.
+
+    The folder is what LeRobot's ``PI05Policy.save_pretrained`` and its processors'
+    ``save_pretrained`` write: ``model.safetensors`` (openpi PyTorch key names, optionally under
+    ``model.``), ``config.json`` (``PI05Config``: chunk size, action and state dims, cameras,
+    ``max_action_dim``, inference steps, time sampling, image resolution, tokenizer length,
+    normalisation mapping) and ``policy_preprocessor*`` (the dataset statistics, returned
+    converted to capvector's schema). ``preset`` gives the architecture sizes; ``overrides``
+    changes named fields last (e.g. ``{"chunk_size": 10}`` to fine-tune with another horizon,
+    ``{"prompt_state_dim": 32}`` for a LeRobot <= 0.4.4 policy). An openpi folder
+    (``convert_jax_model_to_pytorch.py`` / ``train_pytorch.py``: the same keys without
+    ``model.``, a five-field ``config.json``, ``assets/<asset_id>/norm_stats.json``) gives the
+    horizon, ``max_action_dim`` and, from the norm stats, the action and state dims; openpi always
+    feeds 3 cameras at 224 px. PaliGemma's tokenizer is not
+    part of these folders: pass ``tokenizer=<folder>`` (a ``google/paligemma-3b-pt-224``
+    download) or keep its files beside the weights.
+    """
     from safetensors.torch import load_file
 
     from capvector.backbones.pi05 import Pi05Config
 
     root = Path(source)
+    tokenizer = None if tokenizer is None else str(tokenizer)
     preset = preset or "pi05-3b"
     if not root.is_dir():
         raise BackboneError(f"checkpoint folder {source} does not exist")

@@ -18,7 +18,6 @@ import dataclasses
 import functools
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -28,7 +27,6 @@ from torch import Tensor, nn
 from capvector.backbones.base import (
     BackboneConfig,
     BackboneError,
-    OriginalCheckpoint,
     OutputRequest,
     VLABackbone,
     VLAOutput,
@@ -338,6 +336,7 @@ class L1RegressionActionHead(nn.Module):
 @register_family
 class OpenVLAOFT(VLABackbone):
     config_class = OpenVLAOFTConfig
+    original_loader = "capvector.backbones.convert_openvla_oft"
 
     # peft full-match regex: OFT uses "all-linear" (every Linear of the LLM, both ViTs and the
     # projector). We leave out SigLIP's attention-pool head: its output is never used, so its LoRA
@@ -600,25 +599,6 @@ class OpenVLAOFT(VLABackbone):
         starts = torch.tensor([len(r) - 1 - n_slots for r in rows], device=device)
         slots = starts[:, None] + torch.arange(n_slots, device=device)
         return ids, valid, slots
-
-    # -- original OpenVLA-OFT checkpoints -----------------------------------------------------
-
-    @classmethod
-    def from_original(
-        cls,
-        source: str | Path,
-        preset: str | None = None,
-        overrides: Mapping[str, Any] | None = None,
-        apply_lora_adapter: bool = False,
-    ) -> OriginalCheckpoint:
-        """Load an OpenVLA-OFT run folder (what ``vla-scripts/finetune.py`` saves) strictly.
-
-        The architecture comes from the folder's ``config.json`` and the shapes of its files; see
-        ``convert_openvla_oft.load_original`` for what is read from where.
-        """
-        from capvector.backbones.convert_openvla_oft import load_original
-
-        return load_original(cls, source, preset, overrides, apply_lora_adapter)
 
 
 def _mean_embedding(text: Tensor, keep: Tensor) -> Tensor:

@@ -41,7 +41,6 @@ from torch import Tensor, nn
 from capvector.backbones.base import (
     BackboneConfig,
     BackboneError,
-    OriginalCheckpoint,
     OutputRequest,
     VLABackbone,
     VLAOutput,
@@ -540,6 +539,7 @@ class PrefixCache:
 @register_family
 class Pi05(VLABackbone):
     config_class = Pi05Config
+    original_loader = "capvector.backbones.convert_pi05"
 
     # peft full-match regex: the linear layers of both Gemma streams (attention and MLP), as openpi's
     # LoRA variants (``gemma_2b_lora`` + ``gemma_300m_lora``). SigLIP and the adaRMS condition
@@ -1025,41 +1025,6 @@ class Pi05(VLABackbone):
             if hidden is not None and prefix is not None and (i + 1) in hidden_layers:
                 hidden[i + 1] = prefix
         return prefix, suffix, kv
-
-    # -- LeRobot / openpi checkpoints --------------------------------------------------------
-
-    @classmethod
-    def from_original(
-        cls,
-        source: str | Path,
-        preset: str | None = None,
-        overrides: Mapping[str, Any] | None = None,
-        tokenizer: str | Path | None = None,
-    ) -> OriginalCheckpoint:
-        """Load a LeRobot pi05 policy folder or an openpi PyTorch checkpoint strictly, with its
-        config and statistics.
-
-        The folder is what LeRobot's ``PI05Policy.save_pretrained`` and its processors'
-        ``save_pretrained`` write: ``model.safetensors`` (openpi PyTorch key names, optionally under
-        ``model.``), ``config.json`` (``PI05Config``: chunk size, action and state dims, cameras,
-        ``max_action_dim``, inference steps, time sampling, image resolution, tokenizer length,
-        normalisation mapping) and ``policy_preprocessor*`` (the dataset statistics, returned
-        converted to capvector's schema). ``preset`` gives the architecture sizes; ``overrides``
-        changes named fields last (e.g. ``{"chunk_size": 10}`` to fine-tune with another horizon,
-        ``{"prompt_state_dim": 32}`` for a LeRobot <= 0.4.4 policy). An openpi folder
-        (``convert_jax_model_to_pytorch.py`` / ``train_pytorch.py``: the same keys without
-        ``model.``, a five-field ``config.json``, ``assets/<asset_id>/norm_stats.json``) gives the
-        horizon, ``max_action_dim`` and, from the norm stats, the action and state dims; openpi always
-        feeds 3 cameras at 224 px. PaliGemma's tokenizer is not
-        part of these folders: pass ``tokenizer=<folder>`` (a ``google/paligemma-3b-pt-224``
-        download) or keep its files beside the weights. The conversion lives in
-        ``capvector.backbones.convert_pi05``.
-        """
-        from capvector.backbones.convert_pi05 import load_original
-
-        return load_original(
-            cls, source, preset, overrides, None if tokenizer is None else str(tokenizer)
-        )
 
 
 def _load_tokenizer(spec: str) -> Any:

@@ -45,7 +45,6 @@ from capvector.backbones.action_heads import HeadDims, HeadInput, build_head, he
 from capvector.backbones.base import (
     BackboneConfig,
     BackboneError,
-    OriginalCheckpoint,
     OutputRequest,
     VLABackbone,
     VLAOutput,
@@ -373,6 +372,7 @@ class StarVLA(VLABackbone):
     """Qwen-VL (``vlm``, a transformers ``*ForConditionalGeneration``) + action head (``action_head``)."""
 
     config_class = StarVLAConfig
+    original_loader = "capvector.backbones.convert_starvla"
     # peft full-match regex: every Linear of the Qwen language model, the vision blocks and the
     # patch mergers (Qwen2.5-VL: merger.mlp.0/2, gate/up/down MLPs; Qwen3-VL: linear_fc1/2 and the
     # deepstack mergers). lm_head is left out: it is tied to the embeddings and unused by the heads.
@@ -906,89 +906,6 @@ class StarVLA(VLABackbone):
         if head_weights is not None:
             model.load_head_weights(head_weights)
         return model
-
-    @classmethod
-    def from_original(
-        cls,
-        source: str | Path,
-        preset: str | None = None,
-        overrides: Mapping[str, Any] | None = None,
-        qwen_folder: str | Path | None = None,
-    ) -> OriginalCheckpoint:
-        """A StarVLA run (its folder or ``checkpoints/steps_N_*`` file) with the Qwen-VL folder it
-        started from, read by ``convert_starvla`` (config.yaml -> config, key map, statistics); or,
-        without ``qwen_folder``, a plain transformers Qwen-VL folder as the VLM with a fresh head
-        (``from_qwen``).
-
-        For a run, ``preset`` defaults to the full-size preset of the run's framework and Qwen
-        version; the run's config.yaml then sets every field it decides, and ``overrides`` last.
-        """
-        if qwen_folder is None:
-            preset = preset or "starvla-qwen2.5-vl-3b-oft"
-            model = cls.from_qwen(source, preset, **(overrides or {}))
-            return OriginalCheckpoint(model, {})
-        return _from_starvla_run(cls, source, Path(qwen_folder), preset, overrides)
-
-
-def _from_starvla_run(
-    cls: type[StarVLA],
-    source: str | Path,
-    qwen_folder: Path,
-    preset: str | None,
-    overrides: Mapping[str, Any] | None,
-) -> OriginalCheckpoint:
-    from capvector.backbones import convert_starvla as conv
-
-    run = conv.read_run(source)
-    root = _folder(qwen_folder)
-    model_type = json.loads((root / "config.json").read_text()).get("model_type")
-    versions = [k for k, v in QWEN_VERSIONS.items() if v.model_type == model_type]
-    if not versions:
-        raise BackboneError(
-            f"{root} holds a {model_type!r} model; StarVLA runs on {sorted(QWEN_VERSIONS)} import"
-        )
-    version = QWEN_VERSIONS[versions[0]]
-    config_class, model_class = version.classes()
-    hf_config = config_class.from_pretrained(str(root))
-    vision = hf_config.vision_config
-    derived = conv.config_overrides(
-        run.config, root, vision.patch_size * vision.spatial_merge_size, run.statistics
-    )
-    derived["qwen_version"] = versions[0]
-    head = derived["head"]
-    if preset is None:
-        size = "4b" if versions[0] == "qwen3-vl" else "3b"
-        preset = f"starvla-{versions[0]}-{size}-{head}"
-    config = _starvla_config(preset, conv.merged_overrides(derived, overrides))
-    # The run decides every head field: the preset's head_args (e.g. a tiny preset's, or another
-    # head's) do not leak in; the caller's head_args still change the fields they name.
-    config.head_args = conv.merged_overrides(
-        derived["head_args"], (overrides or {}).get("head_args") or {}
-    )
-    _check_model_type(root, _qwen_version(config.qwen_version), config.qwen_version)
-    config.qwen = _architecture(hf_config)
-    _read_image_statistics(root, config)
-    config.tokenizer = str(root)
-    # fp32 as from_qwen; transformers would otherwise build in the folder's dtype (bf16).
-    vlm = model_class._from_config(
-        hf_config, attn_implementation=config.attn_implementation, dtype=torch.float32
-    )
-    model = cls(config, vlm=vlm, tokenizer=_load_tokenizer(str(root)))
-    # The run's state encoder is dropped only where StarVLA never runs it (decided from the run,
-    # not from the model we built): overriding a state-trained GR00T run to state_mode='none'
-    # then fails on its unexpected state_encoder keys instead of silently losing the state token.
-    state = conv.starvla_key_map(
-        conv.read_state(run.checkpoint),
-        config.head,
-        uses_state_encoder=derived.get("state_mode") == "head",
-        tied=_tied(model),
-    )
-    load_state_dict_strictly(model, state, source=str(run.checkpoint))
-    return OriginalCheckpoint(
-        model,
-        conv.convert_statistics(run.statistics),
-        {"config.yaml": run.config, "dataset_statistics.json": run.statistics},
-    )
 
 
 @dataclass
