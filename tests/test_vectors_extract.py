@@ -166,7 +166,7 @@ def test_input_errors_name_the_tensors(tmp_path: Path, models) -> None:
     base = write_export(tmp_path / "base", no_head)
     with pytest.raises(
         CapVectorError,
-        match=r"base lacks 4 .*`action_head.model.fc1.bias`.*--exclude 'action_head\.\*'",
+        match=r"θ_aux has 4 tensor\(s\) the base lacks.*`action_head.model.fc1.bias`.*--exclude 'action_head\.\*'",
     ):
         extract(aux, sft, tmp_path / "out", base=base, include=["*"])
 

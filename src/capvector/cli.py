@@ -19,39 +19,19 @@ from capvector.fileio import check_new_output
 
 LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
 
-TOOLS: dict[str, tuple[str, str, str]] = {
-    "backbone-info": ("capvector.cli", "backbone_info_main", "parameter counts of a preset"),
-    "export": ("capvector.cli", "export_main", "export a checkpoint to a safetensors folder"),
-    "import-original": (
-        "capvector.cli",
-        "import_original_main",
-        "original checkpoint -> export folder",
-    ),
-    "demos": ("capvector.sim.demos", "main", "record scripted robosuite demonstrations"),
-    "evaluate": (
-        "capvector.workflows.evaluate",
-        "main",
-        "MuJoCo rollouts of a checkpoint, success table",
-    ),
-    "recipe": (
-        "capvector.workflows.recipe",
-        "main",
-        "run the whole recipe: stages of capvector commands",
-    ),
-    "sweep-scale": (
-        "capvector.workflows.sweep",
-        "main",
-        "choose the merge scale λ by rollouts / held-out L1",
-    ),
-    "extract": ("capvector.vectors.cli", "extract_main", "capability vector = aux - sft"),
-    "merge": ("capvector.vectors.cli", "merge_main", "base + sum of scaled vectors"),
-    "compose": ("capvector.vectors.cli", "compose_main", "combine vectors (sum, TIES)"),
-    "inspect": ("capvector.vectors.cli", "inspect_main", "norms, cosines and plots of vectors"),
-    "report": (
-        "capvector.workflows.report",
-        "main",
-        "success vs steps of a recipe's arms: table + plot",
-    ),
+TOOLS: dict[str, tuple[str, str]] = {  # name: ("module:function", help), imported when called
+    "backbone-info": ("capvector.cli:backbone_info_main", "parameter counts of a preset"),
+    "export": ("capvector.cli:export_main", "export a checkpoint to a safetensors folder"),
+    "import-original": ("capvector.cli:import_original_main", "original checkpoint -> export"),
+    "demos": ("capvector.sim.demos:main", "record scripted robosuite demonstrations"),
+    "evaluate": ("capvector.workflows.evaluate:main", "MuJoCo rollouts of a checkpoint"),
+    "recipe": ("capvector.workflows.recipe:main", "run the whole recipe as resumable stages"),
+    "sweep-scale": ("capvector.workflows.sweep:main", "choose the merge scale λ"),
+    "extract": ("capvector.vectors.cli:extract_main", "capability vector = aux - sft"),
+    "merge": ("capvector.vectors.cli:merge_main", "base + sum of scaled vectors"),
+    "compose": ("capvector.vectors.cli:compose_main", "combine vectors (sum, TIES)"),
+    "inspect": ("capvector.vectors.cli:inspect_main", "norms, cosines and plots of vectors"),
+    "report": ("capvector.workflows.report:main", "success vs steps of a recipe's arms"),
 }
 
 
@@ -71,7 +51,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             # From a shell, LightningCLI reads sys.argv itself (it warns when given both).
             run_lightning_cli(None if argv is None else [command, *rest])
             return 0
-        module, function, _ = TOOLS[command]
+        module, function = TOOLS[command][0].split(":")
         tool: Callable[[list[str]], int] = getattr(importlib.import_module(module), function)
         return int(tool(rest) or 0)
     except Exception as exc:
@@ -90,7 +70,7 @@ def _usage() -> str:
     lines = ["usage: capvector COMMAND [...]", "", "training (LightningCLI, --config FILE.yaml):"]
     lines += [f"  {c}" for c in LIGHTNING_SUBCOMMANDS]
     lines += ["", "tools:"]
-    lines += [f"  {name:<14} {help_}" for name, (_, _, help_) in TOOLS.items()]
+    lines += [f"  {name:<16} {help_}" for name, (_, help_) in TOOLS.items()]
     lines += ["", "Run `capvector COMMAND --help` for a command's options."]
     return "\n".join(lines)
 

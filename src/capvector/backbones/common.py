@@ -7,7 +7,10 @@ use ``np.digitize``'s bins) and OpenVLA-OFT's MLP-ResNet (StarVLA's OFT head is 
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -29,6 +32,13 @@ def right_pad(
         out[i, : len(row)] = torch.tensor(row, dtype=torch.long)
         valid[i, : len(row)] = True
     return out.to(device), valid.to(device)
+
+
+def read_required_json(path: Path, why: str) -> Any:
+    """The JSON at ``path``; a missing file is a ``BackboneError`` saying ``why`` it is needed."""
+    if not path.is_file():
+        raise BackboneError(f"{path} is missing: {why}")
+    return json.loads(path.read_text())
 
 
 def check_cameras(images: Tensor, num_images: int) -> None:

@@ -47,6 +47,7 @@ from capvector.backbones.base import (
     preset_config,
     read_sharded,
 )
+from capvector.backbones.common import read_required_json
 from capvector.data.statistics import BOUNDS, BOUNDS_Q99
 from capvector.lora_layers import LoraFormatError, adapter_scaling, merge_lora, split_lora
 
@@ -150,13 +151,11 @@ def load_original(
 
 def read_upstream_config(root: Path) -> dict[str, Any]:
     """The upstream config files of a run folder, by file name."""
-    config_path = root / "config.json"
-    if not config_path.is_file():
-        raise BackboneError(
-            f"{root} has no config.json: an OpenVLA-OFT run folder holds the merged "
-            "save_pretrained of OpenVLAForActionPrediction (config.json + model.safetensors)"
-        )
-    files = {"config.json": json.loads(config_path.read_text())}
+    why = (
+        "an OpenVLA-OFT run folder holds the merged save_pretrained of "
+        "OpenVLAForActionPrediction (config.json + model.safetensors)"
+    )
+    files = {"config.json": read_required_json(root / "config.json", why)}
     adapter = root / "lora_adapter" / "adapter_config.json"
     if adapter.is_file():
         files["lora_adapter/adapter_config.json"] = json.loads(adapter.read_text())

@@ -38,6 +38,7 @@ from capvector.backbones.base import (
     load_state_dict_strictly,
     merge_nested,
 )
+from capvector.backbones.common import read_required_json
 
 if TYPE_CHECKING:
     from capvector.backbones.starvla import StarVLA
@@ -371,13 +372,11 @@ def smart_resize(
 
 def processor_pixel_limits(qwen_folder: Path) -> tuple[int, int]:
     """(min_pixels, max_pixels) of the folder's Qwen image processor (``preprocessor_config.json``)."""
+    why = (
+        "the Qwen processor's min_pixels/max_pixels decide the image resolution StarVLA trained at"
+    )
     path = qwen_folder / "preprocessor_config.json"
-    if not path.is_file():
-        raise BackboneError(
-            f"{path} is missing: the Qwen processor's min_pixels/max_pixels decide the image "
-            "resolution StarVLA trained at"
-        )
-    pre = json.loads(path.read_text())
+    pre = read_required_json(path, why)
     size = pre.get("size") or {}
     low = pre.get("min_pixels") or size.get("shortest_edge")
     high = pre.get("max_pixels") or size.get("longest_edge")

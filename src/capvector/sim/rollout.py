@@ -86,28 +86,13 @@ class EnvCache:
         camera_fovy: Mapping[str, float] | None = None,
         variant: str | None = None,
     ) -> SimEnv:
-        key = (
-            task,
-            robot,
-            gripper,
-            tuple(cameras),
-            image_size,
-            depth,
-            tuple(sorted((camera_fovy or {}).items())),
-            variant,
-        )
+        settings = {"gripper": gripper, "cameras": tuple(cameras), "image_size": image_size,
+                    "depth": depth, "camera_fovy": dict(camera_fovy or {})}  # fmt: skip
+        key = (task, robot, variant, repr(sorted(settings.items())))
         if key in self._envs:
             self._envs.move_to_end(key)
             return self._envs[key]
-        sim = SimEnv(
-            task,
-            robot,
-            gripper=gripper,
-            cameras=cameras,
-            image_size=image_size,
-            depth=depth,
-            camera_fovy=camera_fovy,
-        )
+        sim = SimEnv(task, robot, **settings)
         self._envs[key] = sim
         if variant is not None:
             self._randomizers[id(sim)] = SceneRandomizer(sim, get_variant(variant))

@@ -248,24 +248,13 @@ def _select(
 
 
 def _check_base(base: WeightSource, aux: WeightSource, keys: Sequence[str]) -> None:
-    base_keys = set(base.keys())
-    missing = [k for k in keys if k not in base_keys]
-    if missing:
-        raise CapVectorError(
-            f"the base lacks {len(missing)} of the {len(keys)} tensors to extract, e.g. "
-            f"{examples(missing)}; pass --exclude '{missing[0].split('.')[0]}.*' or use the "
-            "matching base"
-        )
-    bad = [
-        f"{k}: base {base.info(k).shape} {dtype_name(base.info(k).dtype)} vs aux {aux.info(k).shape}"
-        for k in keys
-        if base.info(k).shape != aux.info(k).shape or not base.info(k).dtype.is_floating_point
-    ]
-    if bad:
-        raise CapVectorError(
-            f"the base does not match aux for {len(bad)} tensor(s), e.g. {examples(bad)}; use the "
-            "pretrained model both runs started from"
-        )
+    """The base must hold every extracted tensor, floating and of aux's shape (the same check as a
+    merge of the task vectors into it)."""
+    from capvector.vectors.merge import check_compatible
+
+    names = base.keys()
+    targets = {k: base.info(k) for k in names}
+    check_compatible(targets, {k: aux.info(k) for k in keys}, "the base", "θ_aux")
 
 
 def _stream_full(
