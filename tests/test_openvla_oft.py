@@ -263,7 +263,7 @@ def test_from_original_rejects_another_architecture(upstream_folder: Path) -> No
 
 def test_from_original_requires_the_save_pretrained_config(upstream_folder: Path) -> None:
     (upstream_folder / "config.json").unlink()
-    with pytest.raises(BackboneError, match="no config.json"):
+    with pytest.raises(BackboneError, match="config.json is missing: an OpenVLA-OFT run folder"):
         OpenVLAOFT.from_original(upstream_folder, preset="openvla-oft-tiny")
 
 

@@ -19,7 +19,8 @@ def write_fit(run_dir: Path, stage: str, success: dict[int, float], l1: dict[int
         metrics = {"train/loss": 1.0 / step, "perf/step_seconds": 0.1 + step / 1000,
                    "perf/peak_memory_mib": 500.0 + step}  # fmt: skip
         if step in success:
-            metrics |= {"val/success_rate": success[step], "val/action_l1": l1[step]}
+            metrics |= {"val/success_rate": success[step], "val/action_l1": l1[step],
+                        "val/episodes": 10.0}  # fmt: skip
         logger.log_metrics(metrics, step=step - 1)  # Lightning's 0-based row index
     logger.save()
 
@@ -47,6 +48,9 @@ def test_report_reads_every_seed_and_summarizes_the_arms(tmp_path: Path) -> None
     assert sft["success"]["0"]["values"] == [0.1, 0.1]  # step 0: the starting weights' evaluation
     assert sft["success"]["2"]["mean"] == pytest.approx(0.3)
     assert sft["success"]["4"]["values"] == [0.6, 0.4]
+    # counts a reader can recompute intervals from: [successes, episodes] per seed and step
+    assert sft["counts"]["0"] == [[3, 30], [3, 30]] and sft["counts"]["4"] == [[6, 10], [4, 10]]
+    assert result["reference_counts"] == {"out of the box": [6, 30]}
     assert sft["held_out_l1"]["4"]["mean"] == pytest.approx(0.22)
     assert sft["steps_to_threshold"] == [4, None] and cv["steps_to_threshold"] == [2]
     assert sft["peak_memory_mib"] == 504.0

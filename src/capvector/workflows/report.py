@@ -22,6 +22,7 @@ from capvector.errors import CapVectorError, ToolParser
 from capvector.fileio import atomic_write_bytes
 
 SUCCESS = "val/success_rate"
+EPISODES = "val/episodes"
 HELD_OUT_L1 = "val/action_l1"
 STEP_SECONDS = "perf/step_seconds"
 PEAK_MEMORY = "perf/peak_memory_mib"
@@ -33,6 +34,8 @@ class SeedRun:
 
     stage: str
     success: dict[int, float] = field(default_factory=dict)
+    episodes: dict[int, int] = field(default_factory=dict)
+    """Episodes behind each success rate (``val/episodes``), so counts can be recomputed."""
     held_out_l1: dict[int, float] = field(default_factory=dict)
     step_seconds: list[float] = field(default_factory=list)
     peak_memory_mib: float | None = None
@@ -50,6 +53,8 @@ def read_fit(stage_dir: Path) -> SeedRun:
             step = int(row["step"]) + 1
             if row.get(SUCCESS):
                 run.success[step] = float(row[SUCCESS])
+            if row.get(EPISODES):
+                run.episodes[step] = round(float(row[EPISODES]))
             if row.get(HELD_OUT_L1):
                 run.held_out_l1[step] = float(row[HELD_OUT_L1])
             if row.get(STEP_SECONDS):
@@ -61,13 +66,13 @@ def read_fit(stage_dir: Path) -> SeedRun:
     return run
 
 
-def read_evaluation(stage_dir: Path) -> float:
-    """Success rate over every row of an ``evaluate`` stage's ``results.json``."""
+def read_evaluation(stage_dir: Path) -> tuple[int, int]:
+    """(successes, episodes) over every row of an ``evaluate`` stage's ``results.json``."""
     path = stage_dir / "results.json"
     if not path.is_file():
         raise CapVectorError(f"{path} does not exist: run the evaluate stage with --json {path}")
     rows = json.loads(path.read_text())
-    return sum(r["successes"] for r in rows) / sum(r["episodes"] for r in rows)
+    return sum(r["successes"] for r in rows), sum(r["episodes"] for r in rows)
 
 
 def steps_to(success: dict[int, float], threshold: float) -> int | None:
@@ -76,8 +81,9 @@ def steps_to(success: dict[int, float], threshold: float) -> int | None:
 
 
 def summarize_arm(
-    label: str, runs: list[SeedRun], start: float, threshold: float
+    label: str, runs: list[SeedRun], start_counts: tuple[int, int], threshold: float
 ) -> dict[str, Any]:
+    start = start_counts[0] / start_counts[1]
     steps = sorted(set.intersection(*(set(r.success) for r in runs)))
     curve = {0: [start] * len(runs)} | {s: [r.success[s] for r in runs] for s in steps}
     reached = [steps_to({0: start} | r.success, threshold) for r in runs]
@@ -88,11 +94,21 @@ def summarize_arm(
         "arm": label,
         "seeds": [r.stage for r in runs],
         "success": {s: _spread(v) for s, v in curve.items()},
+        # Per seed and step: successes and episodes, so intervals can be recomputed from the file
+        # (step 0 is the one evaluation of the starting weights every seed shares).
+        "counts": {0: [list(start_counts)] * len(runs)}
+        | {s: [_counts(r, s) for r in runs] for s in steps},
         "held_out_l1": {s: _spread([r.held_out_l1[s] for r in runs]) for s in l1_steps},
         "steps_to_threshold": reached,
         "step_seconds": _spread(seconds) if seconds else None,
         "peak_memory_mib": max(memory) if memory else None,
     }
+
+
+def _counts(run: SeedRun, step: int) -> list[int] | None:
+    """[successes, episodes] of one validation (None when the log has no episode count)."""
+    episodes = run.episodes.get(step)
+    return None if episodes is None else [round(run.success[step] * episodes), episodes]
 
 
 def _spread(values: list[float]) -> dict[str, Any]:
@@ -180,10 +196,16 @@ def report(
         runs = [read_fit(d) for d in dirs]
         start = read_evaluation(run_dir / start_stage)
         summaries.append(summarize_arm(label, runs, start, threshold))
-    refs = {label: read_evaluation(run_dir / stage) for label, stage in references}
+    ref_counts = {label: read_evaluation(run_dir / stage) for label, stage in references}
+    refs = {label: k / n for label, (k, n) in ref_counts.items()}
     table = format_table(summaries, refs, threshold)
     out.mkdir(parents=True, exist_ok=True)
-    result = {"threshold": threshold, "arms": summaries, "references": refs}
+    result = {
+        "threshold": threshold,
+        "arms": summaries,
+        "references": refs,
+        "reference_counts": {label: list(c) for label, c in ref_counts.items()},
+    }
     atomic_write_bytes(out / "results.json", json.dumps(result, indent=2).encode())
     atomic_write_bytes(out / "results.md", (table + "\n").encode())
     plot(summaries, refs, out / "success_vs_steps.png")
