@@ -96,7 +96,7 @@ def test_recipe_errors_are_clear(tmp_path: Path) -> None:
     assert completed.returncode == 2 and "needs `run_dir`" in completed.stderr
 
 
-@pytest.mark.parametrize("name", ["quick.yaml", "experiment.yaml"])
+@pytest.mark.parametrize("name", ["quick.yaml", "experiment.yaml", "powered.yaml"])
 def test_shipped_recipes_resolve(name: str) -> None:
     run_dir, stages = load_recipe(REPO / "configs/recipes" / name, ["run_dir=/tmp/x"])
     assert str(run_dir) == "/tmp/x" and all("${" not in a for s in stages for a in s.args)
@@ -110,24 +110,30 @@ def test_seeds_make_one_fit_stage_per_seed_and_after_waits_for_all_of_them(
         {"name": "down", "command": "fit", "seeds": [0, 2], "after": ["pre"],
          "args": ["--model.pretrained=${out.pre.export}"]},
         {"name": "report", "command": "report", "after": ["down"], "args": ["${out.down_s2.dir}"]},
+        {"name": "eval", "command": "evaluate", "seeds": [2],
+         "args": ["--ckpt", "${out.down.export}", "--json", "${out.eval.dir}/r.json"]},
     ]  # fmt: skip
     path = tmp_path / "recipe.yaml"
     path.write_text(json.dumps({"run_dir": str(tmp_path / "run"), "stages": stages}))
     run_dir, resolved = load_recipe(path)
-    assert [s.name for s in resolved] == ["pre", "down_s0", "down_s2", "report"]
+    assert [s.name for s in resolved] == ["pre", "down_s0", "down_s2", "report", "eval_s2"]
     pretrained = f"--model.pretrained={run_dir}/pre/fit/version_0/export"
     assert resolved[1].args == [pretrained, "--seed_everything=0"]
     assert resolved[2].args == [pretrained, "--seed_everything=2"]
     assert resolved[3].args == [str(run_dir / "down_s2")]
+    # A seeded non-fit stage reads its own seed's outputs of seeded stages, with no --seed_everything.
+    export_s2 = f"{run_dir}/down_s2/fit/version_0/export"
+    assert resolved[4].args == ["--ckpt", export_s2, "--json", f"{run_dir}/eval_s2/r.json"]
     from omegaconf import OmegaConf
 
     raw = OmegaConf.create({"stages": expand_seeds(OmegaConf.create(stages), path)})
     assert dependencies(raw, 3) == {"down_s0", "down_s2"}
     assert dependencies(raw, 2) == {"pre"}
+    assert dependencies(raw, 4) == {"report", "down_s2"}
 
-    stages[2]["seeds"] = [0]
+    stages[2]["seeds"] = [0]  # a seeded report that reads no seeded stage
     path.write_text(json.dumps({"run_dir": str(tmp_path / "run"), "stages": stages}))
-    with pytest.raises(CapVectorError, match="`seeds` needs a `fit` stage"):
+    with pytest.raises(CapVectorError, match="`seeds` needs .* name an earlier seeded stage"):
         load_recipe(path)
 
 

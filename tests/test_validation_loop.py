@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import subprocess
 import sys
@@ -71,6 +72,18 @@ def test_fit_runs_the_rollout_validation_loop(tmp_path: Path) -> None:
         and "val/episodes" in header
     )
     assert len(list((version / "videos").rglob("*.mp4"))) == 1
+    # Per-episode outcomes beside the metrics: the logged rate is their mean.
+    with (version / "episodes.csv").open() as f:
+        episodes = list(csv.DictReader(f))
+    assert [(e["step"], e["task"], e["seed"]) for e in episodes] == [
+        ("2", "Lift", "1000000"),
+        ("2", "Lift", "1000001"),
+    ]
+    with (version / "metrics.csv").open() as f:
+        rate = next(
+            float(r["val/success_rate"]) for r in csv.DictReader(f) if r["val/success_rate"]
+        )
+    assert rate == sum(int(e["success"]) for e in episodes) / 2
     ckpt = next((version / "checkpoints").glob("*.ckpt"))
     table = tmp_path / "eval.json"
     assert main(["evaluate", "--ckpt", str(ckpt), "--episodes", "2", "--json", str(table)]) == 0
@@ -95,3 +108,13 @@ def test_ddp_validation_counts_each_episode_once(tmp_path: Path, demo_file: Path
     single, ddp = results
     assert single["val/episodes"] == ddp["val/episodes"] == 3
     assert single["val/success_rate"] == ddp["val/success_rate"]
+
+    # Each rank logs its own episodes: together, every episode once, as in one process.
+    def outcomes(files: list[Path]) -> list[tuple[str, str]]:
+        rows = [r for f in files for r in csv.DictReader(f.open())]
+        return sorted((r["seed"], r["success"]) for r in rows)
+
+    ddp_logs = sorted((tmp_path / "2").rglob("episodes*.csv"))
+    assert [f.name for f in ddp_logs] == ["episodes.csv", "episodes_rank1.csv"]
+    assert outcomes(ddp_logs) == outcomes(list((tmp_path / "1").rglob("episodes.csv")))
+    assert len(outcomes(ddp_logs)) == 3

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import inspect
 import json
@@ -40,6 +41,7 @@ from capvector.metrics import SuccessRate
 from capvector.names import (
     CHECKPOINT_METADATA,
     DATA_SPEC_FILE,
+    EPISODES_LOG,
     MERGED_VECTORS,
     STATISTICS_FILE,
     CheckpointMetadata,
@@ -148,6 +150,7 @@ class VLAModule(L.LightningModule):
         self.rollout = rollout or RolloutSettings()
         self.success_rates = nn.ModuleDict()
         self.episode_count = SumMetric()
+        self._episode_rows: list[list[Any]] = []
         self._parallelized = False
 
     @staticmethod
@@ -274,6 +277,9 @@ class VLAModule(L.LightningModule):
         )
         if not item.counted:
             return  # padding that keeps ranks in step
+        self._episode_rows.append(
+            [self.global_step, _task_key(item.spec), item.spec.seed, int(result.success)]
+        )
         self.episode_count.update(1.0)
         self.log(
             "val/episodes",
@@ -300,6 +306,25 @@ class VLAModule(L.LightningModule):
         # trainer.log_dir is a collective call under DDP: every rank asks once, here.
         root = Path(self.trainer.log_dir or self.trainer.default_root_dir)
         self._video_dir = root / "videos" / f"step{self.global_step:06d}"
+        rank = self.trainer.global_rank
+        self._episodes_log = root / (
+            EPISODES_LOG if rank == 0 else EPISODES_LOG.replace(".", f"_rank{rank}.")
+        )
+        self._episode_rows = []
+
+    def on_validation_epoch_end(self) -> None:
+        # Each rank appends the outcomes of its own episodes (the success metrics above are
+        # their reduction); evaluations repeated after a resume appear twice, as in metrics.csv.
+        if not self._episode_rows:
+            return
+        new = not self._episodes_log.exists()
+        self._episodes_log.parent.mkdir(parents=True, exist_ok=True)
+        with self._episodes_log.open("a", newline="") as f:
+            writer = csv.writer(f)
+            if new:
+                writer.writerow(["step", "task", "seed", "success"])
+            writer.writerows(self._episode_rows)
+        self._episode_rows = []
 
     def _evaluator(self) -> Any:
         from capvector.sim.rollout import RolloutEvaluator

@@ -21,6 +21,8 @@ EXPORT_INDEX = "model.safetensors.index.json"
 DATA_SPEC_FILE = "capvector_data_spec.json"
 STATISTICS_FILE = "dataset_statistics.json"
 MODEL_CARD = "README.md"
+EPISODES_LOG = "episodes.csv"
+"""Per-episode rollout outcomes of the validation loop, beside Lightning's ``metrics.csv``."""
 
 # A capability vector folder (capvector extract / compose), and its PEFT LoRA adapter form.
 VECTOR_FORMAT = "capvector-vector"

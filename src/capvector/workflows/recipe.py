@@ -19,8 +19,10 @@ A stage waits for the stage before it, or for the stages in its ``after:`` list,
 the stages whose outputs it names. With ``jobs: N`` (or ``--jobs N``) up to N stages whose waits
 are over run at once, e.g. the seeds of a downstream comparison.
 
-A ``fit`` stage with ``seeds: [0, 1, 2]`` stands for one stage per seed, ``<name>_s<seed>``, each
-with ``--seed_everything=<seed>``; an ``after:`` list that names ``<name>`` waits for all of them.
+A stage with ``seeds: [0, 1, 2]`` stands for one stage per seed, ``<name>_s<seed>``; a ``fit``
+stage gets ``--seed_everything=<seed>``, and seed k of a stage reads seed k of any seeded stage it
+names (``--ckpt ${out.down.export}`` in a seeded ``evaluate`` stage evaluates each seed's fit of
+``down``). An ``after:`` list that names ``<name>`` waits for all of its seeds.
 
 ``--only STAGE ...`` runs those stages and what they wait for, nothing else (a seeded stage's
 name stands for all of its seeds), e.g. one report of a large recipe.
@@ -34,6 +36,7 @@ import re
 import subprocess
 import sys
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -105,9 +108,10 @@ def _load_raw(path: str | Path, overrides: list[str] | None) -> tuple[Path, Any]
 
 
 def expand_seeds(stages: Any, path: str | Path) -> Any:
-    """Stages with ``seeds: [...]`` become one stage per seed (``<name>_s<seed>``, with
-    ``--seed_everything=<seed>``), as an omegaconf list; ``after:`` entries naming such a stage
-    name all of its seeds."""
+    """Stages with ``seeds: [...]`` become one stage per seed (``<name>_s<seed>``), as an
+    omegaconf list. Seed k of a stage reads seed k of the seeded stages it names
+    (``${out.<seeded>.*}`` means ``${out.<seeded>_s<k>.*}``); a ``fit`` stage also gets
+    ``--seed_everything=<seed>``. ``after:`` entries naming a seeded stage name all its seeds."""
     from omegaconf import OmegaConf
 
     expanded: list[Any] = []
@@ -120,17 +124,31 @@ def expand_seeds(stages: Any, path: str | Path) -> Any:
         if seeds is None:
             expanded.append(entry)
             continue
-        if entry.get("command") != "fit" or not seeds:
+        args = [str(a) for a in entry.get("args", [])]
+        is_fit = entry.get("command") == "fit"
+        reads_seeded = any(_output_references(seeded).search(a) for a in args)
+        if not seeds or not (is_fit or reads_seeded):
             raise CapVectorError(
-                f"stage {entry.get('name')!r} in {path}: `seeds` needs a `fit` stage and a "
-                f"non-empty list of seeds, got command {entry.get('command')!r}, seeds {seeds}"
+                f"stage {entry.get('name')!r} in {path}: `seeds` needs a non-empty list of seeds "
+                f"and a `fit` stage, or arguments that name an earlier seeded stage's outputs "
+                f"(got command {entry.get('command')!r}, seeds {seeds})"
             )
         name = str(entry["name"])
         seeded[name] = [f"{name}_s{seed}" for seed in seeds]
+        references = _output_references(seeded)  # its own outputs included
         for seed, seed_name in zip(seeds, seeded[name], strict=True):
-            args = [*entry.get("args", []), f"--seed_everything={int(seed)}"]
-            expanded.append({**entry, "name": seed_name, "args": args})
+            to_seed = f"${{out.\\g<1>_s{int(seed)}."
+            seed_args = [references.sub(to_seed, a) for a in args]
+            if is_fit:
+                seed_args.append(f"--seed_everything={int(seed)}")
+            expanded.append({**entry, "name": seed_name, "args": seed_args})
     return OmegaConf.create(expanded)
+
+
+def _output_references(stages: Iterable[str]) -> re.Pattern[str]:
+    """Matches ``${out.<stage>.`` for any of ``stages`` (group 1: the stage's name)."""
+    names = "|".join(map(re.escape, stages)) or r"(?!)"
+    return re.compile(r"\$\{out\.(" + names + r")\.")
 
 
 def resolve_stage(raw: Any, index: int, run_dir: Path, path: str | Path) -> Stage:
