@@ -71,3 +71,62 @@ def test_report_errors_name_the_missing_stage(tmp_path: Path) -> None:
     with pytest.raises(CapVectorError, match="has the fit stage 'down_x_s0' run"):
         main(["--run-dir", str(run), "--arm", "x", "down_x_s*", "eval_pre", "--out", "o"])
     assert not (tmp_path / "out").exists()
+
+
+def write_episodes(run_dir: Path, stage: str, outcomes: dict[int, list[int]]) -> None:
+    """The fit's episodes.csv as the validation loop writes it (evaluation seeds from 1e6)."""
+    lines = ["step,task,seed,success"]
+    for step, successes in outcomes.items():
+        lines += [f"{step},Lift_Sawyer,{1_000_000 + i},{ok}" for i, ok in enumerate(successes)]
+    (run_dir / stage / "fit" / "version_0" / "episodes.csv").write_text("\n".join(lines) + "\n")
+
+
+def write_outcomes(run_dir: Path, stage: str, by_variant: dict[str | None, list[int]]) -> None:
+    """An evaluate stage's results.json with each episode's outcome."""
+    (run_dir / stage).mkdir(parents=True)
+    rows = [
+        {"task": "Lift", "robot": "Sawyer", "variant": variant, "episodes": len(successes),
+         "successes": sum(successes),
+         "outcomes": [[1_000_000 + i, bool(ok)] for i, ok in enumerate(successes)]}
+        for variant, successes in by_variant.items()
+    ]  # fmt: skip
+    (run_dir / stage / "results.json").write_text(json.dumps(rows))
+
+
+def test_report_compares_arms_paired_by_evaluation_seed(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    write_outcomes(run, "eval_pre", {None: [0, 0, 0, 0]})
+    for seed, (sft, aux) in enumerate([([1, 0, 0, 0], [1, 1, 1, 0]), ([0, 1, 0, 0], [1, 1, 0, 1])]):
+        write_fit(run, f"sft_s{seed}", {2: sum(sft) / 4}, {2: 0.3})
+        write_episodes(run, f"sft_s{seed}", {2: sft})
+        write_fit(run, f"aux_s{seed}", {2: sum(aux) / 4}, {2: 0.3})
+        write_episodes(run, f"aux_s{seed}", {2: aux})
+        write_outcomes(run, f"zs_sft_s{seed}", {"camera": sft, "lighting": [0, 0, 0, 0]})
+        write_outcomes(run, f"zs_aux_s{seed}", {"camera": aux, "lighting": [0, 0, 0, 1]})
+    arms = [("plain SFT", "sft_s*", "eval_pre"), ("aux-SFT", "aux_s*", "eval_pre")]
+    zero_shot = [("plain SFT", "zs_sft_s*"), ("aux-SFT", "zs_aux_s*")]
+    out = tmp_path / "report"
+    text = report(run, arms, [], out, 0.5, ["plain SFT"], zero_shot, resamples=500)
+
+    result = json.loads((out / "results.json").read_text())
+    sft, aux = result["comparison"]["arms"]
+    assert sft["points"] == [0, 2] and sft["success"] == [0.0, 0.25] and aux["success"][1] == 0.75
+    assert sft["outcomes"][1] == [[0, 0, 0, 0], [0, 1, 0, 0]]  # per seed, point, evaluation seed
+    assert sft["eval_seeds"][0] == ["Lift_Sawyer", 1_000_000]
+    (difference,) = result["comparison"]["differences"]
+    assert difference["arm"] == "aux-SFT" and difference["against"] == "plain SFT"
+    assert difference["points"]["2"]["difference"] == pytest.approx(0.5)
+    assert difference["auc"]["difference"] == pytest.approx(0.25)
+    (zs,) = result["zero_shot"]["differences"]
+    assert zs["points"]["lighting"]["difference"] == pytest.approx(0.25)
+    assert "| aux-SFT | 2 × 4 | 0.0% | 75.0% | 0.375 | 2 |" in text  # reaches SFT's 25% at step 2
+    assert "| aux-SFT − plain SFT | +0 pts" in text
+    assert "| plain SFT | 2 × 4 | 25.0% | 0.0% |" in text  # zero-shot: camera, lighting
+
+
+def test_comparison_needs_the_per_episode_log(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    write_outcomes(run, "eval_pre", {None: [0, 0]})
+    write_fit(run, "sft_s0", {2: 0.5}, {2: 0.3})
+    with pytest.raises(CapVectorError, match="no fit/version_0/episodes.csv"):
+        report(run, [("x", "sft_s*", "eval_pre")], [], tmp_path / "o", 0.5, ["x"])

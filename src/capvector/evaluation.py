@@ -12,6 +12,8 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+from capvector.sim.episodes import DEFAULT_ROBOT
+
 
 def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
     """95% Wilson score interval of a success rate (robust at 0 and 1 with few episodes)."""
@@ -83,6 +85,13 @@ class SuccessRow:
             variant=row.get("variant"), failures=tuple(row.get("failures", ())),
             label=label, outcomes=tuple((int(a), bool(b)) for a, b in row.get("outcomes", ())),
         )  # fmt: skip
+
+
+def metric_key(task: str, robot: str, variant: str | None = None) -> str:
+    """What a success rate is named after (``val/success_rate/<key>``, ``episodes.csv``'s task):
+    the task, then the arm and the scene variant when they are not the defaults."""
+    arm = "" if robot == DEFAULT_ROBOT else f"_{robot}"
+    return f"{task}{arm}" + (f"_{variant}" if variant else "")
 
 
 def success_rows(results: Iterable[_Episode]) -> list[SuccessRow]:

@@ -27,9 +27,10 @@ from capvector.backbones.base import (
     load_export_config,
 )
 from capvector.data import keys
-from capvector.data.episodes import EpisodeDataset, EpisodeItem
+from capvector.data.episodes import EpisodeDataset, EpisodeItem, is_episode_batch
 from capvector.data.spec import DataSpec
 from capvector.distributed import full_state_dict, is_rank_zero, parallelize
+from capvector.evaluation import metric_key
 from capvector.lora import (
     LoraSettings,
     cast_frozen_parameters,
@@ -48,7 +49,7 @@ from capvector.names import (
 )
 from capvector.objectives.base import Objective
 from capvector.policy import VLAPolicy
-from capvector.sim.episodes import DEFAULT_ROBOT, EpisodeSpec
+from capvector.sim.episodes import EpisodeSpec
 from capvector.vectors.io import dtype_name
 from capvector.vectors.record import MergedVector, read_record, record_dicts
 
@@ -61,6 +62,11 @@ class RolloutSettings:
     """Write mp4s of the first this-many episodes of each validation run."""
     execute_steps: int | None = None
     """Execute only the first k actions of each chunk (None: the whole chunk, as OpenVLA-OFT)."""
+    batch_size: int = 8
+    """Episodes in flight at once, one batched policy forward for all (1: one at a time)."""
+    workers: int | None = None
+    """Processes stepping the simulators (0: this one); None: one per usable core, up to
+    ``batch_size`` (``capvector.sim.rollout.default_workers``)."""
 
 
 @dataclass
@@ -263,7 +269,7 @@ class VLAModule(L.LightningModule):
             close_envs()
 
     def validation_step(self, batch: Any, batch_idx: int, dataloader_idx: int = 0) -> None:
-        if isinstance(batch, EpisodeItem):
+        if is_episode_batch(batch):
             self._rollout(batch)
             return
         self.log(
@@ -271,36 +277,31 @@ class VLAModule(L.LightningModule):
             sync_dist=True, batch_size=len(batch["instruction"]), add_dataloader_idx=False,
         )  # fmt: skip
 
-    def _rollout(self, item: EpisodeItem) -> None:
-        (result,) = self._evaluator().run(
-            VLAPolicy(self.backbone, self.data_spec), [item.spec], [item.index]
+    def _rollout(self, items: list[EpisodeItem]) -> None:
+        counted = [item for item in items if item.counted]  # the rest only evens out the ranks
+        results = self._evaluator().run(
+            VLAPolicy(self.backbone, self.data_spec),
+            [item.spec for item in counted],
+            [item.index for item in counted],
         )
-        if not item.counted:
-            return  # padding that keeps ranks in step
-        self._episode_rows.append(
-            [self.global_step, _task_key(item.spec), item.spec.seed, int(result.success)]
-        )
-        self.episode_count.update(1.0)
+        for item, result in zip(counted, results, strict=True):
+            self._episode_rows.append(
+                [self.global_step, _task_key(item.spec), item.spec.seed, int(result.success)]
+            )
+            self.episode_count.update(1.0)
+            for key in (_task_key(item.spec), "all"):
+                self.success_rates[key].update(result.success)
+        # Logged once per rank, also when it had no counted episode: the reductions line up.
         self.log(
-            "val/episodes",
-            self.episode_count,
-            on_epoch=True,
-            batch_size=1,
-            reduce_fx="sum",
+            "val/episodes", self.episode_count, on_epoch=True, batch_size=1, reduce_fx="sum",
             add_dataloader_idx=False,
-        )
-        for key in (_task_key(item.spec), "all"):
-            metric = self.success_rates[key]
-            metric.update(result.success)
+        )  # fmt: skip
+        for key, metric in self.success_rates.items():
             name = "val/success_rate" if key == "all" else f"val/success_rate/{key}"
             self.log(
-                name,
-                metric,
-                on_epoch=True,
-                batch_size=1,
-                add_dataloader_idx=False,
+                name, metric, on_epoch=True, batch_size=1, add_dataloader_idx=False,
                 prog_bar=key == "all",
-            )
+            )  # fmt: skip
 
     def on_validation_epoch_start(self) -> None:
         # trainer.log_dir is a collective call under DDP: every rank asks once, here.
@@ -337,6 +338,8 @@ class VLAModule(L.LightningModule):
             execute_steps=self.rollout.execute_steps,
             videos=self.rollout.videos,
             video_dir=self._video_dir,
+            batch_size=self.rollout.batch_size,
+            workers=self.rollout.workers,
         )
 
     # -- optimisation ------------------------------------------------------------------------
@@ -442,9 +445,7 @@ def _as(cls: type[T], value: T | Mapping[str, Any] | None) -> T | None:
 
 
 def _task_key(spec: EpisodeSpec) -> str:
-    """The metric's name: the task, then the arm and the scene variant when not the defaults."""
-    robot = "" if spec.robot == DEFAULT_ROBOT else f"_{spec.robot}"
-    return f"{spec.task}{robot}" + (f"_{spec.variant}" if spec.variant else "")
+    return metric_key(spec.task, spec.robot, spec.variant)
 
 
 def _schedule(settings: OptimizerSettings, total_steps: int | None) -> Any:

@@ -6,7 +6,7 @@ normalisation statistics, the evaluation crop), never re-typed here.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -32,24 +32,29 @@ class VLAPolicy:
         self.normalizer = Normalizer(data_spec.stats_entry)
         self.transform = ImageTransform(augment=False, center_crop=data_spec.center_crop)
 
-    def observation_to_batch(self, observation: Mapping[str, Any]) -> dict[str, Any]:
+    def observations_to_batch(self, observations: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         device = next(self.backbone.parameters()).device
-        images = []
-        for camera in self.spec.cameras:
-            image = torch.from_numpy(np.ascontiguousarray(observation["images"][camera])).permute(
-                2, 0, 1
-            )
-            images.append(self.transform(image)[0])
-        proprio = self.normalizer.normalize(
-            "proprio", np.asarray(observation["proprio"], np.float32)
-        )
+        images, proprio = [], []
+        for observation in observations:
+            views = []
+            for camera in self.spec.cameras:
+                image = torch.from_numpy(np.ascontiguousarray(observation["images"][camera]))
+                views.append(self.transform(image.permute(2, 0, 1))[0])
+            images.append(torch.stack(views))
+            raw = np.asarray(observation["proprio"], np.float32)
+            proprio.append(torch.from_numpy(self.normalizer.normalize("proprio", raw)))
         return {
-            keys.IMAGES: torch.stack(images)[None].to(device),
-            keys.PROPRIO: torch.from_numpy(proprio)[None].to(device),
-            keys.INSTRUCTION: [observation["instruction"]],
+            keys.IMAGES: torch.stack(images).to(device),
+            keys.PROPRIO: torch.stack(proprio).to(device),
+            keys.INSTRUCTION: [observation["instruction"] for observation in observations],
         }
 
     @torch.no_grad()
     def __call__(self, observation: Mapping[str, Any]) -> np.ndarray:
-        actions = self.backbone.predict_action(self.observation_to_batch(observation))[0]
-        return self.normalizer.unnormalize("action", actions.float().cpu().numpy())
+        return self.act_batch([observation])[0]
+
+    @torch.no_grad()
+    def act_batch(self, observations: Sequence[Mapping[str, Any]]) -> list[np.ndarray]:
+        """One forward for many episodes' observations (batched evaluation); a chunk each."""
+        actions = self.backbone.predict_action(self.observations_to_batch(observations))
+        return [self.normalizer.unnormalize("action", a) for a in actions.float().cpu().numpy()]

@@ -13,7 +13,7 @@ import torch
 from torch.utils.data import DataLoader, DistributedSampler
 
 from capvector.data import keys
-from capvector.data.episodes import EpisodeDataset, EpisodeItem, EpisodeSampler, EvalTask
+from capvector.data.episodes import EpisodeDataset, EpisodeSampler, EvalTask, is_episode_batch
 from capvector.data.hdf5 import DatasetError, HDF5RobotDataset
 from capvector.data.lerobot import LeRobotV3Dataset
 from capvector.data.spec import DataSpec
@@ -269,8 +269,8 @@ class RobotDataModule(L.LightningDataModule):
     def transfer_batch_to_device(
         self, batch: Any, device: torch.device, dataloader_idx: int
     ) -> Any:
-        if isinstance(batch, EpisodeItem):
-            return batch  # an episode spec: the policy moves its own inputs
+        if is_episode_batch(batch):
+            return batch  # episode specs: the policy moves its own inputs
         return super().transfer_batch_to_device(batch, device, dataloader_idx)
 
     def val_dataloader(self) -> DataLoader | list[DataLoader]:
@@ -283,7 +283,10 @@ class RobotDataModule(L.LightningDataModule):
                 (trainer.world_size, trainer.global_rank) if trainer is not None else (1, 0)
             )
             sampler = EpisodeSampler(episodes, num_replicas=world, rank=rank)
-            loaders.append(DataLoader(episodes, batch_size=None, sampler=sampler))
+            # One batch per rank: the module runs its episodes at once (batched evaluation).
+            loaders.append(
+                DataLoader(episodes, batch_size=len(sampler), sampler=sampler, collate_fn=list)
+            )
         if self.val_dataset is not None:
             loaders.append(
                 DataLoader(

@@ -1,8 +1,9 @@
 """Evaluation episodes as a validation dataset: Lightning's validation loop runs MuJoCo rollouts.
 
-Every rank gets the same number of items, so collective calls inside validation steps line up;
-when the episodes do not divide evenly the extra items are marked ``counted=False`` and the
-success metrics skip them, so the rate equals a one-process run on the same episodes.
+Each rank gets its share of the episodes as one batch (a list of :class:`EpisodeItem`), which the
+module evaluates batched. Every rank gets the same number of items; when the episodes do not
+divide evenly the extra items are marked ``counted=False`` and are skipped, so the rate equals a
+one-process run on the same episodes.
 """
 
 from __future__ import annotations
@@ -40,6 +41,11 @@ class EpisodeItem:
     """Position in the full episode list (video naming, ordering)."""
     counted: bool = True
     """False for the padding items that even out ranks."""
+
+
+def is_episode_batch(batch: object) -> bool:
+    """Whether a validation batch is rollout episodes (a list of :class:`EpisodeItem`)."""
+    return isinstance(batch, list) and bool(batch) and isinstance(batch[0], EpisodeItem)
 
 
 class EpisodeDataset(Dataset):

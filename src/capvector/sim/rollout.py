@@ -22,10 +22,12 @@ validation loop of ``VLAModule``, ``capvector evaluate`` and ``capvector sweep-s
 from __future__ import annotations
 
 import logging
-from collections import OrderedDict
+import os
+from collections import OrderedDict, deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -121,16 +123,91 @@ class EnvCache:
 _default_envs = EnvCache()
 
 
-def close_envs() -> None:
-    """Close the envs :func:`run_episode` cached when called without ``envs``."""
-    _default_envs.close()
-
-
 def _observe(sim: SimEnv, images: dict[str, np.ndarray], depth: dict | None) -> Observation:
     obs: Observation = {"images": images, "proprio": sim.proprio(), "instruction": sim.instruction}
     if depth is not None:
         obs["depth"] = depth
     return obs
+
+
+class Episode:
+    """One episode in progress, as both loops drive it: :meth:`observe` (render the cameras) for
+    the policy's next chunk, then :meth:`execute` that chunk, until it returns the result.
+
+    Simulator faults and non-finite actions fail the episode, never the caller.
+    """
+
+    def __init__(
+        self,
+        spec: EpisodeSpec,
+        envs: EnvCache,
+        *,
+        cameras: Sequence[str],
+        image_size: int,
+        depth: bool = False,
+        video: bool = False,
+        execute_steps: int | None = None,
+        camera_fovy: Mapping[str, float] | None = None,
+    ) -> None:
+        if execute_steps is not None and execute_steps < 1:
+            raise ValueError(f"execute_steps must be at least 1, got {execute_steps}")
+        self.spec = spec
+        self.execute_steps = execute_steps
+        self.sim = envs.get(
+            spec.task, spec.robot, gripper=spec.gripper, cameras=cameras, image_size=image_size,
+            depth=depth, camera_fovy=camera_fovy, variant=spec.variant,
+        )  # fmt: skip
+        self.limit = spec.step_limit
+        self.sim.reset(spec.seed)
+        if (randomizer := envs.randomizer(self.sim)) is not None:
+            randomizer.apply(spec.seed)  # the variant's perturbation for this seed
+        self.frames: list[np.ndarray] | None = [] if video else None
+
+    def observe(self) -> Observation:
+        images, depth = self.sim.render()
+        self._record(images)
+        return _observe(self.sim, images, depth)
+
+    def execute(self, actions: Any) -> EpisodeResult | None:
+        """Run the chunk open loop (its first ``execute_steps`` actions); the episode's result
+        when it ended (success, step limit, fault), else None: observe again."""
+        chunk = as_chunk(actions)
+        if self.execute_steps is not None:
+            chunk = chunk[: self.execute_steps]
+        sim = self.sim
+        for i, action in enumerate(chunk):
+            if not np.all(np.isfinite(action)):
+                return self._result(
+                    False, f"non-finite action at step {sim.steps}: {action.tolist()}"
+                )
+            try:
+                sim.step(to_env_action(action))
+            except SimulationFault as e:
+                return self._result(False, f"simulation fault at step {sim.steps}: {e}")
+            if sim.success():
+                if self.frames is not None:
+                    self._record(sim.render()[0])
+                return self._result(True, None)
+            if sim.steps >= self.limit:
+                break
+            if self.frames is not None and i + 1 < len(chunk):
+                self._record(sim.render()[0])
+        if sim.steps >= self.limit:
+            return self._result(False, f"step limit ({self.limit}) reached")
+        return None
+
+    def _record(self, images: Mapping[str, np.ndarray]) -> None:
+        if self.frames is not None:
+            self.frames.append(np.concatenate(list(images.values()), axis=1))
+
+    def _result(self, success: bool, reason: str | None) -> EpisodeResult:
+        spec = self.spec
+        if reason is not None and not reason.startswith("step limit"):
+            log.warning("%s seed %d (%s): %s", spec.task, spec.seed, spec.robot, reason)
+        return EpisodeResult(
+            success, self.sim.steps, reason, self.frames, spec.seed, spec.task, spec.robot,
+            spec.variant,
+        )  # fmt: skip
 
 
 def run_episode(
@@ -152,57 +229,82 @@ def run_episode(
     ``execute_steps`` executes only the first k actions of each chunk before re-planning.
     ``envs`` defaults to a module-level cache (see :func:`close_envs`).
     """
-    if execute_steps is not None and execute_steps < 1:
-        raise ValueError(f"execute_steps must be at least 1, got {execute_steps}")
-    cache = _default_envs if envs is None else envs
-    sim = cache.get(
-        spec.task,
-        spec.robot,
-        gripper=spec.gripper,
-        cameras=cameras,
-        image_size=image_size,
-        depth=depth,
-        camera_fovy=camera_fovy,
-        variant=spec.variant,
-    )
-    limit = spec.step_limit
-    sim.reset(spec.seed)
-    if (randomizer := cache.randomizer(sim)) is not None:
-        randomizer.apply(
-            spec.seed
-        )  # the variant's perturbation for this seed, as trained otherwise
-    frames: list[np.ndarray] | None = [] if video else None
+    episode = Episode(
+        spec, _default_envs if envs is None else envs, cameras=cameras, image_size=image_size,
+        depth=depth, video=video, execute_steps=execute_steps, camera_fovy=camera_fovy,
+    )  # fmt: skip
+    while (result := episode.execute(policy(episode.observe()))) is None:
+        pass
+    return result
 
-    def result(success: bool, reason: str | None) -> EpisodeResult:
-        if reason is not None and not reason.startswith("step limit"):
-            log.warning("%s seed %d (%s): %s", spec.task, spec.seed, spec.robot, reason)
-        return EpisodeResult(
-            success, sim.steps, reason, frames, spec.seed, spec.task, spec.robot, spec.variant
+
+class Slots:
+    """Episodes in flight in this process, one per slot, each slot with its own env cache (two
+    episodes running at once never share an env). :mod:`capvector.sim.workers` runs the same
+    in worker processes.
+
+    ``handle`` takes ``(slot, "start", (spec, episode_kwargs))`` and ``(slot, "act", chunk)``
+    commands and answers each with the slot's next observation, or its result when it ended.
+    """
+
+    def __init__(self) -> None:
+        self._envs: dict[int, EnvCache] = {}
+        self._episodes: dict[int, Episode] = {}
+
+    def handle(self, commands: Sequence[tuple[int, str, Any]]) -> list[tuple[int, Any]]:
+        replies: list[tuple[int, Any]] = []
+        for slot, command, payload in commands:
+            if command == "start":
+                spec, kwargs = payload
+                envs = self._envs.setdefault(slot, EnvCache(max_envs=2))
+                self._episodes[slot] = Episode(spec, envs, **kwargs)
+                replies.append((slot, self._episodes[slot].observe()))
+            elif command == "act":
+                episode = self._episodes[slot]
+                result = episode.execute(payload)
+                replies.append((slot, episode.observe() if result is None else result))
+            else:
+                raise ValueError(f"unknown slot command {command!r}")
+        return replies
+
+    def close(self) -> None:
+        for envs in self._envs.values():
+            envs.close()
+        self._envs.clear()
+        self._episodes.clear()
+
+
+_local_slots = Slots()
+
+
+def close_envs() -> None:
+    """Close the envs and worker processes that evaluations cached for reuse."""
+    from capvector.sim.workers import close_pools
+
+    _default_envs.close()
+    _local_slots.close()
+    close_pools()
+
+
+def act(policy: Policy, observations: Sequence[Observation]) -> list[np.ndarray]:
+    """One chunk per observation; one call of ``policy.act_batch`` when the policy has it
+    (``capvector.policy.VLAPolicy``: one batched forward), else one call per observation."""
+    batched = getattr(policy, "act_batch", None)
+    chunks = batched(observations) if batched is not None else [policy(o) for o in observations]
+    if len(chunks) != len(observations):
+        raise ValueError(
+            f"policy returned {len(chunks)} chunks for {len(observations)} observations"
         )
+    return [as_chunk(c) for c in chunks]
 
-    while sim.steps < limit:
-        images, dep = sim.render()
-        if frames is not None:
-            frames.append(np.concatenate(list(images.values()), axis=1))
-        chunk = as_chunk(policy(_observe(sim, images, dep)))
-        if execute_steps is not None:
-            chunk = chunk[:execute_steps]
-        for i, action in enumerate(chunk):
-            if not np.all(np.isfinite(action)):
-                return result(False, f"non-finite action at step {sim.steps}: {action.tolist()}")
-            try:
-                sim.step(to_env_action(action))
-            except SimulationFault as e:
-                return result(False, f"simulation fault at step {sim.steps}: {e}")
-            if sim.success():
-                if frames is not None:
-                    frames.append(np.concatenate(list(sim.render()[0].values()), axis=1))
-                return result(True, None)
-            if sim.steps >= limit:
-                break
-            if frames is not None and i + 1 < len(chunk):
-                frames.append(np.concatenate(list(sim.render()[0].values()), axis=1))
-    return result(False, f"step limit ({limit}) reached")
+
+def default_workers(batch_size: int) -> int:
+    """Worker processes for ``batch_size`` episodes in flight: one per core this process may use
+    (``OMP_NUM_THREADS`` when set, as ``capvector recipe`` sets it per stage), at most one per
+    episode; fewer than 2 runs the simulators in this process."""
+    cores = int(os.environ.get("OMP_NUM_THREADS") or os.cpu_count() or 1)
+    workers = min(cores, batch_size)
+    return workers if workers >= 2 else 0
 
 
 @dataclass
@@ -221,6 +323,11 @@ class RolloutEvaluator:
     videos: int = 0
     video_dir: Path | None = None
     envs: EnvCache | None = None
+    """Env cache of the one-at-a-time loop (``batch_size=1``); default: a module-level one."""
+    batch_size: int = 8
+    """Episodes in flight at once, one policy call for all of their chunks; 1: one at a time."""
+    workers: int | None = None
+    """Processes that step the simulators (0: this process); None: :func:`default_workers`."""
 
     def run(
         self,
@@ -233,26 +340,74 @@ class RolloutEvaluator:
         list (for video selection) when ``specs`` is a part of it."""
         from tqdm import tqdm
 
-        positions = range(len(specs)) if indices is None else indices
-        bar = tqdm(
-            list(zip(positions, specs, strict=True)),
-            desc="evaluate",
-            unit="episode",
-            disable=not progress,
-        )
-        results = []
-        for index, spec in bar:
-            bar.set_postfix(task=spec.task, seed=spec.seed)
-            video = self.video_dir is not None and index < self.videos
-            result = run_episode(
-                policy, spec, cameras=self.cameras, image_size=self.image_size, depth=False,
-                video=video, execute_steps=self.execute_steps, camera_fovy=self.camera_fovy,
-                envs=self.envs,
-            )  # fmt: skip
-            if result.frames:
-                self._write_video(result)
-            results.append(result)
-        return results
+        positions = list(range(len(specs)) if indices is None else indices)
+        bar = tqdm(total=len(specs), desc="evaluate", unit="episode", disable=not progress)
+        try:
+            if self.batch_size <= 1:
+                return self._run_serial(policy, specs, positions, bar)
+            return self._run_batched(policy, specs, positions, bar)
+        finally:
+            bar.close()
+
+    def _episode_kwargs(self, index: int) -> dict[str, Any]:
+        return {
+            "cameras": tuple(self.cameras), "image_size": self.image_size,
+            "camera_fovy": None if self.camera_fovy is None else dict(self.camera_fovy),
+            "execute_steps": self.execute_steps,
+            "video": self.video_dir is not None and index < self.videos,
+        }  # fmt: skip
+
+    def _finish(self, result: EpisodeResult, bar: Any) -> EpisodeResult:
+        if result.frames:
+            self._write_video(result)
+        bar.set_postfix(task=result.task, seed=result.seed)
+        bar.update()
+        return result
+
+    def _run_serial(
+        self, policy: Policy, specs: Sequence[EpisodeSpec], positions: list[int], bar: Any
+    ) -> list[EpisodeResult]:
+        return [
+            self._finish(run_episode(policy, spec, envs=self.envs, **self._episode_kwargs(i)), bar)
+            for i, spec in zip(positions, specs, strict=True)
+        ]
+
+    def _run_batched(
+        self, policy: Policy, specs: Sequence[EpisodeSpec], positions: list[int], bar: Any
+    ) -> list[EpisodeResult]:
+        """Up to ``batch_size`` episodes at once: the simulators step (in worker processes, or
+        here) while the policy waits, then one policy call serves every episode's next chunk."""
+        from capvector.sim.workers import worker_pool
+
+        workers = default_workers(self.batch_size) if self.workers is None else self.workers
+        slots = worker_pool(workers) if workers >= 2 else _local_slots
+        pending = deque(zip(range(len(specs)), positions, specs, strict=True))
+        results: list[EpisodeResult | None] = [None] * len(specs)
+        running: dict[int, int] = {}  # slot -> index in specs
+
+        def start(slot: int) -> tuple[int, str, Any]:
+            order, position, spec = pending.popleft()
+            running[slot] = order
+            return slot, "start", (spec, self._episode_kwargs(position))
+
+        commands = [start(slot) for slot in range(min(self.batch_size, len(specs)))]
+        while commands:
+            observations: dict[int, Observation] = {}
+            next_commands = []
+            for slot, reply in slots.handle(commands):
+                if isinstance(reply, EpisodeResult):
+                    results[running.pop(slot)] = self._finish(reply, bar)
+                    if pending:  # the slot takes the next episode, observed next round
+                        next_commands.append(start(slot))
+                else:
+                    observations[slot] = reply
+            if observations:
+                chunks = act(policy, list(observations.values()))
+                next_commands += [
+                    (slot, "act", chunk) for slot, chunk in zip(observations, chunks, strict=True)
+                ]
+            commands = next_commands
+        return results  # type: ignore[return-value]
 
     def _write_video(self, result: EpisodeResult) -> None:
         from capvector.sim.video import write_video

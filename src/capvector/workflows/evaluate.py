@@ -19,8 +19,12 @@ def evaluate(
     video_dir: str | None = None,
     videos: int = 2,
     execute_steps: int | None = None,
+    batch_size: int = 8,
+    workers: int | None = None,
 ) -> list[SuccessRow]:
-    """One row per (task, robot, variant): episodes, successes and each episode's outcome."""
+    """One row per (task, robot, variant): episodes, successes and each episode's outcome.
+    ``batch_size`` episodes run at once, their simulators in ``workers`` processes (see
+    ``RolloutEvaluator``)."""
     from capvector.data.episodes import EpisodeDataset
     from capvector.sim.rollout import RolloutEvaluator
 
@@ -29,7 +33,8 @@ def evaluate(
     evaluator = RolloutEvaluator(
         cameras=spec.cameras, image_size=spec.image_size, camera_fovy=spec.camera_fovy,
         execute_steps=execute_steps, videos=videos,
-        video_dir=None if video_dir is None else Path(video_dir),
+        video_dir=None if video_dir is None else Path(video_dir), batch_size=batch_size,
+        workers=workers,
     )  # fmt: skip
     policy = VLAPolicy(module.backbone, spec)
     return success_rows(evaluator.run(policy, EpisodeDataset(tasks).specs, progress=True))
@@ -57,6 +62,14 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--videos", type=int, default=2)
     parser.add_argument("--execute-steps", type=int, default=None)
+    parser.add_argument(
+        "--batch-size", type=int, default=8,
+        help="episodes in flight at once, one batched policy forward for all (1: one at a time)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--workers", type=int, default=None,
+        help="processes stepping the simulators (0: this one; default: one per core)",
+    )  # fmt: skip
     parser.add_argument("--json", default=None, help="also write the rows as JSON")
     args = parser.parse_args(argv)
     tasks = [
@@ -64,7 +77,10 @@ def main(argv: list[str] | None = None) -> int:
         for t in args.task
         for v in args.variant
     ]
-    rows = evaluate(args.ckpt, tasks, args.video, args.videos, args.execute_steps)
+    rows = evaluate(
+        args.ckpt, tasks, args.video, args.videos, args.execute_steps, args.batch_size,
+        args.workers,
+    )  # fmt: skip
     print(format_success_table(rows))
     if args.json:
         payload = [r.to_dict() for r in rows]

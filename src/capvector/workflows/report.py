@@ -18,7 +18,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from capvector.comparison import (
+    ArmOutcomes,
+    area_under_curve,
+    arm_from_episodes,
+    compare,
+    format_difference,
+)
 from capvector.errors import CapVectorError, ToolParser
+from capvector.evaluation import metric_key
 from capvector.fileio import atomic_write_bytes
 
 SUCCESS = "val/success_rate"
@@ -73,6 +81,35 @@ def read_evaluation(stage_dir: Path) -> tuple[int, int]:
         raise CapVectorError(f"{path} does not exist: run the evaluate stage with --json {path}")
     rows = json.loads(path.read_text())
     return sum(r["successes"] for r in rows), sum(r["episodes"] for r in rows)
+
+
+def read_episode_log(stage_dir: Path) -> dict[int, dict[tuple[str, int], bool]]:
+    """``{step: {(task key, evaluation seed): success}}`` from a fit stage's ``episodes.csv``
+    (every rank's file; an evaluation repeated after a resume: the last one counts)."""
+    files = sorted((stage_dir / "fit" / "version_0").glob("episodes*.csv"))
+    if not files:
+        raise CapVectorError(
+            f"{stage_dir} has no fit/version_0/episodes.csv: per-episode outcomes are logged "
+            "since the validation loop batches episodes; rerun the fit to compare arms"
+        )
+    by_step: dict[int, dict[tuple[str, int], bool]] = {}
+    for path in files:
+        with path.open() as f:
+            for row in csv.DictReader(f):
+                episode = (row["task"], int(row["seed"]))
+                by_step.setdefault(int(row["step"]), {})[episode] = row["success"] == "1"
+    return by_step
+
+
+def read_evaluation_outcomes(stage_dir: Path) -> dict[str | None, dict[tuple[str, int], bool]]:
+    """``{variant: {(task key, evaluation seed): success}}`` of an ``evaluate`` stage."""
+    rows = json.loads((stage_dir / "results.json").read_text())
+    out: dict[str | None, dict[tuple[str, int], bool]] = {}
+    for row in rows:
+        key = metric_key(row["task"], row["robot"])
+        variant = out.setdefault(row.get("variant"), {})
+        variant.update({(key, int(seed)): bool(ok) for seed, ok in row["outcomes"]})
+    return out
 
 
 def steps_to(success: dict[int, float], threshold: float) -> int | None:
@@ -181,35 +218,136 @@ def plot(arms: list[dict], references: dict[str, float], path: Path) -> None:
     atomic_write_bytes(path, buffer.getvalue())
 
 
+def training_arm(
+    label: str, stages: list[Path], start_stage: Path, steps: list[int]
+) -> ArmOutcomes:
+    """An arm's outcomes at step 0 (its starting weights' evaluation, shared by every seed) and
+    at each evaluated step of its fits."""
+    start = read_evaluation_outcomes(start_stage).get(None, {})
+    per_seed = [{0: start} | read_episode_log(stage) for stage in stages]
+    return arm_from_episodes(label, per_seed, [0, *steps])
+
+
+def zero_shot_arm(label: str, stages: list[Path]) -> ArmOutcomes:
+    """An arm's outcomes per scene variant, from the ``evaluate`` stage of each seed's policy."""
+    per_seed = [read_evaluation_outcomes(stage) for stage in stages]
+    variants = [v for v in per_seed[0] if v is not None]
+    return arm_from_episodes(label, per_seed, variants)
+
+
+def steps_to_reach(arm: ArmOutcomes, target: float) -> int | None:
+    """The first evaluated step at which the arm's success over all seeds reaches ``target``."""
+    return next((p for p, r in zip(arm.points, arm.rates(), strict=True) if r >= target), None)
+
+
+def format_comparison(
+    arms: list[ArmOutcomes], differences: list[dict], reference: str, zero_shot: bool
+) -> str:
+    """Success per arm at every point and, per compared pair, the differences with intervals."""
+    points = arms[0].points
+    name = (lambda p: str(p)) if zero_shot else (lambda p: f"step {p}")
+    head = ["arm", "seeds × episodes", *(name(p) for p in points)]
+    if not zero_shot:
+        ref = next(a for a in arms if a.label == reference)
+        target = ref.rates()[-1]
+        head += ["area under curve", f"steps to {reference}'s final {target:.0%}"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for arm in arms:
+        seeds, _, episodes = arm.outcomes.shape
+        cells = [arm.label, f"{seeds} × {episodes}", *(f"{r:.1%}" for r in arm.rates())]
+        if not zero_shot:
+            cells.append(f"{area_under_curve(points, arm.rates()):.3f}")
+            reached = steps_to_reach(arm, target)
+            cells.append("–" if reached is None else str(reached))
+        lines.append("| " + " | ".join(cells) + " |")
+    lines += ["", "| difference | " + " | ".join(name(p) for p in points)
+              + (" |" if zero_shot else " | area under curve |"),
+              "|" + "---|" * (len(points) + 1 + (not zero_shot))]  # fmt: skip
+    for d in differences:
+        cells = [f"{d['arm']} − {d['against']}"]
+        cells += [format_difference(d["points"][p]) for p in points]
+        if "auc" in d:
+            cells.append(format_difference(d["auc"]))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def report(
     run_dir: Path,
     arms: list[tuple[str, str, str]],
     references: list[tuple[str, str]],
     out: Path,
     threshold: float,
+    compare_to: list[str] | None = None,
+    zero_shot: list[tuple[str, str]] | None = None,
+    resamples: int = 10_000,
 ) -> str:
-    summaries = []
+    """The table and plot; with ``compare_to``, differences against those arms with paired
+    bootstrap intervals from the fits' per-episode outcomes (and for ``zero_shot`` arms: label,
+    glob of each seed's ``evaluate`` stage with variants)."""
+    summaries, stage_dirs = [], {}
     for label, pattern, start_stage in arms:
-        dirs = sorted(d for d in run_dir.glob(pattern) if d.is_dir())
-        if not dirs:
-            raise CapVectorError(f"arm {label!r}: no stage folder in {run_dir} matches {pattern!r}")
+        dirs = _stage_dirs(run_dir, label, pattern)
         runs = [read_fit(d) for d in dirs]
         start = read_evaluation(run_dir / start_stage)
         summaries.append(summarize_arm(label, runs, start, threshold))
+        stage_dirs[label] = (dirs, run_dir / start_stage)
     ref_counts = {label: read_evaluation(run_dir / stage) for label, stage in references}
     refs = {label: k / n for label, (k, n) in ref_counts.items()}
     table = format_table(summaries, refs, threshold)
-    out.mkdir(parents=True, exist_ok=True)
-    result = {
+    result: dict[str, Any] = {
         "threshold": threshold,
         "arms": summaries,
         "references": refs,
         "reference_counts": {label: list(c) for label, c in ref_counts.items()},
     }
+    sections = [table]
+    if compare_to:
+        steps = sorted(set.intersection(*(set(map(int, a["success"])) for a in summaries)) - {0})
+        outcomes = [training_arm(label, *stage_dirs[label], steps) for label, _, _ in arms]
+        differences = compare(outcomes, compare_to, resamples)
+        result["comparison"] = _comparison_json(outcomes, differences, resamples)
+        sections.append(format_comparison(outcomes, differences, compare_to[0], False))
+    if zero_shot:
+        outcomes = [zero_shot_arm(label, _stage_dirs(run_dir, label, g)) for label, g in zero_shot]
+        against = [label for label in compare_to or [] if label in dict(zero_shot)]
+        differences = compare(outcomes, against or [outcomes[0].label], resamples)
+        result["zero_shot"] = _comparison_json(outcomes, differences, resamples)
+        sections.append(format_comparison(outcomes, differences, "", True))
+    out.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(out / "results.json", json.dumps(result, indent=2).encode())
-    atomic_write_bytes(out / "results.md", (table + "\n").encode())
+    text = "\n\n".join(sections)
+    atomic_write_bytes(out / "results.md", (text + "\n").encode())
     plot(summaries, refs, out / "success_vs_steps.png")
-    return table
+    return text
+
+
+def _stage_dirs(run_dir: Path, label: str, pattern: str) -> list[Path]:
+    dirs = sorted(d for d in run_dir.glob(pattern) if d.is_dir())
+    if not dirs:
+        raise CapVectorError(f"arm {label!r}: no stage folder in {run_dir} matches {pattern!r}")
+    return dirs
+
+
+def _comparison_json(arms: list[ArmOutcomes], differences: list[dict], resamples: int) -> dict:
+    """Per-episode outcomes (so anyone can recompute) and the differences with intervals."""
+    return {
+        "method": f"95% percentile bootstrap, {resamples} resamples: evaluation seeds drawn with "
+        "replacement, the same draw for both arms (paired); training seeds drawn with "
+        "replacement per arm",
+        "arms": [
+            {
+                "arm": a.label,
+                "points": a.points,
+                "eval_seeds": [list(s) for s in a.eval_seeds],
+                "success": a.rates().tolist(),
+                # outcomes[training seed][point] = 0/1 per evaluation seed, in eval_seeds order
+                "outcomes": a.outcomes.astype(int).tolist(),
+            }
+            for a in arms
+        ],
+        "differences": differences,
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -226,8 +364,22 @@ def main(argv: list[str] | None = None) -> int:
     )  # fmt: skip
     parser.add_argument("--threshold", type=float, default=0.5, help="success rate to reach")
     parser.add_argument("--out", required=True, type=Path, help="folder for the results")
+    parser.add_argument(
+        "--compare-to", nargs="+", default=None, metavar="LABEL",
+        help="arms to compare every other arm with: differences in success per step and in the "
+        "area under the curve, paired bootstrap 95%% intervals from the per-episode outcomes",
+    )  # fmt: skip
+    parser.add_argument(
+        "--zero-shot", nargs=2, action="append", default=[], metavar=("LABEL", "GLOB"),
+        help="an arm's evaluate stages (one per seed, run with --variant ...): success per "
+        "scene variant, compared like --compare-to",
+    )  # fmt: skip
+    parser.add_argument("--resamples", type=int, default=10_000, help="bootstrap resamples")
     args = parser.parse_args(argv)
-    table = report(args.run_dir, args.arm, args.reference, args.out, args.threshold)
+    table = report(
+        args.run_dir, args.arm, args.reference, args.out, args.threshold, args.compare_to,
+        args.zero_shot, args.resamples,
+    )  # fmt: skip
     print(table)
     print(f"\nplot: {args.out / 'success_vs_steps.png'}")
     return 0
