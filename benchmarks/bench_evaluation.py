@@ -1,14 +1,14 @@
 """Episodes per minute of a MuJoCo evaluation, policy included: one at a time against batched.
 
-    python benchmarks/bench_evaluation.py [--episodes 16] [--batch-size 8]
+    python benchmarks/bench_evaluation.py [--episodes 16] [--batch-sizes 4 8]
 
 The policy is the tiny OpenVLA-OFT preset (untrained: every episode runs to Lift's 150-step
 limit, the worst case and the same work in every row) on 2 cameras at 64 px, 8-action chunks.
 Rows, all on the same episode seeds, in this one run:
 
 - one at a time: ``RolloutEvaluator(batch_size=1)``, the loop every evaluation ran before
-- batched here: ``--batch-size`` episodes in flight in this process, one policy forward each round
-- batched, workers: the same with the simulators in one worker process per core
+- batched here: B episodes in flight in this process, one policy forward for all each round
+- batched, workers: the same with the simulators in one worker process per core (the default)
 
 "cold" includes building the envs (and starting the workers): one ``capvector evaluate``;
 "warm" repeats the run with them kept, as the validation loop does from its second evaluation.
@@ -44,14 +44,15 @@ def tiny_policy() -> VLAPolicy:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--episodes", type=int, default=16)
-    parser.add_argument("--batch-size", type=int, default=8)
+    parser.add_argument("--batch-sizes", type=int, nargs="+", default=[4, 8])
     args = parser.parse_args()
     policy = tiny_policy()
     specs = eval_specs("Lift", args.episodes)
-    workers = default_workers(args.batch_size)
-    rows = [("one at a time", 1, 0), ("batched here", args.batch_size, 0)]
-    if workers >= 2:
-        rows.append((f"batched, {workers} workers", args.batch_size, workers))
+    rows = [("one at a time", 1, 0)]
+    for size in args.batch_sizes:
+        rows.append((f"batched here, B={size}", size, 0))
+        if (workers := default_workers(size)) >= 2:
+            rows.append((f"batched, {workers} workers, B={size}", size, workers))
     print(f"{args.episodes} Lift episodes x 150 steps, tiny OFT policy, {os.cpu_count()} cores")
     print("| loop | cold: episodes/min | × one at a time | warm: episodes/min | × one at a time |")
     print("|---|---|---|---|---|")
