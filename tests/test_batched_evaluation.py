@@ -40,6 +40,7 @@ def fresh_envs():
 
 
 @pytest.mark.sim
+@pytest.mark.slow
 def test_batched_evaluation_gives_the_one_at_a_time_outcomes(tmp_path: Path, fresh_envs) -> None:
     # 5 episodes over 3 slots: slots take new episodes as others end; one scene variant.
     specs = eval_specs("Lift", 4) + eval_specs("Lift", 1, variant="lighting")

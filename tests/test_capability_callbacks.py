@@ -88,6 +88,7 @@ def random_vector(preset: str, data: Path, root: Path) -> Path:
 
 
 @pytest.mark.distributed
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "preset,resume",
     [
@@ -301,6 +302,7 @@ def test_the_record_travels_into_exports_and_merge_refuses_a_repeat(
 
 
 @pytest.mark.distributed
+@pytest.mark.slow
 def test_bf16_frozen_weights_train_merge_resume_and_export_under_ddp_and_fsdp2(
     setup: dict, tmp_path: Path
 ) -> None:

@@ -55,6 +55,7 @@ def capvector(*args: str) -> subprocess.CompletedProcess:
     )
 
 
+@pytest.mark.slow
 def test_recipe_runs_resumes_and_never_redoes_a_stage(tmp_path: Path, demo_file: Path) -> None:
     recipe = recipe_file(tmp_path, demo_file)
     run_dir, stages = load_recipe(recipe)
