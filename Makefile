@@ -16,10 +16,13 @@ $(VENV)/.installed: pyproject.toml
 	$(PY) -m pip install --quiet --no-build-isolation "deepspeed==0.19.8"
 	touch $@
 
-# The quick recipe: demos -> θ_pre -> SFT / aux-SFT -> capability vector -> merge -> downstream
-# on another arm -> MuJoCo evaluation; ends with the results table. Rerunning resumes.
+# One seed of the powered experiment from its shipped θ_pre and capability vector (assets/): plain
+# SFT against CapVector on an unseen arm, 20 MuJoCo episodes each, then the experiment's committed
+# results to read them against. Rerunning resumes. (The whole pipeline from scratch, at toy length:
+# `capvector recipe --config configs/recipes/quick.yaml`.)
 demo: $(VENV)/.installed
-	$(CAPVECTOR) recipe --config configs/recipes/quick.yaml
+	$(CAPVECTOR) recipe --config configs/recipes/demo.yaml
+	@cat docs/results/powered/headline.md
 
 test: $(VENV)/.installed
 	$(PY) -m pytest -q

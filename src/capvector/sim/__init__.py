@@ -15,6 +15,8 @@ Modules (import the one you need; importing this package, ``tasks``, ``episodes`
 - :mod:`~capvector.sim.demos`: ``capvector demos``, recording to robomimic/LIBERO-layout HDF5
 - :mod:`~capvector.sim.policy`: the policy interface (``Observation``, ``EpisodeResult``)
 - :mod:`~capvector.sim.rollout`: ``RolloutEvaluator``, the one rollout loop every evaluation uses
+  (one episode at a time, or batched: many in flight, one policy call per round)
+- :mod:`~capvector.sim.workers`: the worker processes that step batched episodes' simulators
 - :mod:`~capvector.sim.video`: ``write_video``
 - :mod:`~capvector.sim.libero`: LIBERO adapter following the OpenVLA-OFT / openpi protocol
 """

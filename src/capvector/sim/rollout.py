@@ -16,7 +16,11 @@ success or at the step limit (``EpisodeSpec.max_steps``, else the task's default
 
 Episodes are described by :class:`~capvector.sim.episodes.EpisodeSpec` (seeds, arm, scene
 variant; no simulator import). :class:`RolloutEvaluator` is the one loop every evaluation runs: the
-validation loop of ``VLAModule``, ``capvector evaluate`` and ``capvector sweep-scale``.
+validation loop of ``VLAModule``, ``capvector evaluate`` and ``capvector sweep-scale``. It drives
+:class:`Episode` s one at a time (``batch_size=1``) or batched: ``batch_size`` episodes in flight
+in :class:`Slots` (here, or in :mod:`capvector.sim.workers` processes), one policy call per round
+for all of their next chunks (:func:`act`). Each episode has its own env, reset from its seed, so
+the outcome of an episode does not depend on how it was batched.
 """
 
 from __future__ import annotations
@@ -185,7 +189,7 @@ class Episode:
             except SimulationFault as e:
                 return self._result(False, f"simulation fault at step {sim.steps}: {e}")
             if sim.success():
-                if self.frames is not None:
+                if self.frames is not None:  # the last state, without rendering for nothing
                     self._record(sim.render()[0])
                 return self._result(True, None)
             if sim.steps >= self.limit:
