@@ -62,7 +62,7 @@ def test_unknown_variant_names_the_known_ones() -> None:
 def test_the_evaluator_runs_variants_and_names_them_in_rows_and_videos(tmp_path) -> None:
     from capvector.evaluation import format_success_table, success_rows
     from capvector.sim.episodes import eval_specs
-    from capvector.sim.rollout import EnvCache, RolloutEvaluator
+    from capvector.sim.rollout import RolloutEvaluator, close_envs
 
     def still(observation):
         return np.zeros((4, 7))
@@ -70,12 +70,11 @@ def test_the_evaluator_runs_variants_and_names_them_in_rows_and_videos(tmp_path)
     specs = eval_specs("Lift", 1, max_steps=4) + eval_specs("Lift", 1, max_steps=4, variant="all")
     arm = eval_specs("Lift", 1, max_steps=4, variant="ur5e")
     assert (arm[0].robot, arm[0].gripper, arm[0].variant) == ("UR5e", "PandaGripper", None)
-    envs = EnvCache()
-    evaluator = RolloutEvaluator(("agentview",), 32, videos=2, video_dir=tmp_path, envs=envs)
+    evaluator = RolloutEvaluator(("agentview",), 32, videos=2, video_dir=tmp_path)  # batched
     try:
         plain, varied = evaluator.run(still, specs)
     finally:
-        envs.close()
+        close_envs()
     assert (plain.variant, varied.variant) == (None, "all") and plain.seed == varied.seed
     assert np.abs(plain.frames[0].astype(int) - varied.frames[0].astype(int)).mean() > 1.0
     assert sorted(p.name for p in tmp_path.glob("*.mp4")) == [
