@@ -455,6 +455,8 @@ def _config_from_dict(
         sub = _nested_dataclass(f.type)
         if sub is not None and isinstance(value, Mapping):
             value = _config_from_dict(sub, value, {g.name for g in dataclasses.fields(sub)}, source)
+        elif isinstance(value, list) and str(f.type).startswith("tuple"):
+            value = tuple(value)  # JSON (config.json, YAML) stores tuples as lists
         kwargs[f.name] = value
     return config_class(**kwargs)
 
