@@ -6,9 +6,13 @@ The policy is the tiny OpenVLA-OFT preset (untrained: every episode runs to Lift
 limit, the worst case and the same work in every row) on 2 cameras at 64 px, 8-action chunks.
 Rows, all on the same episode seeds, in this one run:
 
-- one at a time: ``RolloutEvaluator(batch_size=1)``, the loop every evaluation ran before
+- one at a time, robosuite's full step: ``RolloutEvaluator(batch_size=1)`` with envs that run
+  robosuite's whole step (``fast_step=False``): the loop every evaluation ran before (baseline)
+- one at a time: the same loop with ``SimEnv``'s fast step (the same states and observations)
 - batched here: B episodes in flight in this process, one policy forward for all each round
 - batched, workers: the same with the simulators in one worker process per core (the default)
+
+Every row must give the same episodes (success and length) as the baseline: it is checked.
 
 "cold" includes building the envs (and starting the workers): one ``capvector evaluate``;
 "warm" repeats the run with them kept, as the validation loop does from its second evaluation.
@@ -29,7 +33,7 @@ from capvector.data.spec import DataSpec
 from capvector.data.statistics import compute_statistics
 from capvector.policy import VLAPolicy
 from capvector.sim.episodes import eval_specs
-from capvector.sim.rollout import RolloutEvaluator, close_envs, default_workers
+from capvector.sim.rollout import EnvCache, RolloutEvaluator, close_envs, default_workers
 
 
 def tiny_policy() -> VLAPolicy:
@@ -48,19 +52,21 @@ def main() -> None:
     args = parser.parse_args()
     policy = tiny_policy()
     specs = eval_specs("Lift", args.episodes)
-    rows = [("one at a time", 1, 0)]
+    rows = [("one at a time, robosuite's full step (before)", 1, 0), ("one at a time", 1, 0)]
     for size in args.batch_sizes:
         rows.append((f"batched here, B={size}", size, 0))
         if (workers := default_workers(size)) >= 2:
             rows.append((f"batched, {workers} workers, B={size}", size, workers))
     print(f"{args.episodes} Lift episodes x 150 steps, tiny OFT policy, {os.cpu_count()} cores")
-    print("| loop | cold: episodes/min | × one at a time | warm: episodes/min | × one at a time |")
+    print("| loop | cold: episodes/min | × before | warm: episodes/min | × before |")
     print("|---|---|---|---|---|")
     baseline: dict[str, float] = {}
-    for name, batch_size, n in rows:
+    reference = None
+    for index, (name, batch_size, n) in enumerate(rows):
         evaluator = RolloutEvaluator(
-            ("agentview", "robot0_eye_in_hand"), 64, batch_size=batch_size, workers=n
-        )
+            ("agentview", "robot0_eye_in_hand"), 64, batch_size=batch_size, workers=n,
+            envs=EnvCache(fast_step=index > 0),
+        )  # fmt: skip
         rates = {}
         outcomes = []
         for phase in ("cold", "warm"):
@@ -69,7 +75,9 @@ def main() -> None:
             rates[phase] = len(specs) / (time.perf_counter() - start) * 60
             outcomes.append([(r.success, r.steps) for r in results])
         close_envs()
-        assert outcomes[0] == outcomes[1], "the same seeds must give the same episodes"
+        evaluator.envs.close()
+        reference = reference or outcomes[0]
+        assert outcomes[0] == outcomes[1] == reference, "the same seeds must give the same episodes"
         baseline = baseline or rates
         print(
             f"| {name} | {rates['cold']:.1f} | {rates['cold'] / baseline['cold']:.2f} "

@@ -11,6 +11,11 @@ Facts this module relies on (measured on the project's 2-core CPU machines, see
   draws its cube size when the model is built) is fixed by ``seed=0`` in the make kwargs; episode
   randomness (object placement, joint noise) is reseeded on every :meth:`SimEnv.reset`.
 - Success is ``env._check_success()`` after every step: robosuite's ``done`` only marks the horizon.
+- ``fast_step`` (the default) leaves out of robosuite's step what changes nothing we read: the
+  controller substeps between policy actions run through :mod:`capvector.sim.fast_control`
+  (robosuite's arithmetic without its per-call overhead: identical controls), and only the
+  observables :class:`SimEnv` reads are computed. States and observations are identical to
+  robosuite's full step (``tests/test_fast_control.py``); ``fast_step=False`` runs the full step.
 """
 
 from __future__ import annotations
@@ -68,6 +73,8 @@ def _import_robosuite() -> ModuleType:
 
 suite = _import_robosuite()
 from robosuite.utils.transform_utils import quat2axisangle  # noqa: E402  (needs the filter first)
+
+from capvector.sim.fast_control import install as install_fast_control  # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -394,6 +401,7 @@ class SimEnv:
         depth: bool = False,
         camera_fovy: Mapping[str, float] | None = None,
         msaa_samples: int = 0,
+        fast_step: bool = True,
     ) -> None:
         self.task = task
         self.spec = get_task(task)
@@ -406,6 +414,9 @@ class SimEnv:
             task, robot, gripper=gripper, cameras=cameras, image_size=image_size, depth=depth
         )
         self.env = suite.make(self.spec.env_name, **copy.deepcopy(self.env_kwargs))
+        self.fast_control = fast_step and install_fast_control(self.env)
+        if fast_step:
+            self._compute_only_read_observables()
         self.seed: int | None = None
         self.steps = 0
         self._renderer: CameraRenderer | None = None
@@ -456,6 +467,16 @@ class SimEnv:
             model.cam_fovy[camera_id(name, "camera_fovy names camera")] = fovy
         for name in self.cameras:
             self.camera_fovy[name] = float(model.cam_fovy[camera_id(name, "camera")])
+
+    def _compute_only_read_observables(self) -> None:
+        # robosuite updates every observable on every substep and samples all of them once per
+        # control step (joint sines and cosines, accelerations, relative positions, ...); we read
+        # only what _lowdim reads. Disabled observables stay disabled across (soft) resets.
+        read = {"robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos"}
+        read |= {*self.spec.objects, *self.spec.orientations}
+        for name in self.env._observables:
+            if name not in read:
+                self.env.modify_observable(name, "enabled", False)
 
     @property
     def instruction(self) -> str:

@@ -73,10 +73,13 @@ class EnvCache:
     Keyed by everything that changes the env: task, arm, gripper, cameras, size, depth, fovy and
     scene variant (a variant's env carries its :class:`SceneRandomizer`, see :meth:`randomizer`).
     At most ``max_envs`` are kept; the least recently used one is closed beyond that.
+    ``fast_step=False`` builds envs that run robosuite's full step (the same states, slower; see
+    :class:`SimEnv`).
     """
 
-    def __init__(self, max_envs: int = 4) -> None:
+    def __init__(self, max_envs: int = 4, *, fast_step: bool = True) -> None:
         self.max_envs = max_envs
+        self.fast_step = fast_step
         self._envs: OrderedDict[tuple, SimEnv] = OrderedDict()
         self._randomizers: dict[int, SceneRandomizer] = {}
 
@@ -98,7 +101,7 @@ class EnvCache:
         if key in self._envs:
             self._envs.move_to_end(key)
             return self._envs[key]
-        sim = SimEnv(task, robot, **settings)
+        sim = SimEnv(task, robot, fast_step=self.fast_step, **settings)
         self._envs[key] = sim
         if variant is not None:
             self._randomizers[id(sim)] = SceneRandomizer(sim, get_variant(variant))
