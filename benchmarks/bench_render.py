@@ -5,7 +5,8 @@
 Every row replays the same action sequences (the scripted expert's executed actions from fixed
 seeds), so the rows differ only in what is rendered:
 
-(a) physics only: ``SimEnv`` without cameras (robosuite step + OSC controller + observables)
+(a) physics only: ``SimEnv`` without cameras: robosuite's full step (its OSC controller code on
+    every substep, every observable), then ``SimEnv``'s fast step (the default; the same states)
 (b) evaluation step with 2 cameras at ``--size`` px through our ``CameraRenderer``, rendered at
     every step, or once per 8-step chunk (what ``run_episode`` does: the policy needs images only
     when it is asked for a new chunk)
@@ -98,11 +99,12 @@ def main() -> None:
     episodes = expert_actions(args.episodes)
     steps = sum(len(a) for _, a in episodes)
 
+    full_step = SimEnv("Lift", cameras=(), fast_step=False)
     physics = SimEnv("Lift", cameras=())
     camera = SimEnv("Lift", cameras=CAMERAS, image_size=size)
     msaa = SimEnv("Lift", cameras=CAMERAS, image_size=size, msaa_samples=4)
     rs_env, rs_reset, rs_step = robosuite_camera_env(size)
-    for sim in (physics, camera, msaa):  # warm up: numba JIT, GL contexts, caches
+    for sim in (full_step, physics, camera, msaa):  # warm up: numba JIT, GL contexts, caches
         sim.reset(0)
         sim.step(np.zeros(7))
         if sim.cameras:
@@ -111,8 +113,14 @@ def main() -> None:
     rs_step(np.zeros(7))
 
     rows: list[tuple[str, float]] = []
-    a = per_step_ms(physics.reset, physics.step, None, 1, episodes)
-    rows.append(("(a) physics only (no cameras)", a))
+    a = per_step_ms(full_step.reset, full_step.step, None, 1, episodes)
+    rows.append(("(a) physics only (no cameras), robosuite's full step", a))
+    rows.append(
+        (
+            "(a) physics only (no cameras), fast step (the default)",
+            per_step_ms(physics.reset, physics.step, None, 1, episodes),
+        )
+    )
     rows.append(
         (
             f"(b) + 2 cameras {size}px, rendered every step",
@@ -188,7 +196,7 @@ def main() -> None:
         f"| {med:.2f} | {60 / med:.0f} |"
     )
     print(f"| failure at the {limit.steps}-step limit | {full:.2f} | {60 / full:.0f} |")
-    for sim in (physics, camera, msaa):
+    for sim in (full_step, physics, camera, msaa):
         sim.close()
     rs_env.close()
 
