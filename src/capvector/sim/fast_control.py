@@ -1,26 +1,25 @@
-"""robosuite's controller substeps at a fraction of their cost, with the same torques to the bit.
+"""robosuite's controller substeps at a fraction of their cost, with the same controls to the bit.
 
 robosuite 1.5 runs its controllers in Python on every 2 ms physics substep, 25 per 20 Hz control
-step, and most of an evaluation's time goes there: per substep it recomputes the action limits
-three times (only to assert the action's length), looks every site up by name, computes each of
-two sites' Jacobians three times (position, rotation and velocity separately) and asks a
-composite controller for the base pose twice. Between two policy actions nothing of that changes
-but the simulator state.
+step, and that is most of an evaluation's time. Per substep it recomputes the action limits three
+times (only to assert the action's length), looks sites up by name, calls ``mj_jacSite`` six times
+where one call gives what it uses, and recomputes the base pose, the goal in the world frame and
+the base's velocity, none of which can change between two policy actions for an arm whose base is
+welded to the world.
 
-:func:`install` replaces one env's ``_pre_action`` for the substeps between policy actions. The
-first substep of a control step (``policy_step=True``: robosuite sets the controller goals and
-pushes its proprio buffers) still runs robosuite's own code; the other 24 run the arithmetic of
-robosuite 1.5.2's ``OperationalSpaceController.update`` and ``run_controller``, of
-``SimpleGripController.run_controller`` and of ``FixedBaseRobot.control``'s clipping: the same
-numpy expressions on the same arrays in the same order, and robosuite's own numba kernels
-(``opspace_matrices``, ``orientation_error``, ``nullspace_torques``), so the controls written to
-``data.ctrl`` and the controllers' state are identical (``tests/test_fast_control.py`` compares
-whole trajectories against robosuite's own control on every arm we simulate). What it leaves out
-are the asserts and the repeated work.
+:func:`install` replaces one env's ``_pre_action``. The first substep of a control step
+(``policy_step=True``: robosuite sets the controller goals and pushes its proprio buffers) still
+runs robosuite's own code, after which the base pose, world-frame goal and base velocity are taken
+once. The other 24 substeps run the arithmetic of robosuite 1.5.2's
+``OperationalSpaceController.update`` and ``run_controller``, ``SimpleGripController.
+run_controller`` and ``FixedBaseRobot.control``'s clipping: the same numpy expressions on arrays of
+the same layout, and robosuite's own numba kernels (``opspace_matrices``, ``orientation_error``,
+``nullspace_torques``). The controls written to ``data.ctrl`` and the controllers' state are
+identical; ``tests/test_fast_control.py`` compares whole trajectories with robosuite's full step.
 
 Only what we build is covered: one fixed-base arm with an ``OSC_POSE`` controller without
-interpolators and a ``GRIP`` gripper controller (``make_env_kwargs``'s BASIC config). Anything
-else keeps robosuite's code: :func:`install` returns False.
+interpolators and a ``GRIP`` gripper controller (``make_env_kwargs``'s BASIC config). Anything else
+keeps robosuite's code: :func:`supported` says why, and :func:`install` returns False.
 """
 
 from __future__ import annotations
