@@ -387,7 +387,9 @@ class SimEnv:
     ``robot0_eef_quat`` (4,) xyzw, ``robot0_eef_axis_angle`` (3,), ``robot0_gripper_qpos`` (2,),
     the task's object positions (e.g. ``cube_pos``) and quaternions (e.g. ``cube_quat``, xyzw).
     ``robot0_eef_quat`` is robosuite's eef *body* quaternion in the world frame, the key the
-    LIBERO/OFT datasets take the axis-angle proprio from.
+    LIBERO/OFT datasets take the axis-angle proprio from. ``fast_step=False`` runs robosuite's
+    full step instead of the fast one (the same states and observations; see the module
+    docstring); ``fast_control`` says whether the lean controller substeps are installed.
     """
 
     def __init__(
