@@ -52,21 +52,24 @@ def main() -> None:
     args = parser.parse_args()
     policy = tiny_policy()
     specs = eval_specs("Lift", args.episodes)
-    rows = [("one at a time, robosuite's full step (before)", 1, 0), ("one at a time", 1, 0)]
+    # (name, batch size, workers, env cache of the one-at-a-time loop)
+    rows = [
+        ("one at a time, robosuite's full step (before)", 1, 0, EnvCache(fast_step=False)),
+        ("one at a time", 1, 0, None),
+    ]
     for size in args.batch_sizes:
-        rows.append((f"batched here, B={size}", size, 0))
+        rows.append((f"batched here, B={size}", size, 0, None))
         if (workers := default_workers(size)) >= 2:
-            rows.append((f"batched, {workers} workers, B={size}", size, workers))
+            rows.append((f"batched, {workers} workers, B={size}", size, workers, None))
     print(f"{args.episodes} Lift episodes x 150 steps, tiny OFT policy, {os.cpu_count()} cores")
     print("| loop | cold: episodes/min | × before | warm: episodes/min | × before |")
     print("|---|---|---|---|---|")
     baseline: dict[str, float] = {}
     reference = None
-    for index, (name, batch_size, n) in enumerate(rows):
+    for name, batch_size, n, envs in rows:
         evaluator = RolloutEvaluator(
-            ("agentview", "robot0_eye_in_hand"), 64, batch_size=batch_size, workers=n,
-            envs=EnvCache(fast_step=index > 0),
-        )  # fmt: skip
+            ("agentview", "robot0_eye_in_hand"), 64, batch_size=batch_size, workers=n, envs=envs
+        )
         rates = {}
         outcomes = []
         for phase in ("cold", "warm"):
@@ -75,7 +78,8 @@ def main() -> None:
             rates[phase] = len(specs) / (time.perf_counter() - start) * 60
             outcomes.append([(r.success, r.steps) for r in results])
         close_envs()
-        evaluator.envs.close()
+        if envs is not None:
+            envs.close()
         reference = reference or outcomes[0]
         assert outcomes[0] == outcomes[1] == reference, "the same seeds must give the same episodes"
         baseline = baseline or rates

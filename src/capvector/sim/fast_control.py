@@ -52,31 +52,33 @@ class _FastSubsteps:
         ctrlrange = self.model.actuator_ctrlrange[arm_actuators]
         self.arm_clip = (arm_actuators, ctrlrange[..., 0].copy(), ctrlrange[..., 1].copy())
         self.gripper_actuators = _as_index(actuators[self.gripper_name])
+        self.arm: OperationalSpaceController | None = None
         self._bind_controllers()
-        arm = self.arm
-        self.ref_site = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, arm.ref_name)
-        center = f"{arm.naming_prefix}{arm.part_name}_center"
-        self.center_site = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, center)
+        self.ref_site = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, self.arm.ref_name)
+        self.center_site = _base_site(self.model, self.arm)
         nv = self.model.nv
         self._jacp, self._jacr = np.zeros((3, nv)), np.zeros((3, nv))
         self._mass_matrix = np.zeros((nv, nv))
 
     def _bind_controllers(self) -> None:
-        # A robot's reset builds new controller objects: bind them again on every policy step,
-        # and keep the gripper's clipped output that robosuite has just written.
-        self.arm: OperationalSpaceController = self.robot.part_controllers[self.arm_name]
+        # A robot's reset builds new controller objects: bind them again when they changed.
+        arm = self.robot.part_controllers[self.arm_name]
+        if arm is self.arm:
+            return
+        self.arm = arm
         self.gripper: SimpleGripController = self.robot.part_controllers[self.gripper_name]
-        self.arm_qpos = _as_index(self.arm.qpos_index)
-        self.arm_qvel = _as_index(self.arm.qvel_index)
+        self.arm_qpos = _as_index(arm.qpos_index)
+        self.arm_qvel = _as_index(arm.qvel_index)
         self.arm_block = _block(self.arm_qvel)
         self.gripper_qpos = _as_index(self.gripper.qpos_index)
         self.gripper_qvel = _as_index(self.gripper.qvel_index)
-        self.gripper_ctrl = self.data.ctrl[self.gripper_actuators].copy()
 
     def __call__(self, action: Any, policy_step: bool = False) -> None:
         if policy_step:
             self.original(action, policy_step=True)
             self._bind_controllers()
+            # The gripper's clipped output robosuite has just written holds until the next action.
+            self.gripper_ctrl = self.data.ctrl[self.gripper_actuators].copy()
             self._hold_goal()
             return
         data = self.data
@@ -160,6 +162,12 @@ class _FastSubsteps:
         return arm.torques
 
 
+def _base_site(model: mujoco.MjModel, arm: OperationalSpaceController) -> int:
+    """The id of the site robosuite takes the arm's base pose from (-1: none)."""
+    name = f"{arm.naming_prefix}{arm.part_name}_center"
+    return mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, name)
+
+
 def _block(index: slice | np.ndarray) -> tuple:
     """The rows and columns ``index`` of a square matrix, for ``matrix[_block(index)]``."""
     return (index, index) if isinstance(index, slice) else np.ix_(index, index)
@@ -194,11 +202,10 @@ def supported(env: Any) -> str | None:
         return "the arm controller interpolates"
     if gripper.interpolator is not None or not gripper.use_action_scaling:
         return "the gripper controller interpolates or does not scale its action"
-    center = f"{arm.naming_prefix}{arm.part_name}_center"
     model = env.sim.model._model
-    site = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, center)
+    site = _base_site(model, arm)
     if site < 0 or model.body_weldid[model.site_bodyid[site]] != 0:
-        return f"the arm's base site {center!r} is missing or can move"
+        return "the arm's base site is missing or can move"
     if not (env.lite_physics and arm.lite_physics):
         return "it runs without lite_physics (robosuite then forwards in every update)"
     if arm.num_ref_sites != 1 or arm.input_ref_frame not in ("base", "world"):
