@@ -16,6 +16,7 @@ import torch
 from torch import Tensor, nn
 
 from capvector.backbones.base import BackboneError
+from capvector.loading import COPY_AGAIN
 
 IGNORE_INDEX = -100
 """Label of the positions a text loss skips (``torch.nn.functional.cross_entropy``'s default)."""
@@ -38,7 +39,10 @@ def read_required_json(path: Path, why: str) -> Any:
     """The JSON at ``path``; a missing file is a ``BackboneError`` saying ``why`` it is needed."""
     if not path.is_file():
         raise BackboneError(f"{path} is missing: {why}")
-    return json.loads(path.read_text())
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise BackboneError(f"{path} is not JSON ({err}); {COPY_AGAIN}") from err
 
 
 def check_cameras(images: Tensor, num_images: int) -> None:
