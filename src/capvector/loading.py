@@ -9,6 +9,7 @@ raised by our own code after it still shows its traceback.
 
 from __future__ import annotations
 
+import json
 import pickle
 import re
 from pathlib import Path
@@ -45,6 +46,17 @@ def load_torch(
         return torch.load(path, map_location=map_location, **kwargs)
     except (RuntimeError, pickle.UnpicklingError, EOFError, KeyError, OSError) as err:
         raise unreadable(path, err, "torch", fix) from err
+
+
+def read_json(path: str | Path) -> dict[str, Any]:
+    """The JSON object in ``path`` (a config, index or metadata file)."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise CapVectorError(f"cannot read {path}: {err}; {COPY_AGAIN}") from err
+    if not isinstance(data, dict):
+        raise CapVectorError(f"{path} does not hold a JSON object")
+    return data
 
 
 def unreadable(path: str | Path, err: BaseException, kind: str, fix: str) -> CapVectorError:

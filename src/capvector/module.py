@@ -5,7 +5,6 @@ from __future__ import annotations
 import csv
 import dataclasses
 import inspect
-import json
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -32,7 +31,7 @@ from capvector.data.spec import DataSpec
 from capvector.distributed import full_state_dict, is_rank_zero, parallelize
 from capvector.errors import CapVectorError
 from capvector.evaluation import metric_key
-from capvector.loading import load_torch
+from capvector.loading import load_torch, read_json
 from capvector.lora import (
     LoraSettings,
     cast_frozen_parameters,
@@ -480,7 +479,7 @@ def load_module(checkpoint: str | Path, map_location: str = "cpu") -> VLAModule:
         spec_file = Path(checkpoint) / DATA_SPEC_FILE
         if not spec_file.is_file():
             raise BackboneError(f"{checkpoint} has no {DATA_SPEC_FILE}: export it with capvector")
-        return VLAModule(pretrained=str(checkpoint), data_spec=json.loads(spec_file.read_text()))
+        return VLAModule(pretrained=str(checkpoint), data_spec=read_json(spec_file))
     if not Path(checkpoint).is_file():
         raise BackboneError(f"checkpoint {checkpoint} does not exist")
     ckpt = load_torch(checkpoint, map_location=map_location, weights_only=False)

@@ -27,7 +27,7 @@ from torch import Tensor, nn
 
 from capvector.errors import CapVectorError, did_you_mean
 from capvector.fileio import atomic_directory
-from capvector.loading import COPY_AGAIN, load_safetensors
+from capvector.loading import COPY_AGAIN, load_safetensors, read_json
 from capvector.modelcard import render_model_card, write_model_card
 from capvector.names import EXPORT_CONFIG, EXPORT_FORMAT, EXPORT_INDEX, EXPORT_WEIGHTS
 
@@ -506,7 +506,7 @@ def load_export_config(folder: str | Path) -> dict[str, Any]:
     path = Path(folder) / EXPORT_CONFIG
     if not path.is_file():
         raise BackboneError(f"{folder} has no {EXPORT_CONFIG}: it is not a capvector export folder")
-    config = json.loads(path.read_text())
+    config = read_json(path)
     if config.get("format") != EXPORT_FORMAT:
         raise BackboneError(
             f"{path} is not a capvector export (format {config.get('format')!r}); for an original "
@@ -540,11 +540,7 @@ def read_sharded(folder: str | Path, index_name: str = EXPORT_INDEX) -> dict[str
     index_path = Path(folder) / index_name
     if not index_path.is_file():
         raise BackboneError(f"{folder} has neither {EXPORT_WEIGHTS} nor {index_name}")
-    try:
-        index = json.loads(index_path.read_text())
-    except json.JSONDecodeError as err:
-        raise BackboneError(f"{index_path} is not JSON ({err}); {COPY_AGAIN}") from err
-    weight_map = index.get("weight_map") if isinstance(index, dict) else None
+    weight_map = read_json(index_path).get("weight_map")
     if not isinstance(weight_map, dict) or not weight_map:
         raise BackboneError(f"{index_path} has no `weight_map`; it is not a safetensors index")
     shards = sorted({str(shard) for shard in weight_map.values()})
