@@ -106,19 +106,11 @@ def run_lightning_cli(args: list[str] | None) -> object:
 
     class CapVectorCLI(LightningCLI):
         def parse_arguments(self, parser, args) -> None:  # noqa: ANN001 (Lightning's)
-            # jsonargparse's own handler prints the whole usage block (~75 lines) before a typo'd
-            # key; with exit_on_error off it raises, and the error is the one line `main` prints.
             from capvector.resume import check_ckpt_path
 
-            subcommand = (args or sys.argv[1:])[0]
-            try:
-                super().parse_arguments(parser, args)
-            except ArgumentError as err:
-                raise CapVectorError(f"{err} (see capvector {subcommand} --help)") from err
-            except OmegaConfBaseException as err:  # an interpolation in a config file
-                raise config_error(f"a {subcommand} config", err) from err
+            super().parse_arguments(parser, args)
             # LightningCLI reads a given checkpoint's hyperparameters right after parsing.
-            check_ckpt_path(self.config[subcommand].get("ckpt_path"))
+            check_ckpt_path(self.config[self.config["subcommand"]].get("ckpt_path"))
 
         def add_arguments_to_parser(self, parser) -> None:  # noqa: ANN001 (jsonargparse parser)
             # Shapes, camera order and statistics come from the data, never typed twice.
@@ -164,14 +156,22 @@ def run_lightning_cli(args: list[str] | None) -> object:
         def on_fit_start(self, trainer, pl_module) -> None:  # noqa: ANN001 (Lightning's)
             super().setup(trainer, pl_module, "fit")
 
-    return CapVectorCLI(
-        VLAModule,
-        RobotDataModule,
-        args=args,
-        parser_kwargs={"parser_mode": "omegaconf", "exit_on_error": False},
-        save_config_callback=SaveConfigAtFitStart,
-        save_config_kwargs={"overwrite": True},
-    )
+    subcommand = (args or sys.argv[1:])[0]
+    try:
+        return CapVectorCLI(
+            VLAModule,
+            RobotDataModule,
+            args=args,
+            # jsonargparse's own handler prints the whole usage block (~75 lines) before a typo'd
+            # key; without exit_on_error it raises, and the error is the one line `main` prints.
+            parser_kwargs={"parser_mode": "omegaconf", "exit_on_error": False},
+            save_config_callback=SaveConfigAtFitStart,
+            save_config_kwargs={"overwrite": True},
+        )
+    except ArgumentError as err:  # the command line, a config file, a checkpoint's hparams
+        raise CapVectorError(f"{err} (see capvector {subcommand} --help)") from err
+    except OmegaConfBaseException as err:  # an interpolation in a config file
+        raise config_error(f"a {subcommand} config", err) from err
 
 
 def _check_before_recording(config: object) -> None:

@@ -1,5 +1,5 @@
-"""Reading weight files that may be missing, cut short or something else: each failure is one
-``CapVectorError`` that names the file and what to do, not the library's traceback.
+"""Reading weight and JSON files that may be missing, cut short or something else: each failure
+is one ``CapVectorError`` that names the file and what to do, not the library's traceback.
 
 A copy or download stopped early leaves a truncated file; safetensors and torch then fail deep in
 their own code (``SafetensorError``, miniz ``RuntimeError``, ``EOFError``, ``UnpicklingError``, even
@@ -32,7 +32,7 @@ def load_safetensors(path: str | Path, fix: str = COPY_AGAIN) -> dict[str, Tenso
     try:
         return load_file(str(path))
     except (SafetensorError, OSError) as err:
-        raise unreadable(path, err, "safetensors", fix) from err
+        raise _unreadable(path, err, "safetensors", fix) from err
 
 
 def load_torch(
@@ -45,7 +45,7 @@ def load_torch(
     try:
         return torch.load(path, map_location=map_location, **kwargs)
     except (RuntimeError, pickle.UnpicklingError, EOFError, KeyError, OSError) as err:
-        raise unreadable(path, err, "torch", fix) from err
+        raise _unreadable(path, err, "torch", fix) from err
 
 
 def read_json(path: str | Path) -> dict[str, Any]:
@@ -59,7 +59,7 @@ def read_json(path: str | Path) -> dict[str, Any]:
     return data
 
 
-def unreadable(path: str | Path, err: BaseException, kind: str, fix: str) -> CapVectorError:
+def _unreadable(path: str | Path, err: BaseException, kind: str, fix: str) -> CapVectorError:
     """The error for a file a library could not read: its reason, first sentence only (torch's
     miniz message goes on for four more)."""
     reason = re.split(r"(?<=\.)\s", str(err).strip(), maxsplit=1)[0] or type(err).__name__
