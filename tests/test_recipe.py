@@ -17,6 +17,7 @@ from capvector.workflows.recipe import (
     expand_seeds,
     load_recipe,
     required_stages,
+    run,
 )
 
 REPO = Path(__file__).resolve().parents[1]
@@ -153,6 +154,27 @@ def test_a_stage_waits_for_the_one_before_its_after_list_and_the_outputs_it_name
     raw.stages[3].after = ["e"]
     with pytest.raises(CapVectorError, match=r"`after` names \['e'\], which are not earlier"):
         dependencies(raw, 3)
+
+
+def test_a_stage_waits_for_a_later_stage_it_names_and_a_cycle_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    stages = [
+        {"name": "a", "command": "backbone-info", "args": ["${out.c.dir}"]},
+        {"name": "b", "command": "backbone-info", "after": []},
+        {"name": "c", "command": "backbone-info", "after": ["b"]},
+    ]
+    path = tmp_path / "recipe.yaml"
+    path.write_text(json.dumps({"run_dir": str(tmp_path / "run"), "stages": stages}))
+    run(path, dry_run=True)
+    started = [line.split("] ")[1].split(" ")[0] for line in capsys.readouterr().out.splitlines()
+               if line.startswith("[recipe") and " started; " in line]  # fmt: skip
+    assert started == ["b", "c", "a"]
+    stages[2]["after"] = ["a"]  # a waits for c, which waits for a
+    path.write_text(json.dumps({"run_dir": str(tmp_path / "run2"), "stages": stages}))
+    with pytest.raises(CapVectorError, match="in a cycle: a waits for c waits for a"):
+        run(path, dry_run=True)
+    assert not (tmp_path / "run2").exists()
 
 
 def test_jobs_run_independent_stages_together_and_stop_at_a_failure(tmp_path: Path) -> None:

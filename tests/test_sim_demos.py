@@ -9,6 +9,8 @@ import h5py
 import numpy as np
 import pytest
 
+from capvector.cli import main as capvector
+from capvector.errors import CapVectorError
 from capvector.sim.demos import main, record_demos
 from capvector.sim.envs import SimEnv, camera_intrinsics
 
@@ -130,15 +132,15 @@ def test_annotations_describe_phase_and_positions(demo_file: Path) -> None:
 @pytest.mark.sim
 def test_failure_to_reach_the_count_leaves_no_file(tmp_path: Path, sim: SimEnv) -> None:
     out = tmp_path / "never.hdf5"
-    with pytest.raises(RuntimeError, match="only 1 of 1 attempts"):
+    with pytest.raises(CapVectorError, match="only 1 of 1 attempts"):
         record_demos("Lift", 2, out, max_attempts=1, sim=sim, progress=False, seed=40)
     assert list(tmp_path.iterdir()) == []
 
 
 def test_cli_reports_bad_arguments(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "x.hdf5"
-    argv = ["--task", "Lift", "--episodes", "1", "--out", str(out), "--fovy", "agentview"]
-    assert main(argv) == 1
+    argv = ["demos", "--task", "Lift", "--episodes", "1", "--out", str(out), "--fovy", "agentview"]
+    assert capvector(argv) == 2
     assert "CAMERA=DEGREES" in capsys.readouterr().err
     assert not out.exists()
 

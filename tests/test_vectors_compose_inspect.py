@@ -9,6 +9,7 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
+from capvector.cli import main
 from capvector.vectors import CapVectorError, compose, extract, inspect_vector, load_vector
 from capvector.vectors.cli import compose_main, extract_main, inspect_main, merge_main, parse_size
 from capvector.vectors.compose import ties, trim
@@ -165,8 +166,9 @@ def test_cli_round_trip_and_errors(tmp_path: Path, capsys: pytest.CaptureFixture
     printed = capsys.readouterr().out
     assert "| **total** |" in printed and "cosine with" in printed
 
-    # Errors: message on stderr, no traceback, exit code 2, nothing written.
-    assert merge_main(["--base", str(base), "--vector", str(vec), "--out", str(meta)]) == 2
+    # Errors (through `capvector`, which prints them): message on stderr, no traceback, exit
+    # code 2, nothing written.
+    assert main(["merge", "--base", str(base), "--vector", str(vec), "--out", str(meta)]) == 2
     err = capsys.readouterr().err
     assert "exists; choose another --out or pass --overwrite" in err and "Traceback" not in err
     no_head = write_export(
@@ -186,8 +188,9 @@ def test_cli_round_trip_and_errors(tmp_path: Path, capsys: pytest.CaptureFixture
     )
     capsys.readouterr()
     assert (
-        merge_main(
+        main(
             [
+                "merge",
                 "--base",
                 str(no_head),
                 "--vector",

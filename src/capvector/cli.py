@@ -7,6 +7,7 @@ importing the simulator and ``capvector fit`` does not pay for the vector tools.
 
 from __future__ import annotations
 
+import errno
 import importlib
 import os
 import shlex
@@ -14,7 +15,7 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from capvector.errors import ToolParser
+from capvector.errors import CapVectorError, ToolParser, config_error
 from capvector.fileio import check_new_output
 
 LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
@@ -36,12 +37,13 @@ TOOLS: dict[str, tuple[str, str]] = {  # name: ("module:function", help), import
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run one command. Its bad input (a ``CapVectorError`` raised anywhere, or an environment
+    failure such as a full disk) is printed here as one line, for every command alike; anything
+    else is a bug and keeps its traceback."""
     args = list(sys.argv[1:] if argv is None else argv)
     if not args or args[0] in ("-h", "--help"):
         print(_usage())
         return 0
-    from capvector.errors import CapVectorError
-
     command, rest = args[0], args[1:]
     if command not in LIGHTNING_SUBCOMMANDS and command not in TOOLS:
         print(f"capvector: unknown command {command!r}\n\n{_usage()}", file=sys.stderr)
@@ -54,16 +56,33 @@ def main(argv: Sequence[str] | None = None) -> int:
         module, function = TOOLS[command][0].split(":")
         tool: Callable[[list[str]], int] = getattr(importlib.import_module(module), function)
         return int(tool(rest) or 0)
+    except KeyboardInterrupt:  # outputs are written atomically: an interrupted one is not there
+        print(f"capvector {command}: interrupted", file=sys.stderr)
+        return 130
     except Exception as exc:
-        # Ours, or ours wrapped: jsonargparse re-raises an error of a link's compute_fn (the data
-        # module's spec, where data.generate records) as a ValueError caused by it.
-        cause: BaseException | None = exc
-        while cause is not None and not isinstance(cause, CapVectorError | FileExistsError):
-            cause = cause.__cause__
-        if cause is None:
+        error, code = _reported(exc)
+        if error is None:
             raise
-        print(f"capvector {command}: error: {cause}", file=sys.stderr)
-        return 2
+        print(f"capvector {command}: error: {error}", file=sys.stderr)
+        return code
+
+
+ENVIRONMENT_ERRORS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM})
+"""OSErrors that are the machine refusing (full disk, quota, read-only, permissions), not a bug."""
+
+
+def _reported(exc: BaseException) -> tuple[BaseException | None, int]:
+    """The error to print as one line and the exit code: bad input (exit 2), ours or ours wrapped
+    (jsonargparse re-raises an error of a link's compute_fn, e.g. the data module's spec, as a
+    ValueError caused by it), or the environment refusing (exit 1); ``None`` for a bug."""
+    cause: BaseException | None = exc
+    while cause is not None:
+        if isinstance(cause, CapVectorError | FileExistsError):
+            return cause, 2
+        cause = cause.__cause__
+    if isinstance(exc, OSError) and exc.errno in ENVIRONMENT_ERRORS:
+        return exc, 1
+    return None, 0
 
 
 def _usage() -> str:
@@ -76,13 +95,23 @@ def _usage() -> str:
 
 
 def run_lightning_cli(args: list[str] | None) -> object:
+    from argparse import ArgumentError
+
     from jsonargparse import Namespace
     from lightning.pytorch.cli import LightningCLI, SaveConfigCallback
+    from omegaconf.errors import OmegaConfBaseException
 
     from capvector.data.datamodule import RobotDataModule
     from capvector.module import VLAModule
 
     class CapVectorCLI(LightningCLI):
+        def parse_arguments(self, parser, args) -> None:  # noqa: ANN001 (Lightning's)
+            from capvector.resume import check_ckpt_path
+
+            super().parse_arguments(parser, args)
+            # LightningCLI reads a given checkpoint's hyperparameters right after parsing.
+            check_ckpt_path(self.config[self.config["subcommand"]].get("ckpt_path"))
+
         def add_arguments_to_parser(self, parser) -> None:  # noqa: ANN001 (jsonargparse parser)
             # Shapes, camera order and statistics come from the data, never typed twice.
             parser.link_arguments(
@@ -105,13 +134,14 @@ def run_lightning_cli(args: list[str] | None) -> object:
                 _check_before_recording(config)
 
         def before_fit(self) -> None:
-            from capvector.resume import check_fit_outputs, resume_latest_run
+            from capvector.resume import check_ckpt_path, check_fit_outputs, resume_latest_run
 
             check_fit_outputs(self.trainer)
             settings = self.config_init[self.subcommand]
             if settings.get("ckpt_path") == "last":
                 settings["ckpt_path"] = str(resume_latest_run(self.trainer))
                 print(f"capvector fit: resuming {settings['ckpt_path']}")
+                check_ckpt_path(settings["ckpt_path"])
 
     class SaveConfigAtFitStart(SaveConfigCallback):
         """Lightning writes ``config.yaml`` into the run folder in ``setup``, before the module's
@@ -126,14 +156,22 @@ def run_lightning_cli(args: list[str] | None) -> object:
         def on_fit_start(self, trainer, pl_module) -> None:  # noqa: ANN001 (Lightning's)
             super().setup(trainer, pl_module, "fit")
 
-    return CapVectorCLI(
-        VLAModule,
-        RobotDataModule,
-        args=args,
-        parser_kwargs={"parser_mode": "omegaconf"},
-        save_config_callback=SaveConfigAtFitStart,
-        save_config_kwargs={"overwrite": True},
-    )
+    subcommand = (args or sys.argv[1:])[0]
+    try:
+        return CapVectorCLI(
+            VLAModule,
+            RobotDataModule,
+            args=args,
+            # jsonargparse's own handler prints the whole usage block (~75 lines) before a typo'd
+            # key; without exit_on_error it raises, and the error is the one line `main` prints.
+            parser_kwargs={"parser_mode": "omegaconf", "exit_on_error": False},
+            save_config_callback=SaveConfigAtFitStart,
+            save_config_kwargs={"overwrite": True},
+        )
+    except ArgumentError as err:  # the command line, a config file, a checkpoint's hparams
+        raise CapVectorError(f"{err} (see capvector {subcommand} --help)") from err
+    except OmegaConfBaseException as err:  # an interpolation in a config file
+        raise config_error(f"a {subcommand} config", err) from err
 
 
 def _check_before_recording(config: object) -> None:
@@ -260,7 +298,6 @@ def import_original_main(argv: list[str]) -> int:
     import json
 
     from capvector.backbones import backbone_class, preset_config
-    from capvector.errors import CapVectorError
 
     parser = ToolParser(prog="capvector import-original", description=import_original_main.__doc__)
     parser.add_argument(

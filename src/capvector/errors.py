@@ -4,11 +4,42 @@ says what to do, exit code 2."""
 from __future__ import annotations
 
 import argparse
+import difflib
+from collections.abc import Iterable
 from typing import NoReturn
 
 
 class CapVectorError(ValueError):
     """Raised for bad input (configs, files, checkpoints). The CLI prints it without a traceback."""
+
+
+class UnknownNameError(CapVectorError, KeyError):
+    """A name that is none of the known ones (task, scene variant, robot); a ``KeyError`` too, as
+    the dictionary lookup it reports."""
+
+    def __str__(self) -> str:  # KeyError's own would print the message in quotes
+        return str(self.args[0]) if self.args else ""
+
+
+def unknown_name(what: str, name: str, known: Iterable[str]) -> UnknownNameError:
+    """``unknown task 'Liftt' (did you mean Lift?); known: Lift, Stack, PickPlaceCan``."""
+    known = list(known)
+    return UnknownNameError(
+        f"unknown {what} {name!r}{did_you_mean(name, known)}; known: {', '.join(known)}"
+    )
+
+
+def did_you_mean(name: str, known: Iterable[str]) -> str:
+    """`` (did you mean A or B?)`` for the known names close to ``name``; empty when none is."""
+    close = difflib.get_close_matches(name, list(known), n=3)
+    return f" (did you mean {' or '.join(close)}?)" if close else ""
+
+
+def config_error(where: str, err: Exception) -> CapVectorError:
+    """One line for an omegaconf error, whose message spans three (what, ``full_key``, type)."""
+    message = str(getattr(err, "msg", None) or err).strip().splitlines()[0]
+    key = getattr(err, "full_key", None)
+    return CapVectorError(f"{where}: {message}" + (f" (at {key})" if key else ""))
 
 
 class ToolParser(argparse.ArgumentParser):

@@ -10,6 +10,7 @@ import torch
 from torch import nn
 
 from capvector.backbones.base import VLABackbone
+from capvector.errors import CapVectorError
 
 ADAPTER = "default"
 
@@ -51,7 +52,7 @@ FROZEN_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16"
 
 def frozen_dtype_of(name: str) -> torch.dtype:
     if name not in FROZEN_DTYPES:
-        raise ValueError(f"model.frozen_dtype {name!r} is not one of {sorted(FROZEN_DTYPES)}")
+        raise CapVectorError(f"model.frozen_dtype {name!r} is not one of {sorted(FROZEN_DTYPES)}")
     return FROZEN_DTYPES[name]
 
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import csv
 import dataclasses
 import inspect
-import json
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -30,7 +29,9 @@ from capvector.data import keys
 from capvector.data.episodes import EpisodeDataset, EpisodeItem, is_episode_batch
 from capvector.data.spec import DataSpec
 from capvector.distributed import full_state_dict, is_rank_zero, parallelize
+from capvector.errors import CapVectorError
 from capvector.evaluation import metric_key
+from capvector.loading import load_torch, read_json
 from capvector.lora import (
     LoraSettings,
     cast_frozen_parameters,
@@ -451,9 +452,9 @@ def _task_key(spec: EpisodeSpec) -> str:
 def _schedule(settings: OptimizerSettings, total_steps: int | None) -> Any:
     kind = settings.schedule
     if kind not in ("constant", "cosine", "step"):
-        raise ValueError(f"unknown lr schedule {kind!r}; use constant, cosine or step")
+        raise CapVectorError(f"unknown lr schedule {kind!r}; use constant, cosine or step")
     if kind == "cosine" and total_steps is None:
-        raise ValueError("the cosine schedule needs trainer.max_steps")
+        raise CapVectorError("the cosine schedule needs trainer.max_steps")
 
     def factor(step: int) -> float:
         if step < settings.warmup_steps:
@@ -478,10 +479,10 @@ def load_module(checkpoint: str | Path, map_location: str = "cpu") -> VLAModule:
         spec_file = Path(checkpoint) / DATA_SPEC_FILE
         if not spec_file.is_file():
             raise BackboneError(f"{checkpoint} has no {DATA_SPEC_FILE}: export it with capvector")
-        return VLAModule(pretrained=str(checkpoint), data_spec=json.loads(spec_file.read_text()))
+        return VLAModule(pretrained=str(checkpoint), data_spec=read_json(spec_file))
     if not Path(checkpoint).is_file():
         raise BackboneError(f"checkpoint {checkpoint} does not exist")
-    ckpt = torch.load(checkpoint, map_location=map_location, weights_only=False)
+    ckpt = load_torch(checkpoint, map_location=map_location, weights_only=False)
     meta = CheckpointMetadata.from_checkpoint(ckpt, str(checkpoint))
     accepted = inspect.signature(VLAModule.__init__).parameters
     # LightningCLI adds bookkeeping entries (`_instantiator`, `_class_path`) to the hparams.

@@ -9,6 +9,7 @@ checkpoint: the fit resumes from it and logs into that same version folder, so i
 from __future__ import annotations
 
 import re
+import zipfile
 from pathlib import Path
 
 import lightning as L
@@ -53,6 +54,32 @@ def resume_latest_run(trainer: L.Trainer) -> Path:
             f"(e.g. <run>/checkpoints/{LAST}), or drop --ckpt_path to start a new run"
         )
     return found
+
+
+def check_ckpt_path(ckpt_path: str | None) -> None:
+    """Fail first when ``--ckpt_path`` names a local checkpoint Lightning could not read: missing,
+    or cut short (a run killed while saving it, an incomplete copy), which LightningCLI and the
+    fit's restore otherwise report as a miniz traceback. Lightning's keywords (``last``, ``best``,
+    ``hpc``, ``registry:...``), URLs and checkpoint folders (DeepSpeed, sharded) are left to it."""
+    if ckpt_path in (None, "last", "best", "hpc") or re.match(r"\w+:", str(ckpt_path)):
+        return
+    path = Path(str(ckpt_path))
+    if path.is_dir():
+        return
+    if not path.is_file():
+        raise CapVectorError(
+            f"--ckpt_path {path} does not exist; pass an existing .ckpt, or drop --ckpt_path to "
+            "start a new run"
+        )
+    try:  # torch checkpoints are zip archives: reading the directory at the end finds a cut
+        with zipfile.ZipFile(path):
+            pass
+    except (zipfile.BadZipFile, OSError) as err:
+        raise CapVectorError(
+            f"--ckpt_path {path} is incomplete or corrupt ({err}): the run stopped while saving "
+            "it, or a copy was cut short; delete it (--ckpt_path last then takes the newest "
+            "checkpoint left) or pass another --ckpt_path"
+        ) from err
 
 
 def check_fit_outputs(trainer: L.Trainer) -> None:

@@ -12,7 +12,6 @@ Adding a VLA means one file: a config dataclass (subclass of ``BackboneConfig``)
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import fnmatch
 import importlib
 import json
@@ -26,8 +25,9 @@ from typing import Any, ClassVar, TypeVar
 import torch
 from torch import Tensor, nn
 
-from capvector.errors import CapVectorError
+from capvector.errors import CapVectorError, did_you_mean
 from capvector.fileio import atomic_directory
+from capvector.loading import COPY_AGAIN, load_safetensors, read_json
 from capvector.modelcard import render_model_card, write_model_card
 from capvector.names import EXPORT_CONFIG, EXPORT_FORMAT, EXPORT_INDEX, EXPORT_WEIGHTS
 
@@ -408,10 +408,9 @@ def preset_config(preset: str, /, **overrides: Any) -> BackboneConfig:
     if name not in _PRESETS:
         _load_families(everything=True)
     if name not in _PRESETS:
-        close = difflib.get_close_matches(name, _PRESETS, n=3)
-        hint = f" Did you mean {', '.join(close)}?" if close else ""
         raise BackboneError(
-            f"unknown backbone preset {preset!r}.{hint} Known presets: {', '.join(sorted(_PRESETS))}."
+            f"unknown backbone preset {preset!r}{did_you_mean(name, _PRESETS)}. Known presets: "
+            f"{', '.join(sorted(_PRESETS))}."
             " A backbone of your own: name it `your.module:preset` or register an entry point "
             f"in the {ENTRY_POINT_GROUP!r} group."
         )
@@ -507,7 +506,7 @@ def load_export_config(folder: str | Path) -> dict[str, Any]:
     path = Path(folder) / EXPORT_CONFIG
     if not path.is_file():
         raise BackboneError(f"{folder} has no {EXPORT_CONFIG}: it is not a capvector export folder")
-    config = json.loads(path.read_text())
+    config = read_json(path)
     if config.get("format") != EXPORT_FORMAT:
         raise BackboneError(
             f"{path} is not a capvector export (format {config.get('format')!r}); for an original "
@@ -518,14 +517,12 @@ def load_export_config(folder: str | Path) -> dict[str, Any]:
 
 def from_pretrained(folder: str | Path, **overrides: Any) -> VLABackbone:
     """Load a capvector export folder (what ``save_pretrained`` / ``capvector merge`` write)."""
-    from safetensors.torch import load_file
-
     config = load_export_config(folder)
     cls = backbone_class(config["family"], config["backbone_config"].get("preset"))
     model = cls.from_config_dict(merge_nested(config["backbone_config"], overrides))
     model.load_tokenizer(folder)
     state = (
-        load_file(str(Path(folder) / EXPORT_WEIGHTS))
+        load_safetensors(Path(folder) / EXPORT_WEIGHTS)
         if _single_file(folder)
         else read_sharded(folder)
     )
@@ -538,16 +535,24 @@ def _single_file(folder: str | Path) -> bool:
 
 
 def read_sharded(folder: str | Path, index_name: str = EXPORT_INDEX) -> dict[str, Tensor]:
-    """All tensors of a sharded safetensors folder (HF layout: index JSON + shards)."""
-    from safetensors.torch import load_file
-
+    """All tensors of a sharded safetensors folder (HF layout: index JSON + shards). Every shard
+    the index names must be there before any is read."""
     index_path = Path(folder) / index_name
     if not index_path.is_file():
         raise BackboneError(f"{folder} has neither {EXPORT_WEIGHTS} nor {index_name}")
-    weight_map: dict[str, str] = json.loads(index_path.read_text())["weight_map"]
+    weight_map = read_json(index_path).get("weight_map")
+    if not isinstance(weight_map, dict) or not weight_map:
+        raise BackboneError(f"{index_path} has no `weight_map`; it is not a safetensors index")
+    shards = sorted({str(shard) for shard in weight_map.values()})
+    missing = [shard for shard in shards if not (Path(folder) / shard).is_file()]
+    if missing:
+        raise BackboneError(
+            f"{index_path} names {len(missing)} shard(s) missing from {folder}, e.g. "
+            f"{_examples(missing)}: the folder is incomplete; {COPY_AGAIN}"
+        )
     state: dict[str, Tensor] = {}
-    for shard in sorted(set(weight_map.values())):
-        state.update(load_file(str(Path(folder) / shard)))
+    for shard in shards:
+        state.update(load_safetensors(Path(folder) / shard))
     return state
 
 

@@ -7,7 +7,6 @@ use ``np.digitize``'s bins) and OpenVLA-OFT's MLP-ResNet (StarVLA's OFT head is 
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -16,6 +15,7 @@ import torch
 from torch import Tensor, nn
 
 from capvector.backbones.base import BackboneError
+from capvector.loading import read_json
 
 IGNORE_INDEX = -100
 """Label of the positions a text loss skips (``torch.nn.functional.cross_entropy``'s default)."""
@@ -34,11 +34,12 @@ def right_pad(
     return out.to(device), valid.to(device)
 
 
-def read_required_json(path: Path, why: str) -> Any:
-    """The JSON at ``path``; a missing file is a ``BackboneError`` saying ``why`` it is needed."""
+def read_required_json(path: Path, why: str) -> dict[str, Any]:
+    """The JSON object at ``path``; a missing file is a ``BackboneError`` saying ``why`` it is
+    needed."""
     if not path.is_file():
         raise BackboneError(f"{path} is missing: {why}")
-    return json.loads(path.read_text())
+    return read_json(path)
 
 
 def check_cameras(images: Tensor, num_images: int) -> None:

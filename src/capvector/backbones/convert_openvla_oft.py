@@ -36,7 +36,6 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import torch
 from torch import Tensor
 
 from capvector.backbones.base import (
@@ -49,6 +48,7 @@ from capvector.backbones.base import (
 )
 from capvector.backbones.common import read_required_json
 from capvector.data.statistics import BOUNDS, BOUNDS_Q99
+from capvector.loading import load_safetensors, load_torch
 from capvector.lora_layers import LoraFormatError, adapter_scaling, merge_lora, split_lora
 
 if TYPE_CHECKING:
@@ -329,12 +329,10 @@ def _rename_layer_scale(key: str) -> str:
 
 def read_original_vlm(root: Path) -> dict[str, Tensor]:
     """The merged VLM weights, under our names (LayerScale ``scale_factor`` -> ``gamma``)."""
-    from safetensors.torch import load_file
-
     if (root / "model.safetensors.index.json").is_file():
         raw = read_sharded(root)
     elif (root / "model.safetensors").is_file():
-        raw = load_file(str(root / "model.safetensors"))
+        raw = load_safetensors(root / "model.safetensors")
     else:
         raise BackboneError(
             f"{root} has no merged VLM weights (model.safetensors or model.safetensors.index.json)"
@@ -354,7 +352,7 @@ def _load_component(root: Path, name: str) -> dict[str, Tensor]:
         raise BackboneError(
             f"{root} has several {name} files ({[f.name for f in files]}); keep one"
         )
-    raw = torch.load(files[0], map_location="cpu", weights_only=True)
+    raw = load_torch(files[0], weights_only=True)
     # Saved from DDP-wrapped modules, hence the `module.` prefix (finetune.py's
     # remove_ddp_in_checkpoint strips it the same way).
     return {k.removeprefix("module."): v for k, v in raw.items()}
@@ -417,19 +415,15 @@ def _adapter_scaling(config_path: Path) -> Callable[[str, int], float]:
 def merge_peft_adapter(state: dict[str, Tensor], adapter_dir: Path) -> None:
     """W += scaling * B @ A for every LoRA pair of a PEFT adapter folder (finetune.py's
     ``lora_adapter/``), in place."""
-    from safetensors.torch import load_file
-
     config_path = adapter_dir / "adapter_config.json"
     if not config_path.is_file():
         raise BackboneError(f"{adapter_dir} is not a PEFT adapter folder (no adapter_config.json)")
     scaling = _adapter_scaling(config_path)
     weights_path = adapter_dir / "adapter_model.safetensors"
     if weights_path.is_file():
-        weights = load_file(str(weights_path))
+        weights = load_safetensors(weights_path)
     elif (adapter_dir / "adapter_model.bin").is_file():
-        weights = torch.load(
-            adapter_dir / "adapter_model.bin", map_location="cpu", weights_only=True
-        )
+        weights = load_torch(adapter_dir / "adapter_model.bin", weights_only=True)
     else:
         raise BackboneError(
             f"{adapter_dir} has no adapter weights (adapter_model.safetensors or .bin) to merge"

@@ -38,6 +38,7 @@ from capvector.backbones.base import (
     merge_nested,
     preset_config,
 )
+from capvector.loading import load_safetensors
 
 if TYPE_CHECKING:
     from capvector.backbones.pi05 import Pi05
@@ -264,8 +265,6 @@ def config_from_lerobot(upstream: Mapping[str, Any], source: str) -> dict[str, A
 def read_lerobot_statistics(root: Path, action_dim: int, proprio_dim: int) -> dict[str, Any]:
     """The normaliser step's statistics in capvector's schema (``capvector.data.statistics``),
     ``{}`` when the folder has no preprocessor (weights-only folders, e.g. ``pi05_base``)."""
-    from safetensors.torch import load_file
-
     from capvector.data.lerobot import statistics_from_lerobot
     from capvector.data.statistics import QUANTILES
 
@@ -278,7 +277,7 @@ def read_lerobot_statistics(root: Path, action_dim: int, proprio_dim: int) -> di
         return {}
     if len(files) > 1:
         raise BackboneError(f"{path} has {len(files)} normaliser steps; expected one")
-    flat = load_file(str(root / files[0]))
+    flat = load_safetensors(root / files[0])
     stats: dict[str, dict[str, np.ndarray]] = {}
     for key, value in flat.items():
         feature, _, stat = key.rpartition(".")
@@ -423,8 +422,6 @@ def load_original(
     part of these folders: pass ``tokenizer=<folder>`` (a ``google/paligemma-3b-pt-224``
     download) or keep its files beside the weights.
     """
-    from safetensors.torch import load_file
-
     from capvector.backbones.pi05 import Pi05Config
 
     root = Path(source)
@@ -458,7 +455,7 @@ def load_original(
     if not isinstance(config, Pi05Config):
         raise BackboneError(f"preset {preset!r} is not a pi05 preset")
     model = cls(config)
-    state = original_to_capvector(load_file(str(weights)), source=str(weights))
+    state = original_to_capvector(load_safetensors(weights), source=str(weights))
     missing = sorted(set(model.state_dict()) - set(state))
     if missing:
         names = ", ".join(f"`{capvector_to_original(k)}`" for k in missing[:3])

@@ -39,6 +39,7 @@ from capvector.backbones.base import (
     merge_nested,
 )
 from capvector.backbones.common import read_required_json
+from capvector.loading import load_safetensors, load_torch
 
 if TYPE_CHECKING:
     from capvector.backbones.starvla import StarVLA
@@ -122,12 +123,8 @@ def _compat(config: dict[str, Any]) -> None:
 
 def read_state(path: Path) -> dict[str, Tensor]:
     if path.suffix == ".safetensors":
-        from safetensors.torch import load_file
-
-        return load_file(str(path))
-    import torch
-
-    state = torch.load(path, map_location="cpu", weights_only=True)
+        return load_safetensors(path)
+    state = load_torch(path, weights_only=True)
     if not isinstance(state, Mapping):
         raise BackboneError(f"{path} does not hold a state dict")
     return dict(state)

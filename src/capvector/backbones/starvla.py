@@ -56,6 +56,7 @@ from capvector.backbones.base import (
 )
 from capvector.backbones.common import IGNORE_INDEX, check_cameras, discretize_state
 from capvector.data import keys
+from capvector.loading import load_safetensors
 
 OPENAI_CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)
 OPENAI_CLIP_STD = (0.26862954, 0.26130258, 0.27577711)
@@ -859,11 +860,9 @@ class StarVLA(VLABackbone):
 
     def load_head_weights(self, path: str | Path) -> None:
         """Strictly load head weights (keys relative to the head, or prefixed ``action_head.``)."""
-        from safetensors.torch import load_file
-
         if not Path(path).is_file():
             raise BackboneError(f"head weights file {path} does not exist")
-        state = {k.removeprefix(HEAD_WEIGHTS_PREFIX): v for k, v in load_file(str(path)).items()}
+        state = {k.removeprefix(HEAD_WEIGHTS_PREFIX): v for k, v in load_safetensors(path).items()}
         load_state_dict_strictly(self.action_head, state, source=str(path))
 
     @classmethod

@@ -208,13 +208,13 @@ class OrthogonalityLoss(Objective):
     ) -> None:
         super().__init__(name=name, weight=weight)
         if mode not in MODES:
-            raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+            raise CapVectorError(f"mode must be one of {MODES}, got {mode!r}")
         if normalization not in NORMALIZATIONS:
-            raise ValueError(
+            raise CapVectorError(
                 f"normalization must be one of {NORMALIZATIONS}, got {normalization!r}"
             )
         if mode == "full" and normalization == "squared_cosine":
-            raise ValueError(
+            raise CapVectorError(
                 "squared_cosine needs ‖Δ‖ = ‖θ − θ_meta‖, which full mode cannot compute without a "
                 "copy of θ_meta; use squared_projection, or mode='lora'"
             )

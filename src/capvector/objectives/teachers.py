@@ -25,6 +25,7 @@ from torch import Tensor, nn
 
 from capvector.data import keys
 from capvector.errors import CapVectorError
+from capvector.loading import load_safetensors, load_torch
 
 
 class Teacher(nn.Module, ABC):
@@ -221,11 +222,9 @@ def _load_weights(model: nn.Module, path: str) -> None:
             f"teacher weights {path} do not exist (teachers load from local files only)"
         )
     if path.endswith(".safetensors"):
-        from safetensors.torch import load_file
-
-        state = load_file(path)
+        state = load_safetensors(path)
     else:
-        state = torch.load(path, map_location="cpu", weights_only=True)
+        state = load_torch(path, weights_only=True)
     missing, unexpected = model.load_state_dict(state, strict=False)
     if missing or unexpected:
         raise CapVectorError(

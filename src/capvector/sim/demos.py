@@ -241,14 +241,13 @@ def record_demos(
     leaves no file behind. ``sim`` reuses an existing env (its task/robot/cameras win).
     """
     if episodes < 1:
-        raise ValueError(f"episodes must be at least 1, got {episodes}")
+        raise CapVectorError(f"episodes must be at least 1, got {episodes}")
     if max_attempts is None:
         max_attempts = max(2 * episodes, episodes + 20)
     # Checked before any simulation: a bad path must not cost minutes of recording first.
     out = check_writable(out, "demo file")
     if out.is_dir():
         raise CapVectorError(f"--out {out} is a folder; give a file, e.g. {out / 'demos.hdf5'}")
-    out.parent.mkdir(parents=True, exist_ok=True)
     own_sim = sim is None
     if sim is None:
         sim = SimEnv(
@@ -264,6 +263,7 @@ def record_demos(
     annotator = Annotator(sim.task, sim.spec)
     model_xml = sim.model_xml()
     summary = RecordingSummary(path=out, demos=0, attempts=0, samples=0)
+    out.parent.mkdir(parents=True, exist_ok=True)  # once the robot, cameras and task are known good
     tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
     start = time.perf_counter()
     bar = tqdm(total=episodes, desc=f"{sim.task} demos", unit="demo", disable=not progress)
@@ -272,7 +272,7 @@ def record_demos(
             data = f.create_group("data")
             while summary.demos < episodes:
                 if summary.attempts >= max_attempts:
-                    raise RuntimeError(
+                    raise CapVectorError(
                         f"the {sim.task} expert on {sim.robot} succeeded in only {summary.demos} "
                         f"of {summary.attempts} attempts (seeds {seed}..{seed + summary.attempts - 1}),"
                         f" short of the {episodes} demos asked for: raise --max-attempts or lower "
@@ -317,7 +317,7 @@ def _parse_fovy(items: Sequence[str]) -> dict[str, float]:
         except ValueError:
             sep = ""
         if not sep or not cam:
-            raise argparse.ArgumentTypeError(f"--fovy takes CAMERA=DEGREES, got {item!r}")
+            raise CapVectorError(f"--fovy takes CAMERA=DEGREES, got {item!r}")
     return fovy
 
 
@@ -363,28 +363,22 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``capvector demos``; returns the process exit code."""
     args = build_parser().parse_args(argv)
-    try:
-        summary = record_demos(
-            args.task,
-            args.episodes,
-            args.out,
-            robot=args.robot,
-            gripper=args.gripper,
-            cameras=args.cameras,
-            image_size=args.image_size,
-            depth=args.depth,
-            seed=args.seed,
-            noise=args.noise,
-            extra_steps=args.extra_steps,
-            max_attempts=args.max_attempts,
-            camera_fovy=_parse_fovy(args.fovy),
-            progress=not args.no_progress,
-        )
-    except CapVectorError:
-        raise  # bad input: `capvector` prints it as one line, exit code 2
-    except (RuntimeError, ValueError, KeyError, argparse.ArgumentTypeError) as e:
-        print(f"capvector demos: error: {e}", file=sys.stderr)
-        return 1
+    summary = record_demos(
+        args.task,
+        args.episodes,
+        args.out,
+        robot=args.robot,
+        gripper=args.gripper,
+        cameras=args.cameras,
+        image_size=args.image_size,
+        depth=args.depth,
+        seed=args.seed,
+        noise=args.noise,
+        extra_steps=args.extra_steps,
+        max_attempts=args.max_attempts,
+        camera_fovy=_parse_fovy(args.fovy),
+        progress=not args.no_progress,
+    )
     lengths = np.asarray(summary.lengths)
     print(
         f"wrote {summary.demos} {args.task} demos ({args.robot}, {summary.samples} samples) to "
@@ -395,5 +389,7 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+if __name__ == "__main__":  # one error path: bad input is one line, as from `capvector demos`
+    from capvector.cli import main as capvector
+
+    sys.exit(capvector(["demos", *sys.argv[1:]]))

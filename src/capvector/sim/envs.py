@@ -42,6 +42,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
+from capvector.errors import CapVectorError, unknown_name  # noqa: E402
 from capvector.sim.tasks import TASKS, TaskSpec, get_task  # noqa: E402,F401 (re-exported)
 
 # robosuite logs five notices at import and one per controller load; none applies to us (no
@@ -116,6 +117,7 @@ def make_env_kwargs(
     off (``use_camera_obs=False``).
     """
     get_task(task)
+    _check_robot(robot, gripper)
     # robosuite 1.5 "BASIC" composite controller = OSC_POSE delta for the arm, input range ±1,
     # 0.05 m / 0.5 rad per step, input_ref_frame "base"; the same 7-d action on every arm.
     controller = suite.load_composite_controller_config(controller="BASIC", robot=robot)
@@ -123,7 +125,7 @@ def make_env_kwargs(
     # "right" part, and robosuite warns about each missing part on every reset.
     parts = controller.get("body_parts", {})
     if "right" not in parts:
-        raise ValueError(f"robosuite's BASIC controller config has no right arm for {robot!r}")
+        raise CapVectorError(f"robosuite's BASIC controller config has no right arm for {robot!r}")
     controller["body_parts"] = {"right": parts["right"]}
     kwargs: dict[str, Any] = {
         "robots": robot,
@@ -145,6 +147,27 @@ def make_env_kwargs(
     if gripper is not None:
         kwargs["gripper_types"] = gripper
     return kwargs
+
+
+def _check_robot(robot: str, gripper: str | None) -> None:
+    """A robot and gripper robosuite knows, the robot with one arm (robosuite's own failures are
+    an assertion and a KeyError deep in ``suite.make``)."""
+    from robosuite.models.grippers import GRIPPER_MAPPING
+    from robosuite.models.robots.robot_model import REGISTERED_ROBOTS
+    from robosuite.robots import ROBOT_CLASS_MAPPING
+
+    def one_arm(name: str) -> bool:
+        return name in REGISTERED_ROBOTS and list(REGISTERED_ROBOTS[name]().arms) == ["right"]
+
+    if robot not in ROBOT_CLASS_MAPPING or not one_arm(robot):
+        known = [name for name in ROBOT_CLASS_MAPPING if one_arm(name)]
+        if robot in ROBOT_CLASS_MAPPING:
+            raise CapVectorError(
+                f"robot {robot!r} has more than one arm; use one of {', '.join(known)}"
+            )
+        raise unknown_name("one-arm robot", robot, known)
+    if gripper is not None and gripper not in GRIPPER_MAPPING:
+        raise unknown_name("gripper", gripper, [name for name in GRIPPER_MAPPING if name])
 
 
 def camera_intrinsics(fovy_degrees: float, height: int, width: int | None = None) -> np.ndarray:
@@ -186,7 +209,7 @@ def _gl_context_class() -> type:
     elif backend in ("glfw", "glx"):
         from mujoco.glfw import GLContext
     else:
-        raise RuntimeError(
+        raise CapVectorError(
             f"MUJOCO_GL={backend!r}: CameraRenderer supports egl (default), osmesa and glfw"
         )
     return GLContext
@@ -254,7 +277,9 @@ class CameraRenderer:
         for name in self.cameras:
             cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, name)
             if cam_id < 0:
-                raise ValueError(f"camera {name!r} is not in the model; it has: {', '.join(known)}")
+                raise CapVectorError(
+                    f"camera {name!r} is not in the model; it has: {', '.join(known)}"
+                )
             cam = mujoco.MjvCamera()
             cam.type = mujoco.mjtCamera.mjCAMERA_FIXED
             cam.fixedcamid = cam_id
@@ -437,7 +462,7 @@ class SimEnv:
             n_fingers = self.observation["robot0_gripper_qpos"].shape[0]
             if n_fingers != 2:
                 grip = type(self.env.robots[0].gripper["right"]).__name__
-                raise ValueError(
+                raise CapVectorError(
                     f"{robot} with {grip} has {n_fingers} finger joints, but the 8-d proprio "
                     "(eef pos + axis-angle + 2 finger joints) needs a gripper with two: pass "
                     "gripper='PandaGripper' (CLI: --gripper PandaGripper) or 'RethinkGripper'"
@@ -460,7 +485,7 @@ class SimEnv:
                     mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_CAMERA, i)
                     for i in range(model.ncam)
                 ]
-                raise ValueError(
+                raise CapVectorError(
                     f"{what} {name!r} is not in {self.task}; it has {', '.join(known)}"
                 )
             return cam_id

@@ -37,6 +37,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from capvector.errors import unknown_name
 from capvector.sim.policy import EpisodeResult, Observation, Policy, as_chunk
 
 log = logging.getLogger(__name__)
@@ -70,9 +71,7 @@ def max_steps(suite: str) -> int:
     try:
         return LIBERO_MAX_STEPS[suite]
     except KeyError:
-        raise KeyError(
-            f"unknown LIBERO suite {suite!r}; known: {', '.join(LIBERO_MAX_STEPS)}"
-        ) from None
+        raise unknown_name("LIBERO suite", suite, LIBERO_MAX_STEPS) from None
 
 
 def flip_image(image: np.ndarray) -> np.ndarray:

@@ -9,6 +9,8 @@ from typing import Any
 
 import numpy as np
 
+from capvector.errors import unknown_name
+
 
 def _pick_place_can_target(env: Any) -> dict[str, np.ndarray]:
     # Centre of the can's compartment in the goal bin (robosuite PickPlace.target_bin_placements).
@@ -73,4 +75,4 @@ def get_task(name: str) -> TaskSpec:
     try:
         return TASKS[name]
     except KeyError:
-        raise KeyError(f"unknown task {name!r}; known tasks: {', '.join(TASKS)}") from None
+        raise unknown_name("task", name, TASKS) from None

@@ -32,6 +32,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from capvector.errors import unknown_name
+
 if TYPE_CHECKING:
     from capvector.sim.envs import SimEnv
 
@@ -120,7 +122,7 @@ def get_variant(name: str) -> SceneVariant:
     try:
         return VARIANTS[name]
     except KeyError:
-        raise KeyError(f"unknown scene variant {name!r}; known: {', '.join(VARIANTS)}") from None
+        raise unknown_name("scene variant", name, VARIANTS) from None
 
 
 def variant_seed(variant: str, seed: int) -> int:

@@ -1,7 +1,8 @@
 """Entry points of ``capvector extract|merge|compose|inspect`` (wired in ``capvector.cli``).
 
 Each ``*_main(argv)`` parses its own arguments, runs the library function with a progress bar and
-prints a short summary. A bad input prints the error message (no traceback) and returns 2.
+prints a short summary. Bad input raises ``CapVectorError``, which ``capvector.cli.main`` prints as
+one line (exit code 2), as for every command.
 """
 
 from __future__ import annotations
@@ -10,29 +11,12 @@ import argparse
 import re
 import shlex
 import sys
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 from capvector.errors import ToolParser
-from capvector.vectors.io import DEFAULT_MAX_SHARD_SIZE, CapVectorError
+from capvector.vectors.io import DEFAULT_MAX_SHARD_SIZE
 
 _OUT_HELP = "output folder; written atomically, an existing one is an error unless --overwrite"
-
-
-def _run(command: str, job: Callable[[], Any]) -> int:
-    try:
-        job()
-    except (CapVectorError, FileExistsError) as err:
-        print(f"capvector {command}: error: {err}", file=sys.stderr)
-        return 2
-    except OSError as err:  # disk full, permissions: the output was not written either
-        print(f"capvector {command}: error: {err}; nothing was written", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print(f"capvector {command}: interrupted; nothing was written", file=sys.stderr)
-        return 130
-    return 0
 
 
 def command_line(command: str, argv: list[str] | None) -> str:
@@ -107,48 +91,46 @@ def extract_main(argv: list[str] | None = None) -> int:
     _add_common(parser)
     args = parser.parse_args(argv)
 
-    def job() -> None:
-        from capvector.vectors.extract import TASK_VECTOR_AUX, TASK_VECTOR_SFT, extract
+    from capvector.vectors.extract import TASK_VECTOR_AUX, TASK_VECTOR_SFT, extract
 
-        meta = extract(
-            args.aux,
-            args.sft,
-            args.out,
-            base=args.base,
-            include=args.include,
-            exclude=args.exclude,
-            rank=args.rank,
-            energy=args.energy,
-            objectives=args.objectives,
-            full_rank=args.full_rank,
-            dtype=args.dtype,
-            max_shard_size=args.max_shard_size,
-            overwrite=args.overwrite,
-            progress=True,
-            command=command_line("extract", argv),
-        )
-        tensors = meta["tensors"].values()
-        lora = [t for t in tensors if t["storage"] == "lora"]
+    meta = extract(
+        args.aux,
+        args.sft,
+        args.out,
+        base=args.base,
+        include=args.include,
+        exclude=args.exclude,
+        rank=args.rank,
+        energy=args.energy,
+        objectives=args.objectives,
+        full_rank=args.full_rank,
+        dtype=args.dtype,
+        max_shard_size=args.max_shard_size,
+        overwrite=args.overwrite,
+        progress=True,
+        command=command_line("extract", argv),
+    )
+    tensors = meta["tensors"].values()
+    lora = [t for t in tensors if t["storage"] == "lora"]
+    print(
+        f"wrote {args.out}: {meta['num_tensors']} tensors, {meta['num_parameters']:,} parameters, "
+        f"‖c‖ = {meta['norm']:.4g}, dtype {meta['dtype']}"
+    )
+    print(f"  include {meta['include']} ({meta['include_origin']}), exclude {meta['exclude']}")
+    if lora:
+        energies = [t["retained_energy"] for t in lora]
+        ranks = [t["rank"] for t in lora]
         print(
-            f"wrote {args.out}: {meta['num_tensors']} tensors, {meta['num_parameters']:,} parameters, "
-            f"‖c‖ = {meta['norm']:.4g}, dtype {meta['dtype']}"
+            f"  low-rank: {len(lora)} tensors as a PEFT LoRA adapter, ranks {min(ranks)}–{max(ranks)}, "
+            f"retained energy min {min(energies):.3f} mean {sum(energies) / len(energies):.3f}; "
+            f"{len(tensors) - len(lora)} tensors in full"
         )
-        print(f"  include {meta['include']} ({meta['include_origin']}), exclude {meta['exclude']}")
-        if lora:
-            energies = [t["retained_energy"] for t in lora]
-            ranks = [t["rank"] for t in lora]
-            print(
-                f"  low-rank: {len(lora)} tensors as a PEFT LoRA adapter, ranks {min(ranks)}–{max(ranks)}, "
-                f"retained energy min {min(energies):.3f} mean {sum(energies) / len(energies):.3f}; "
-                f"{len(tensors) - len(lora)} tensors in full"
-            )
-        skipped = {k: v for k, v in meta["skipped"].items() if v}
-        for reason, keys in skipped.items():
-            print(f"  skipped {len(keys)} tensor(s) {reason.replace('_', ' ')}, e.g. {keys[0]}")
-        if args.base:
-            print(f"  task vectors: {args.out}/{TASK_VECTOR_AUX}, {args.out}/{TASK_VECTOR_SFT}")
-
-    return _run("extract", job)
+    skipped = {k: v for k, v in meta["skipped"].items() if v}
+    for reason, keys in skipped.items():
+        print(f"  skipped {len(keys)} tensor(s) {reason.replace('_', ' ')}, e.g. {keys[0]}")
+    if args.base:
+        print(f"  task vectors: {args.out}/{TASK_VECTOR_AUX}, {args.out}/{TASK_VECTOR_SFT}")
+    return 0
 
 
 def _vector_arg(text: str) -> tuple[str, float]:
@@ -195,31 +177,27 @@ def merge_main(argv: list[str] | None = None) -> int:
     _add_common(parser, dtype=False, shards=False)
     args = parser.parse_args(argv)
 
-    def job() -> None:
-        from capvector.vectors.merge import merge
-        from capvector.vectors.precision import precision_warning
+    from capvector.vectors.merge import merge
+    from capvector.vectors.precision import precision_warning
 
-        record = merge(
-            args.base,
-            args.vector,
-            args.out,
-            overwrite=args.overwrite,
-            progress=True,
-            allow_repeat=args.allow_repeat,
-            command=command_line("merge", argv),
-            dtype=args.dtype,
-        )
-        terms = " + ".join(f"{s:g}·{p}" for p, s in args.vector)
-        print(f"wrote {args.out} = {args.base} + {terms}")
-        print(f"  base fingerprint {record['base']['fingerprint'][:23]}…; non-weight files copied")
-        kept = record["precision"]
-        print(
-            f"  {kept['dtype']} output keeps Σλc up to a {kept['relative_error']:.2%} relative error"
-        )
-        if warning := precision_warning(kept):
-            print(f"capvector merge: warning: {warning}", file=sys.stderr)
-
-    return _run("merge", job)
+    record = merge(
+        args.base,
+        args.vector,
+        args.out,
+        overwrite=args.overwrite,
+        progress=True,
+        allow_repeat=args.allow_repeat,
+        command=command_line("merge", argv),
+        dtype=args.dtype,
+    )
+    terms = " + ".join(f"{s:g}·{p}" for p, s in args.vector)
+    print(f"wrote {args.out} = {args.base} + {terms}")
+    print(f"  base fingerprint {record['base']['fingerprint'][:23]}…; non-weight files copied")
+    kept = record["precision"]
+    print(f"  {kept['dtype']} output keeps Σλc up to a {kept['relative_error']:.2%} relative error")
+    if warning := precision_warning(kept):
+        print(f"capvector merge: warning: {warning}", file=sys.stderr)
+    return 0
 
 
 def compose_main(argv: list[str] | None = None) -> int:
@@ -241,33 +219,31 @@ def compose_main(argv: list[str] | None = None) -> int:
     _add_common(parser)
     args = parser.parse_args(argv)
 
-    def job() -> None:
-        from capvector.vectors.compose import compose
+    from capvector.vectors.compose import compose
 
-        meta = compose(
-            args.vectors,
-            args.out,
-            args.method,
-            weights=args.weights,
-            density=args.density,
-            consensus=args.consensus,
-            dtype=args.dtype,
-            max_shard_size=args.max_shard_size,
-            overwrite=args.overwrite,
-            progress=True,
-            command=command_line("compose", argv),
-        )
-        how = (
-            f"TIES (density {args.density}, {args.consensus} consensus)"
-            if args.method == "ties"
-            else "sum"
-        )
-        print(
-            f"wrote {args.out}: {how} of {len(args.vectors)} vectors, {meta['num_tensors']} tensors, "
-            f"‖c‖ = {meta['norm']:.4g}"
-        )
-
-    return _run("compose", job)
+    meta = compose(
+        args.vectors,
+        args.out,
+        args.method,
+        weights=args.weights,
+        density=args.density,
+        consensus=args.consensus,
+        dtype=args.dtype,
+        max_shard_size=args.max_shard_size,
+        overwrite=args.overwrite,
+        progress=True,
+        command=command_line("compose", argv),
+    )
+    how = (
+        f"TIES (density {args.density}, {args.consensus} consensus)"
+        if args.method == "ties"
+        else "sum"
+    )
+    print(
+        f"wrote {args.out}: {how} of {len(args.vectors)} vectors, {meta['num_tensors']} tensors, "
+        f"‖c‖ = {meta['norm']:.4g}"
+    )
+    return 0
 
 
 def inspect_main(argv: list[str] | None = None) -> int:
@@ -282,23 +258,19 @@ def inspect_main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
 
-    def job() -> None:
-        from capvector.vectors.inspect import inspect_vector
+    from capvector.vectors.inspect import inspect_vector
 
-        report = inspect_vector(args.vector, against=args.against, plot=args.plot, progress=True)
-        print(report.table())
+    report = inspect_vector(args.vector, against=args.against, plot=args.plot, progress=True)
+    print(report.table())
+    print(
+        f"\n{report.num_tensors} tensors ({report.lowrank_tensors} low-rank), ‖c‖ = {report.norm:.4g}"
+    )
+    if args.against:
+        cosine = "undefined (a zero vector)" if report.cosine is None else f"{report.cosine:.4f}"
         print(
-            f"\n{report.num_tensors} tensors ({report.lowrank_tensors} low-rank), ‖c‖ = {report.norm:.4g}"
+            f"cosine with {args.against}: {cosine} over {report.shared_tensors} shared "
+            f"tensors ({len(report.only_here)} only here, {len(report.only_against)} only there)"
         )
-        if args.against:
-            cosine = (
-                "undefined (a zero vector)" if report.cosine is None else f"{report.cosine:.4f}"
-            )
-            print(
-                f"cosine with {args.against}: {cosine} over {report.shared_tensors} shared "
-                f"tensors ({len(report.only_here)} only here, {len(report.only_against)} only there)"
-            )
-        if args.plot:
-            print(f"plot: {args.plot}")
-
-    return _run("inspect", job)
+    if args.plot:
+        print(f"plot: {args.plot}")
+    return 0

@@ -28,6 +28,7 @@ from torch import Tensor
 
 from capvector.errors import CapVectorError  # noqa: F401 (re-exported: the vector tools' error)
 from capvector.fileio import atomic_directory, check_new_output
+from capvector.loading import read_json
 from capvector.lora_layers import LoraFormatError, LoraLayer, split_lora
 from capvector.names import (  # noqa: F401 (re-exported: the vector modules' names)
     ADAPTER_CONFIG,
@@ -492,16 +493,6 @@ def open_weights(path: str | Path) -> WeightSource:
             )
         return CheckpointSource(p)
     raise CapVectorError(f"{p} does not exist")
-
-
-def read_json(path: Path) -> dict[str, Any]:
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as err:
-        raise CapVectorError(f"cannot read {path}: {err}") from err
-    if not isinstance(data, dict):
-        raise CapVectorError(f"{path} does not hold a JSON object")
-    return data
 
 
 # -- writing --------------------------------------------------------------------------------

@@ -28,6 +28,7 @@ def evaluate(
     from capvector.data.episodes import EpisodeDataset
     from capvector.sim.rollout import RolloutEvaluator
 
+    specs = EpisodeDataset(tasks).specs  # an unknown task or variant fails before the load
     module = load_module(checkpoint).eval()
     spec = module.data_spec
     evaluator = RolloutEvaluator(
@@ -37,7 +38,7 @@ def evaluate(
         workers=workers,
     )  # fmt: skip
     policy = VLAPolicy(module.backbone, spec)
-    return success_rows(evaluator.run(policy, EpisodeDataset(tasks).specs, progress=True))
+    return success_rows(evaluator.run(policy, specs, progress=True))
 
 
 def main(argv: list[str] | None = None) -> int:

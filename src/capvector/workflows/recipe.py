@@ -41,12 +41,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from capvector.errors import CapVectorError, ToolParser
+from capvector.errors import CapVectorError, ToolParser, config_error, did_you_mean
 from capvector.evaluation import SuccessRow, format_success_table
 from capvector.fileio import atomic_write_bytes
 
 DONE = ".done"
-OUT_REFERENCE = re.compile(r"\$\{out\.([A-Za-z0-9_]+)\.")
+OUT_REFERENCE = re.compile(r"\$\{out\.([A-Za-z0-9_]+)\.([A-Za-z0-9_]*)")
+"""``${out.<stage>.<output>`` (groups: the stage, the output)."""
 FIT_VERSION = "version_0"
 
 
@@ -63,6 +64,7 @@ class Stage:
 
 
 def stage_outputs(run_dir: Path, name: str) -> dict[str, str]:
+    """What ``${out.<name>.<output>}`` stands for, by output."""
     directory = run_dir / name
     fit_dir = directory / "fit" / FIT_VERSION
     return {
@@ -155,8 +157,12 @@ def resolve_stage(raw: Any, index: int, run_dir: Path, path: str | Path) -> Stag
     """One stage with its interpolations resolved. Done right before the stage runs, so a stage
     can use what an earlier one produced (``${best_scale:${out.sweep.dir}}``)."""
     from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
 
-    entry: Any = OmegaConf.to_container(raw.stages[index], resolve=True)
+    try:
+        entry: Any = OmegaConf.to_container(raw.stages[index], resolve=True)
+    except OmegaConfBaseException as err:
+        raise config_error(f"stage {raw.stages[index].get('name')!r} in {path}", err) from err
     if "command" not in entry:
         raise CapVectorError(f"stage {entry.get('name')!r} in {path} has no `command`")
     args = [str(a) for a in entry.get("args", [])]
@@ -185,11 +191,28 @@ def command_line(stage: Stage) -> list[str]:
 
 def dependencies(raw: Any, index: int) -> set[str]:
     """The stages stage ``index`` waits for: its ``after:`` list (default: the stage before it)
-    plus every stage whose outputs its arguments name (``${out.<stage>...}``)."""
+    plus every other stage whose outputs its arguments name (``${out.<stage>.<output>}``), which
+    must be a stage and one of its outputs."""
     from omegaconf import OmegaConf
 
     entry = raw.stages[index]
     names = [str(s.name) for s in raw.stages]
+    text = json.dumps(OmegaConf.to_container(entry, resolve=False).get("args", []))
+    named: set[str] = set()
+    for stage, output in OUT_REFERENCE.findall(text):
+        reference = f"${{out.{stage}.{output}}}"
+        if stage not in names:
+            raise CapVectorError(
+                f"stage {names[index]!r} names {reference}, but no stage is called {stage!r}"
+                f"{did_you_mean(stage, names)}; stages: {names}"
+            )
+        outputs = list(stage_outputs(Path(), stage))
+        if output not in outputs:
+            raise CapVectorError(
+                f"stage {names[index]!r} names {reference}: a stage's outputs are "
+                f"{', '.join(outputs)}{did_you_mean(output, outputs)}"
+            )
+        named.add(stage)
     if "after" in entry:
         after = [str(a) for a in entry.after]
         unknown = sorted(set(after) - set(names[:index]))
@@ -200,8 +223,32 @@ def dependencies(raw: Any, index: int) -> set[str]:
             )
     else:
         after = names[index - 1 : index]
-    text = json.dumps(OmegaConf.to_container(entry, resolve=False).get("args", []))
-    return set(after) | (set(OUT_REFERENCE.findall(text)) & set(names[:index]))
+    return set(after) | (named - {names[index]})
+
+
+def check_order(waits_for: dict[str, set[str]], path: str | Path) -> None:
+    """Fail when stages wait for each other in a cycle (a stage naming a later stage's outputs,
+    which waits for it in turn), naming the cycle, before any stage runs."""
+    finished: set[str] = set()
+
+    def visit(name: str, trail: list[str]) -> None:
+        if name in finished:
+            return
+        if name in trail:
+            cycle = " waits for ".join([*trail[trail.index(name) :], name])
+            raise CapVectorError(
+                f"{path}: stages wait for each other in a cycle: {cycle} (a stage waits for the "
+                "one before it or its `after:` list, and for every stage whose ${out.*} it names); "
+                "name only earlier stages' outputs"
+            )
+        trail.append(name)
+        for other in sorted(waits_for[name]):
+            visit(other, trail)
+        trail.pop()
+        finished.add(name)
+
+    for name in waits_for:
+        visit(name, [])
 
 
 def required_stages(waits_for: dict[str, set[str]], targets: list[str]) -> set[str]:
@@ -242,9 +289,12 @@ def run(
     jobs = int(jobs or raw.get("jobs", 1))
     if jobs < 1:
         raise CapVectorError(f"jobs must be at least 1, got {jobs}")
-    run_dir.mkdir(parents=True, exist_ok=True)
     names = [str(s.name) for s in raw.stages]
     waits_for = {names[i]: dependencies(raw, i) for i in range(len(names))}
+    check_order(waits_for, recipe)
+    for i in range(len(names)):  # every interpolation resolves: a typo fails now, not hours in
+        resolve_stage(raw, i, run_dir, recipe)
+    run_dir.mkdir(parents=True, exist_ok=True)
     if only:
         required = required_stages(waits_for, only)
         names = [n for n in names if n in required]

@@ -9,6 +9,7 @@ Results go to ``<out>/sweep.json`` after every λ, so an interrupted sweep resum
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 from typing import Any
@@ -17,7 +18,7 @@ import torch
 from tqdm import tqdm
 
 from capvector.data.episodes import EvalTask
-from capvector.errors import ToolParser
+from capvector.errors import CapVectorError, ToolParser
 from capvector.evaluation import success_cell, wilson_interval
 from capvector.fileio import atomic_write_bytes
 from capvector.module import held_out_action_l1, load_module
@@ -81,6 +82,14 @@ def sweep(
     from capvector.vectors import apply_vector_, load_vector
     from capvector.vectors.precision import MergePrecision
 
+    if finetune_steps and demos is None:
+        raise CapVectorError("--finetune-steps needs --demos (the downstream training demos)")
+    specs = (
+        EpisodeDataset([EvalTask(task, episodes, robot, VALIDATION_SEED_START)]).specs
+        if task and episodes
+        else []
+    )
+    c = load_vector(vector)  # a bad task or vector fails before the output folder is made
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
     results_path = out_dir / "sweep.json"
@@ -88,12 +97,6 @@ def sweep(
         json.loads(results_path.read_text()) if results_path.is_file() else []
     )
     done = {row["scale"] for row in rows}
-    c = load_vector(vector)
-    specs = (
-        EpisodeDataset([EvalTask(task, episodes, robot, VALIDATION_SEED_START)]).specs
-        if task and episodes
-        else []
-    )
     for scale in tqdm(scales, desc="λ", unit="scale"):
         if scale in done:
             continue
@@ -101,8 +104,6 @@ def sweep(
         precision = MergePrecision()
         apply_vector_(module.backbone, c, scale, precision)
         if finetune_steps:
-            if demos is None:
-                raise ValueError("--finetune-steps needs --demos (the downstream training demos)")
             finetune(module, vector, demos, finetune_steps, orth_weight)
         module.eval()
         row: dict[str, Any] = {"scale": scale, "merge_relative_error": precision.relative_error()}
@@ -170,11 +171,25 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
     tmp.replace(path)
 
 
+def _scales(text: str) -> list[float]:
+    try:
+        return [float(s) for s in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"--scales takes numbers like 0,0.5,1, got {text!r}"
+        ) from None
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = ToolParser(prog="capvector sweep-scale", description=__doc__.splitlines()[0])
     parser.add_argument("--base", required=True, help="θ_pre: export folder or checkpoint")
     parser.add_argument("--vector", required=True, help="capability vector folder")
-    parser.add_argument("--scales", default="0,0.25,0.5,0.75,1,1.25,1.5")
+    parser.add_argument(
+        "--scales",
+        type=_scales,
+        default="0,0.25,0.5,0.75,1,1.25,1.5",
+        help="λ values, e.g. 0,0.5,1",
+    )
     parser.add_argument("--task", default=None, help="robosuite task for validation rollouts")
     parser.add_argument("--robot", default="Panda")
     parser.add_argument("--episodes", type=int, default=0, help="validation episodes per λ")
@@ -183,12 +198,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--orth-weight", type=float, default=1.0)
     parser.add_argument("--out", required=True, help="folder for sweep.json and sweep.png")
     args = parser.parse_args(argv)
-    scales = [float(s) for s in args.scales.split(",")]
     if not (args.task and args.episodes) and not args.demos:
-        raise SystemExit(
-            "capvector sweep-scale: give --task/--episodes (rollouts) and/or --demos (held-out L1)"
-        )
-    rows = sweep(args.base, args.vector, scales, args.out, args.task, args.episodes, args.robot,
+        raise CapVectorError("give --task/--episodes (rollouts) and/or --demos (held-out L1)")
+    rows = sweep(args.base, args.vector, args.scales, args.out, args.task, args.episodes, args.robot,
                  args.demos, args.finetune_steps, args.orth_weight)  # fmt: skip
     plot(rows, Path(args.out) / "sweep.png")
     print(format_table(rows))

@@ -1,0 +1,208 @@
+"""One error path for every command: bad input raised anywhere (a tool, LightningCLI's parser, a
+library reading a cut-short file) is one line from ``capvector.cli.main`` with exit code 2, before
+anything is written and with the inputs byte for byte as they were; a bug keeps its traceback."""
+
+from __future__ import annotations
+
+import errno
+import json
+import re
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+from safetensors.torch import load_file, save_file
+
+from capvector import cli
+from capvector.cli import main
+from test_cli_errors import fit_args, inputs, tree_digest  # noqa: F401 (inputs: a fixture)
+from test_openvla_oft import UPSTREAM_LIBERO
+
+
+def _cut(path: Path) -> None:
+    """What an interrupted copy or save leaves: the first half of the file."""
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+
+
+def _sharded_original(folder: Path) -> Path:
+    """The OpenVLA-OFT fixture with its VLM weights in two shards + index, as save_pretrained
+    writes a large model."""
+    shutil.copytree(UPSTREAM_LIBERO, folder)
+    state = load_file(str(folder / "model.safetensors"))
+    (folder / "model.safetensors").unlink()
+    names = sorted(state)
+    weight_map = {}
+    for i, keys in enumerate((names[::2], names[1::2]), start=1):
+        shard = f"model-0000{i}-of-00002.safetensors"
+        save_file({k: state[k] for k in keys}, str(folder / shard))
+        weight_map.update(dict.fromkeys(keys, shard))
+    (folder / "model.safetensors.index.json").write_text(json.dumps({"weight_map": weight_map}))
+    return folder
+
+
+def _recipe(path: Path, run_dir: Path, stages: list[dict]) -> Path:
+    path.write_text(json.dumps({"run_dir": str(run_dir), "stages": stages}))
+    return path
+
+
+@pytest.fixture(scope="module")
+def bad(tmp_path_factory: pytest.TempPathFactory, inputs: Path) -> Path:  # noqa: F811
+    """Inputs cut short or naming what is not there, each as a user would meet it."""
+    root = tmp_path_factory.mktemp("bad")
+    missing = _sharded_original(root / "missing_shard")
+    (missing / "model-00002-of-00002.safetensors").unlink()
+    _cut(_sharded_original(root / "cut_shard") / "model-00002-of-00002.safetensors")
+    shutil.copytree(UPSTREAM_LIBERO, root / "cut_component")
+    _cut(next((root / "cut_component").glob("action_head--*checkpoint.pt")))
+    info = ["openvla-oft-tiny"]
+    _recipe(root / "nosuch.yaml", root / "never" / "run", [
+        {"name": "a", "command": "backbone-info", "args": info},
+        {"name": "b", "command": "backbone-info", "args": ["${out.nosuch.export}"]},
+    ])  # fmt: skip
+    _recipe(root / "cycle.yaml", root / "never" / "run", [
+        {"name": "a", "command": "backbone-info", "args": info},
+        {"name": "b", "command": "backbone-info", "args": ["${out.c.dir}"]},
+        {"name": "c", "command": "backbone-info", "args": info},  # after b, the stage before it
+    ])  # fmt: skip
+    (root / "typo.yaml").write_text("trainer:\n  max_stesp: 1\n")
+    # A real one-step fit's checkpoint, then cut as a run killed while saving it leaves it.
+    runs = root / "runs"
+    assert main(fit_args(inputs, runs, "--trainer.callbacks+=lightning.pytorch.callbacks.ModelCheckpoint",
+                         "--trainer.callbacks.save_last=true")) == 0  # fmt: skip
+    _cut(runs / "lightning_logs" / "version_0" / "checkpoints" / "last.ckpt")
+    return root
+
+
+Case = Callable[[Path, Path, Path], list[str]]  # (inputs, bad inputs, out) -> argv
+
+CASES: dict[str, tuple[Case, str]] = {
+    "import-original: an index naming a missing shard": (
+        lambda i, b, o: ["import-original", "--preset", "openvla-oft-tiny", "--folder", str(b / "missing_shard"), "--out", str(o / "x")],
+        r"model\.safetensors\.index\.json names 1 shard\(s\) missing from .*missing_shard, e\.g\. `model-00002-of-00002\.safetensors`: the folder is incomplete",
+    ),
+    "import-original: a truncated shard": (
+        lambda i, b, o: ["import-original", "--preset", "openvla-oft-tiny", "--folder", str(b / "cut_shard"), "--out", str(o / "x")],
+        r"cannot read .*cut_shard/model-00002-of-00002\.safetensors \(.*\): it is incomplete, corrupt or not a safetensors file; copy or download it again",
+    ),
+    "import-original: a truncated component checkpoint": (
+        lambda i, b, o: ["import-original", "--preset", "openvla-oft-tiny", "--folder", str(b / "cut_component"), "--out", str(o / "x")],
+        r"cannot read .*cut_component/action_head--5_checkpoint\.pt .*not a torch file; copy or download it again",
+    ),
+    "evaluate: a misspelt task, before the checkpoint is read": (
+        lambda i, b, o: ["evaluate", "--ckpt", str(i / "missing.ckpt"), "--task", "Liftt", "--json", str(o / "r.json")],
+        r"unknown task 'Liftt' \(did you mean Lift\?\); known: Lift, Stack, PickPlaceCan",
+    ),
+    "evaluate: a misspelt scene variant": (
+        lambda i, b, o: ["evaluate", "--ckpt", str(i / "missing.ckpt"), "--variant", "lightning", "--json", str(o / "r.json")],
+        r"unknown scene variant 'lightning' \(did you mean lighting\?\)",
+    ),
+    "recipe: ${out.X} naming no stage, and no run folder made": (
+        lambda i, b, o: ["recipe", "--config", str(b / "nosuch.yaml"), f"run_dir={o / 'run'}"],
+        r"stage 'b' names \$\{out\.nosuch\.export\}, but no stage is called 'nosuch'; stages: \['a', 'b'\]",
+    ),
+    "recipe: a cycle through ${out.X}, found before any stage runs": (
+        lambda i, b, o: ["recipe", "--config", str(b / "cycle.yaml"), f"run_dir={o / 'run'}"],
+        r"stages wait for each other in a cycle: b waits for c waits for b",
+    ),
+    "fit: a typo'd key on the command line, without the usage block": (
+        lambda i, b, o: fit_args(i, o, "--trainer.max_stesp=1"),
+        r"unrecognized arguments: --trainer\.max_stesp=1 \(see capvector fit --help\)",
+    ),
+    "fit: a typo'd key in a config file": (
+        lambda i, b, o: fit_args(i, o, "--config", str(b / "typo.yaml")),
+        r"does not accept option 'trainer\.max_stesp' \(see capvector fit --help\)",
+    ),
+    "fit: --ckpt_path last finds a truncated last.ckpt": (
+        lambda i, b, o: fit_args(i, b / "runs", "--ckpt_path=last"),
+        r"--ckpt_path .*version_0/checkpoints/last\.ckpt is incomplete or corrupt .*delete it \(--ckpt_path last then takes the newest checkpoint left\) or pass another --ckpt_path",
+    ),
+    "fit: --ckpt_path names a truncated checkpoint": (
+        lambda i, b, o: fit_args(i, o, f"--ckpt_path={b / 'runs/lightning_logs/version_0/checkpoints/last.ckpt'}"),
+        r"last\.ckpt is incomplete or corrupt",
+    ),
+    "fit: --ckpt_path names no file": (
+        lambda i, b, o: fit_args(i, o, f"--ckpt_path={i / 'missing.ckpt'}"),
+        r"--ckpt_path .*missing\.ckpt does not exist",
+    ),
+    "sweep-scale: neither rollouts nor held-out demos": (
+        lambda i, b, o: ["sweep-scale", "--base", str(i / "oft_sft"), "--vector", str(i / "oft_vector"), "--out", str(o)],
+        r"give --task/--episodes \(rollouts\) and/or --demos",
+    ),
+    "demos: a misspelt robot, before simulating": (
+        lambda i, b, o: ["demos", "--task", "Lift", "--episodes", "1", "--robot", "Sawyr", "--out", str(o / "d.hdf5")],
+        r"unknown one-arm robot 'Sawyr' \(did you mean Sawyer\?\)",
+    ),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_bad_input_is_one_line_from_the_entry_point(
+    case: str,
+    inputs: Path,  # noqa: F811 (the fixture)
+    bad: Path,
+    tmp_path: Path,
+    capfd: pytest.CaptureFixture[str],
+) -> None:
+    build_args, message = CASES[case]
+    out = tmp_path / "out"
+    before = tree_digest(inputs), tree_digest(bad)
+    capfd.readouterr()
+    code = main(build_args(inputs, bad, out))
+    err = capfd.readouterr().err
+    # Lightning's and robosuite's info lines may come first; ours is the one error line.
+    errors = [line for line in err.splitlines() if "error" in line.lower()]
+    assert code == 2, err
+    assert len(errors) == 1 and errors[0].startswith(
+        f"capvector {build_args(inputs, bad, out)[0]}: error: "
+    ), err
+    assert re.search(message, errors[0]), errors[0]
+    assert "Traceback" not in err and "usage:" not in err, err
+    assert not out.exists(), sorted(out.rglob("*"))
+    assert (tree_digest(inputs), tree_digest(bad)) == before
+
+
+def _failing_tool(error: BaseException) -> Callable[[list[str]], int]:
+    def tool(argv: list[str]) -> int:
+        raise error
+
+    return tool
+
+
+@pytest.mark.parametrize(
+    "bug", [RuntimeError("a bug"), TypeError("a bug"), KeyError("a bug"), ValueError("a bug")]
+)
+def test_a_bug_keeps_its_traceback(
+    bug: Exception, monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """Only bad input is shortened to one line: an error of another type propagates as it is."""
+    monkeypatch.setattr(cli, "broken_main", _failing_tool(bug), raising=False)
+    monkeypatch.setitem(cli.TOOLS, "broken", ("capvector.cli:broken_main", "raises"))
+    with pytest.raises(type(bug)) as raised:
+        main(["broken"])
+    assert raised.value is bug
+    assert "error" not in capfd.readouterr().err
+
+
+def test_the_machine_refusing_is_one_line_exit_1(
+    monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
+) -> None:
+    full = OSError(errno.ENOSPC, "No space left on device", "/data/out/model.safetensors")
+    monkeypatch.setattr(cli, "broken_main", _failing_tool(full), raising=False)
+    monkeypatch.setitem(cli.TOOLS, "broken", ("capvector.cli:broken_main", "raises"))
+    assert main(["broken"]) == 1
+    assert capfd.readouterr().err == (
+        "capvector broken: error: [Errno 28] No space left on device: "
+        "'/data/out/model.safetensors'\n"
+    )
+    missing = FileNotFoundError(errno.ENOENT, "No such file or directory", "x")  # a bug's, maybe
+    monkeypatch.setattr(cli, "broken_main", _failing_tool(missing))
+    with pytest.raises(FileNotFoundError):
+        main(["broken"])
+
+
+def test_fit_help_still_prints_the_usage(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as done:
+        main(["fit", "--help"])
+    assert done.value.code == 0
+    assert "--trainer.max_steps" in capsys.readouterr().out
