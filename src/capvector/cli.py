@@ -11,12 +11,15 @@ import errno
 import importlib
 import os
 import shlex
+import signal
 import sys
-from collections.abc import Callable, Sequence
+import threading
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 from capvector.errors import CapVectorError, ToolParser, config_error
-from capvector.fileio import check_new_output
+from capvector.fileio import check_output
 
 LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
 
@@ -55,7 +58,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 0
         module, function = TOOLS[command][0].split(":")
         tool: Callable[[list[str]], int] = getattr(importlib.import_module(module), function)
-        return int(tool(rest) or 0)
+        with _terminate_as_exit():
+            return int(tool(rest) or 0)
     except KeyboardInterrupt:  # outputs are written atomically: an interrupted one is not there
         print(f"capvector {command}: interrupted", file=sys.stderr)
         return 130
@@ -83,6 +87,27 @@ def _reported(exc: BaseException) -> tuple[BaseException | None, int]:
     if isinstance(exc, OSError) and exc.errno in ENVIRONMENT_ERRORS:
         return exc, 1
     return None, 0
+
+
+@contextmanager
+def _terminate_as_exit() -> Iterator[None]:
+    """SIGTERM (``kill``, a scheduler's time limit) ends a tool as Ctrl-C does, by an exception, so
+    the outputs' cleanup runs and removes their temporary folders; by default it ended the process
+    on the spot and left them behind. (LightningCLI has its own SIGTERM handling.)"""
+
+    def stop(signum: int, _frame: object) -> None:
+        raise SystemExit(128 + signum)
+
+    previous = signal.getsignal(signal.SIGTERM)
+    # Only the main thread may set handlers; called from another thread, leave signals alone.
+    install = threading.current_thread() is threading.main_thread() and previous is not None
+    if install:
+        signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        if install:
+            signal.signal(signal.SIGTERM, previous)
 
 
 def _usage() -> str:
@@ -285,7 +310,7 @@ def export_main(argv: list[str]) -> int:
     parser.add_argument("--out", required=True, help="output folder (written atomically)")
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args(argv)
-    check_new_output(args.out, args.overwrite)  # before loading the checkpoint
+    check_output(args.out, args.overwrite, [args.ckpt])  # before loading the checkpoint
     folder = load_module(args.ckpt).export(args.out, overwrite=args.overwrite)
     print(f"exported {args.ckpt} to {folder}")
     return 0
@@ -328,7 +353,8 @@ def import_original_main(argv: list[str]) -> int:
         raise CapVectorError(f"--override is not JSON ({exc}): {args.override!r}") from exc
     if not isinstance(overrides, dict):
         raise CapVectorError(f"--override must be a JSON object, got {args.override!r}")
-    check_new_output(args.out, args.overwrite)  # before reading the checkpoint
+    inputs = [args.folder, args.qwen_folder, args.tokenizer]
+    check_output(args.out, args.overwrite, inputs)  # before reading the checkpoint
     family = preset_config(args.preset).family
     options = {
         "openvla-oft": {"apply_lora_adapter": args.apply_lora_adapter},
@@ -347,6 +373,7 @@ def import_original_main(argv: list[str]) -> int:
             "command": shlex.join(["capvector", "import-original", *argv]),
         },
         base_model=str(args.folder),
+        inputs=inputs,
     )
     n_params = sum(p.numel() for p in imported.model.parameters())
     print(f"wrote {args.out} ({family}, {n_params:,} parameters)")

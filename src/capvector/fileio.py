@@ -1,4 +1,13 @@
-"""Atomic writes: results appear whole or not at all, with the permissions the umask gives.
+"""Every output a command writes goes through here, so no command can lose data on its own.
+
+- ``check_output``, before any work: an output must not be, hold or lie inside an input (so
+  ``--out P --overwrite`` cannot delete the inputs kept in ``P``), must not exist unless
+  overwritten, and must be writable.
+- ``atomic_directory`` / ``atomic_write_file``: the result is written into a temporary sibling
+  ``.NAME.tmp-PID-XXXX`` and renamed into place only when complete. A lock (``.NAME.lock``) lets one
+  process at a time write ``NAME``; the next writer of ``NAME`` sweeps the temporaries of writers
+  that died without cleaning up (``kill -9``). Other exits (exceptions, Ctrl-C, and SIGTERM, which
+  the CLI turns into an exception) remove their temporary on the way out.
 
 ``tempfile`` creates private folders (0700) and files (0600), which is right while a result is being
 written; once it is complete it gets the modes an ordinary ``mkdir``/``open`` would have given it,
@@ -7,30 +16,20 @@ so a shared cluster's group can read exports and vectors as it reads any other f
 
 from __future__ import annotations
 
+import errno
+import fcntl
 import os
+import re
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
 from capvector.errors import CapVectorError
 
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-def _publish_modes(tmp: Path) -> None:
-    """Give a finished temporary folder (recursively) or file the modes the umask allows: tempfile
-    and some writers (safetensors) create private files."""
-    mask = _umask()
-    paths = [tmp, *tmp.rglob("*")] if tmp.is_dir() else [tmp]
-    for path in paths:
-        if not path.is_symlink():
-            os.chmod(path, (0o777 if path.is_dir() else 0o666) & ~mask)
+Inputs = Sequence[str | Path | None]
+"""The paths a command reads (``None`` entries, unset optional inputs, are skipped)."""
 
 
 def check_writable(path: str | Path, what: str = "output", inside: bool = False) -> Path:
@@ -52,63 +51,254 @@ def check_writable(path: str | Path, what: str = "output", inside: bool = False)
     return target
 
 
-def check_new_output(path: str | Path, overwrite: bool, what: str = "--out") -> Path:
-    """Fail before any work when ``path`` exists (without ``overwrite``) or could not be written."""
-    target = check_writable(path, what)
-    if target.exists() and not overwrite:
-        raise CapVectorError(f"{target} exists; choose another {what} or pass --overwrite")
+def check_output(
+    path: str | Path, overwrite: bool, inputs: Inputs = (), what: str = "--out"
+) -> Path:
+    """Fail before any work when the output ``path`` is an input, holds one (replacing it would
+    delete the input), lies inside one (it would add files to an input), exists without
+    ``overwrite``, or could not be written. Paths are compared as real paths (links followed).
+
+    Outputs that are written into rather than replaced (a report folder, a JSON file) pass
+    ``overwrite=True``: their existing contents are no one's input to lose.
+    """
+    target = Path(path)
+    real = _real_path(target, what)
+    for source in inputs:
+        if source is None:
+            continue
+        theirs = _real_path(Path(source), "input")
+        if real == theirs:
+            problem = "is an input"
+        elif real in theirs.parents:
+            problem = f"holds the input {source}"
+        elif theirs in real.parents:
+            problem = f"lies inside the input {source}"
+        else:
+            continue
+        raise CapVectorError(
+            f"{what} {target} {problem}; an output must be outside every input: choose another "
+            f"{what}"
+        )
+    check_writable(target, what)
+    _refuse_existing(target, overwrite, what)
     return target
 
 
 @contextmanager
-def atomic_directory(path: str | Path, overwrite: bool = False) -> Iterator[Path]:
-    """Yield a temporary sibling folder that replaces ``path`` only if the block succeeds.
+def atomic_directory(
+    path: str | Path, overwrite: bool = False, inputs: Inputs = (), what: str = "--out"
+) -> Iterator[Path]:
+    """Yield a new temporary folder that becomes ``path`` only if the block succeeds.
 
-    The temporary folder lives beside the target so the final rename stays on one file system.
+    Checked like ``check_output``. The temporary folder lives beside the target so the final rename
+    stays on one file system; its files are fsynced before it is renamed. Without ``overwrite`` the
+    rename refuses a target that appeared meanwhile (nothing is moved aside); with it, the old
+    target is replaced only once the new one is complete.
     """
-    target = check_writable(path)
-    if target.exists() and not overwrite:
-        raise FileExistsError(f"{target} exists; choose another output or pass --overwrite")
+    target = check_output(path, overwrite, inputs, what)
     target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
-    try:
-        yield tmp
-        _publish_modes(tmp)
-        if target.exists():
-            backup = target.with_name(f".{target.name}.old-{os.getpid()}")
-            os.replace(target, backup)
-            os.replace(tmp, target)
-            shutil.rmtree(backup, ignore_errors=True)
-        else:
-            os.replace(tmp, target)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+    with _writer_lock(target, what):
+        _refuse_existing(target, overwrite, what)  # a writer that held the lock may have made it
+        tmp = Path(tempfile.mkdtemp(prefix=_temporary_prefix(target), dir=target.parent))
+        try:
+            yield tmp
+            _publish_modes(tmp)
+            # On disk before the name points at it: a crash then leaves a whole result or none.
+            for root, _dirs, files in os.walk(tmp):
+                for name in [*files, "."]:
+                    _fsync(Path(root) / name)
+            _publish_directory(tmp, target, overwrite, what)
+        except BaseException:
+            _remove(tmp)
+            raise
+        _fsync(target.parent)
 
 
 @contextmanager
-def atomic_write_file(path: str | Path) -> Iterator[Path]:
-    """A temporary sibling file path that replaces ``path`` (fsynced, renamed) if the block succeeds."""
-    target = check_writable(path)
+def atomic_write_file(path: str | Path, what: str = "output") -> Iterator[Path]:
+    """A temporary sibling file path (with the target's suffix, which some writers read the format
+    from) that replaces ``path`` (fsynced, renamed) if the block succeeds. Files are results written
+    again on each run: an existing one is replaced; the command checks its inputs with
+    ``check_output`` before any work."""
+    target = check_output(path, overwrite=True, what=what)
+    if target.is_dir():
+        raise CapVectorError(f"{what} {target} is a folder; give a file path")
     target.parent.mkdir(parents=True, exist_ok=True)
-    fd, name = tempfile.mkstemp(prefix=f".{target.name}.tmp-", dir=target.parent)
-    os.close(fd)
-    tmp = Path(name)
-    try:
-        yield tmp
-        fd = os.open(tmp, os.O_RDONLY)
+    with _writer_lock(target, what):
+        fd, name = tempfile.mkstemp(
+            prefix=_temporary_prefix(target), suffix=target.suffix, dir=target.parent
+        )
+        os.close(fd)
+        tmp = Path(name)
         try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        _publish_modes(tmp)
-        os.replace(tmp, target)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+            yield tmp
+            _fsync(tmp)
+            _publish_modes(tmp)
+            os.replace(tmp, target)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:
     """Write a file through a temporary sibling and an atomic rename."""
     with atomic_write_file(path) as tmp:
         tmp.write_bytes(data)
+
+
+def _real_path(path: Path, what: str) -> Path:
+    """``path`` with every link resolved; a link loop is bad input, not a traceback."""
+    try:
+        return Path(os.path.realpath(path, strict=True))
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise CapVectorError(
+                f"{what} {path} goes through a symbolic link that loops ({exc.filename}); remove "
+                f"that link or choose another {what}"
+            ) from None
+    return Path(os.path.realpath(path))  # a path that does not exist yet
+
+
+def _refuse_existing(target: Path, overwrite: bool, what: str) -> None:
+    if not overwrite and os.path.lexists(target):
+        raise CapVectorError(f"{target} exists; choose another {what} or pass --overwrite")
+
+
+def _temporary_prefix(target: Path) -> str:
+    """``.NAME.tmp-PID-``: the writer's pid tells the next writer whether it is still alive."""
+    return f".{target.name}.tmp-{os.getpid()}-"
+
+
+@contextmanager
+def _writer_lock(target: Path, what: str) -> Iterator[None]:
+    """Hold ``.NAME.lock`` (flock) beside ``target`` while it is written: a second writer of the same
+    output fails at once instead of racing the first to the rename. The kernel releases the lock
+    when its holder dies however it dies, so a lock file left by ``kill -9`` does not block.
+
+    While holding it, no other capvector process writes ``target``: temporaries of dead writers
+    are removed here. A file system without locks (some NFS and Lustre mounts) writes unlocked and
+    leaves temporaries alone (their pids may be another host's).
+    """
+    path = target.parent / f".{target.name}.lock"
+    fd = _lock(path, target, what)
+    if fd is None:
+        yield
+        return
+    try:
+        os.ftruncate(fd, 0)
+        os.write(fd, str(os.getpid()).encode())
+        _sweep_dead_writers(target)
+        yield
+    finally:
+        path.unlink(missing_ok=True)  # before the lock is released: see ``_lock``
+        os.close(fd)
+
+
+def _lock(path: Path, target: Path, what: str) -> int | None:
+    """The locked descriptor of ``path``; ``None`` where the file system has no locks."""
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(fd, 20).decode(errors="replace").strip()
+            os.close(fd)
+            pid = f" (pid {holder})" if holder.isdigit() else ""
+            raise CapVectorError(
+                f"another capvector process is writing {target}{pid}; wait for it to finish or "
+                f"choose another {what}"
+            ) from None
+        except OSError as exc:
+            os.close(fd)
+            if exc.errno not in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS):
+                raise
+            path.unlink(missing_ok=True)
+            return None
+        try:
+            if os.path.samestat(os.fstat(fd), os.stat(path)):
+                return fd
+        except FileNotFoundError:
+            pass
+        # The holder before us removed the file as it released it: locking that removed file
+        # guards nothing, so lock the one now at ``path``.
+        os.close(fd)
+
+
+def _sweep_dead_writers(target: Path) -> None:
+    """Remove ``target``'s temporaries whose writer process no longer exists."""
+    pattern = re.compile(re.escape(f".{target.name}.tmp-") + r"(\d+)-\w+(?:\.\w+)?")
+    with os.scandir(target.parent) as entries:
+        stale = [
+            Path(e.path)
+            for e in entries
+            if (match := pattern.fullmatch(e.name)) and not _alive(int(match[1]))
+        ]
+    for path in stale:
+        _remove(path)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def _publish_directory(tmp: Path, target: Path, overwrite: bool, what: str) -> None:
+    if overwrite and os.path.lexists(target):
+        # Named like our temporary, so if we die before removing it the next writer sweeps it.
+        old = tmp.with_name(f"{tmp.name}_old")
+        os.rename(target, old)
+        try:
+            os.rename(tmp, target)
+        except BaseException:  # SIGTERM between the two renames included: put the old one back
+            os.rename(old, target)
+            raise
+        _remove(old)
+        return
+    appeared = CapVectorError(
+        f"{target} appeared while this command was writing it; it was left as it is and the "
+        f"result discarded: choose another {what} or pass --overwrite"
+    )
+    if os.path.lexists(target):  # made after our check by a program that takes no lock
+        raise appeared
+    try:
+        os.rename(tmp, target)  # fails on a file or a non-empty folder: never replaces one
+    except OSError as exc:
+        if exc.errno in (errno.EEXIST, errno.ENOTEMPTY, errno.ENOTDIR):
+            raise appeared from None
+        raise
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _publish_modes(tmp: Path) -> None:
+    """Give a finished temporary folder (recursively) or file the modes the umask allows: tempfile
+    and some writers (safetensors) create private files."""
+    mask = _umask()
+    paths = [tmp, *tmp.rglob("*")] if tmp.is_dir() else [tmp]
+    for path in paths:
+        if not path.is_symlink():
+            os.chmod(path, (0o777 if path.is_dir() else 0o666) & ~mask)

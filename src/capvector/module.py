@@ -418,6 +418,7 @@ class VLAModule(L.LightningModule):
                 "datasets": sorted(self.data_spec.statistics),
             },
             base_model=self.hparams.get("pretrained"),
+            inputs=[self.hparams.get("pretrained")],
         )
 
 

@@ -26,7 +26,7 @@ import torch
 from torch import Tensor, nn
 
 from capvector.errors import CapVectorError, did_you_mean
-from capvector.fileio import atomic_directory
+from capvector.fileio import Inputs, atomic_directory
 from capvector.loading import COPY_AGAIN, load_safetensors, read_json
 from capvector.modelcard import render_model_card, write_model_card
 from capvector.names import EXPORT_CONFIG, EXPORT_FORMAT, EXPORT_INDEX, EXPORT_WEIGHTS
@@ -235,6 +235,7 @@ class VLABackbone(nn.Module, ABC):
         overwrite: bool = False,
         card_facts: Mapping[str, Any] | None = None,
         base_model: str | None = None,
+        inputs: Inputs = (),
     ) -> Path:
         """Write ``model.safetensors`` + ``config.json`` (+ tokenizer files) + a model card
         (``README.md``) atomically.
@@ -242,13 +243,14 @@ class VLABackbone(nn.Module, ABC):
         ``state_dict`` defaults to this module's own; pass a LoRA-merged one from the caller.
         ``extra_json`` maps file names to JSON-serialisable content written beside the weights;
         ``config_extra`` adds fields to ``config.json``. ``card_facts`` (what made the weights:
-        steps, objectives, the command) and ``base_model`` go into the model card.
+        steps, objectives, the command) and ``base_model`` go into the model card. ``inputs`` are
+        the paths the weights came from: ``folder`` must not be, hold or lie inside one of them.
         """
         from safetensors.torch import save_file
 
         tensors = dict(state_dict if state_dict is not None else self.state_dict())
         tensors = {k: v.detach().to("cpu").contiguous() for k, v in tensors.items()}
-        with atomic_directory(folder, overwrite=overwrite) as tmp:
+        with atomic_directory(folder, overwrite, inputs) as tmp:
             save_file(tensors, str(tmp / EXPORT_WEIGHTS), metadata={"format": "pt"})
             config = {**self.export_config(), **(config_extra or {})}
             (tmp / EXPORT_CONFIG).write_text(json.dumps(config, indent=2))

@@ -47,7 +47,7 @@ import numpy as np
 from tqdm import tqdm
 
 from capvector.errors import CapVectorError, ToolParser
-from capvector.fileio import check_writable
+from capvector.fileio import atomic_write_file, check_output
 from capvector.sim.annotations import Annotator
 from capvector.sim.envs import (
     DEFAULT_CAMERAS,
@@ -245,7 +245,7 @@ def record_demos(
     if max_attempts is None:
         max_attempts = max(2 * episodes, episodes + 20)
     # Checked before any simulation: a bad path must not cost minutes of recording first.
-    out = check_writable(out, "demo file")
+    out = check_output(out, overwrite=True, what="demo file")
     if out.is_dir():
         raise CapVectorError(f"--out {out} is a folder; give a file, e.g. {out / 'demos.hdf5'}")
     own_sim = sim is None
@@ -263,12 +263,10 @@ def record_demos(
     annotator = Annotator(sim.task, sim.spec)
     model_xml = sim.model_xml()
     summary = RecordingSummary(path=out, demos=0, attempts=0, samples=0)
-    out.parent.mkdir(parents=True, exist_ok=True)  # once the robot, cameras and task are known good
-    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
     start = time.perf_counter()
     bar = tqdm(total=episodes, desc=f"{sim.task} demos", unit="demo", disable=not progress)
     try:
-        with h5py.File(tmp, "w") as f:
+        with atomic_write_file(out, what="demo file") as tmp, h5py.File(tmp, "w") as f:
             data = f.create_group("data")
             while summary.demos < episodes:
                 if summary.attempts >= max_attempts:
@@ -298,10 +296,8 @@ def record_demos(
                     bar.update(1)
                 bar.set_postfix(attempts=summary.attempts, success=f"{summary.success_rate:.0%}")
             _write_data_attrs(data, sim, summary.samples, noise, type(expert).__name__)
-        os.replace(tmp, out)
     finally:
         bar.close()
-        tmp.unlink(missing_ok=True)
         if own_sim:
             sim.close()
     summary.seconds = time.perf_counter() - start

@@ -9,6 +9,8 @@ from pathlib import Path
 import imageio.v2 as imageio
 import numpy as np
 
+from capvector.fileio import atomic_write_file
+
 
 def write_video(
     frames: Sequence[np.ndarray],
@@ -36,10 +38,8 @@ def write_video(
         raise ValueError(f"frames must be (H, W, 3) uint8, got {video.shape[1:]}")
     if scale > 1:
         video = video.repeat(scale, axis=1).repeat(scale, axis=2)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    # Same directory, same suffix (ffmpeg and Pillow pick the format from it), then rename.
-    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{suffix}")
-    try:
+    # A temporary sibling with the same suffix (ffmpeg and Pillow pick the format from it).
+    with atomic_write_file(path) as tmp:
         if suffix == ".mp4":
             pad_h, pad_w = video.shape[1] % 2, video.shape[2] % 2
             if pad_h or pad_w:
@@ -59,7 +59,4 @@ def write_video(
         else:
             # Pillow's GIF writer takes the frame duration in milliseconds.
             imageio.mimsave(tmp, list(video), format="GIF", duration=1000 / fps, loop=0)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
     return path

@@ -22,12 +22,11 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
+from capvector.fileio import atomic_directory, check_output
 from capvector.vectors.io import (
     DEFAULT_MAX_SHARD_SIZE,
     CapVectorError,
     TensorInfo,
-    atomic_output,
-    check_output,
     dtype_summary,
     examples,
     parse_dtype,
@@ -103,7 +102,7 @@ def compose(
         for k in keys
     }
 
-    with atomic_output(out, overwrite) as tmp:
+    with atomic_directory(out, overwrite, vectors) as tmp:
         writer = VectorFolderWriter(tmp, list(infos.items()), max_shard_size)
         try:
             total = sum(i.nbytes for i in infos.values())

@@ -16,14 +16,13 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
+from capvector.fileio import atomic_directory, check_output
 from capvector.vectors.io import (
     DEFAULT_MAX_SHARD_SIZE,
     CapVectorError,
     Scratch,
     TensorInfo,
     WeightSource,
-    atomic_output,
-    check_output,
     compute_dtype,
     dtype_name,
     dtype_summary,
@@ -96,7 +95,8 @@ def extract(
     if energy is not None and not 0.0 < energy <= 1.0:
         raise CapVectorError(f"--energy is a fraction in (0, 1], got {energy}")
     out_dtype = parse_dtype(dtype) if isinstance(dtype, str) else dtype
-    check_output(out, overwrite, [p for p in (aux, sft, base) if p is not None])
+    inputs = [aux, sft, base]
+    check_output(out, overwrite, inputs)
 
     sources: dict[str, WeightSource] = {"aux": open_weights(aux), "sft": open_weights(sft)}
     if base is not None:
@@ -140,7 +140,7 @@ def extract(
     }
     described = {name: src.describe() for name, src in sources.items()}
 
-    with atomic_output(out, overwrite) as tmp:
+    with atomic_directory(out, overwrite, inputs) as tmp:
         embeddings = sources["aux"].embedding_parameters & lowrank_keys
         writers = [
             VectorFolderWriter(tmp / o.subdir, full, max_shard_size, embeddings) for o in outputs

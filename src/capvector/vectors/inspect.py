@@ -13,7 +13,7 @@ from pathlib import Path
 
 from tqdm.auto import tqdm
 
-from capvector.fileio import atomic_write_file
+from capvector.fileio import atomic_write_file, check_output
 from capvector.vectors.io import CapVectorError, examples, row_chunks
 from capvector.vectors.vector import VectorFolder
 
@@ -119,6 +119,8 @@ def inspect_vector(
     Norms and inner products are computed from the stored tensors (low-rank ones through their
     factors' rows), chunk by chunk. ``plot`` writes a PNG of norms (and cosines) by layer.
     """
+    if plot is not None:
+        check_output(plot, overwrite=True, inputs=[path, against], what="--plot")
     vector = VectorFolder(path)
     other = VectorFolder(against) if against is not None else None
     report = InspectReport(Path(path), Path(against) if against is not None else None)

@@ -18,7 +18,6 @@ import os
 import struct
 from abc import ABC, abstractmethod
 from collections.abc import Iterable, Iterator, Mapping, Sequence
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,7 +26,6 @@ import torch
 from torch import Tensor
 
 from capvector.errors import CapVectorError  # noqa: F401 (re-exported: the vector tools' error)
-from capvector.fileio import atomic_directory, check_new_output
 from capvector.loading import read_json
 from capvector.lora_layers import LoraFormatError, LoraLayer, split_lora
 from capvector.names import (  # noqa: F401 (re-exported: the vector modules' names)
@@ -619,45 +617,6 @@ def write_json(path: Path, content: Any) -> None:
         f.write("\n")
         f.flush()
         os.fsync(f.fileno())
-
-
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def check_output(out: str | Path, overwrite: bool, inputs: Sequence[str | Path] = ()) -> Path:
-    """Fail before any work when ``out`` exists (without overwrite), is one of the inputs, or could
-    not be written."""
-    target = check_new_output(out, overwrite)
-    for path in inputs:
-        if Path(path).resolve() == target.resolve():
-            raise CapVectorError(f"--out {target} is also an input; write to another folder")
-    return target
-
-
-@contextmanager
-def atomic_output(out: str | Path, overwrite: bool = False) -> Iterator[Path]:
-    """A temporary sibling folder that becomes ``out`` (fsynced, renamed) only if the block succeeds.
-
-    On any exception, including KeyboardInterrupt, the temporary folder is removed and ``out`` is
-    left as it was.
-    """
-    target = check_output(out, overwrite)
-    with atomic_directory(target, overwrite=overwrite) as tmp:
-        yield tmp
-        for root, _dirs, files in os.walk(tmp):
-            for name in files:
-                fd = os.open(Path(root) / name, os.O_RDONLY)
-                try:
-                    os.fsync(fd)
-                finally:
-                    os.close(fd)
-            _fsync_dir(Path(root))
-    _fsync_dir(target.resolve().parent)
 
 
 def dtype_summary(dtypes: Iterable[torch.dtype]) -> str:

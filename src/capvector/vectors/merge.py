@@ -16,6 +16,7 @@ import torch
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
+from capvector.fileio import atomic_directory, check_output
 from capvector.modelcard import render_model_card, write_model_card
 from capvector.names import MODEL_CARD
 from capvector.vectors.io import (
@@ -27,9 +28,7 @@ from capvector.vectors.io import (
     ShardLayout,
     TensorInfo,
     all_finite,
-    atomic_output,
     capvector_version,
-    check_output,
     compute_dtype,
     dtype_name,
     examples,
@@ -157,7 +156,8 @@ def merge(
     """
     if not vectors:
         raise CapVectorError("no vectors to merge: pass --vector DIR[:λ] at least once")
-    check_output(out, overwrite, [base, *(v for v, _ in vectors)])
+    inputs = [base, *(v for v, _ in vectors)]
+    check_output(out, overwrite, inputs)
     source = open_weights(base)
     if not isinstance(source, SafetensorsFolder) or source.kind != "export":
         raise CapVectorError(
@@ -203,7 +203,7 @@ def merge(
     if (source.path / MERGE_RECORD).is_file():
         provenance["previous"] = read_json(source.path / MERGE_RECORD)
 
-    with atomic_output(out, overwrite) as tmp:
+    with atomic_directory(out, overwrite, inputs) as tmp:
         skip = set(source.weight_files()) | {MERGE_RECORD, EXPORT_CONFIG, MODEL_CARD}
         write_json(tmp / EXPORT_CONFIG, {**source.config, MERGED_VECTORS: record_dicts(record)})
         write_model_card(tmp, _merged_card(source, provenance))

@@ -239,7 +239,7 @@ def load_vector(source: str | Path | Mapping[str, Tensor] | CapabilityVector) ->
 
 
 class VectorFolderWriter:
-    """Writes a vector folder into ``folder`` (a temporary folder inside ``atomic_output``).
+    """Writes a vector folder into ``folder`` (a temporary folder inside ``fileio.atomic_directory``).
 
     Full tensors stream through ``SafetensorsWriter`` chunk by chunk (their layout is planned up
     front); low-rank factors are small and collected for the adapter, written in ``finish``.

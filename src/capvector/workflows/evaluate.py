@@ -8,7 +8,7 @@ from pathlib import Path
 from capvector.data.episodes import EvalTask
 from capvector.errors import ToolParser
 from capvector.evaluation import SuccessRow, format_success_table, success_rows
-from capvector.fileio import atomic_write_bytes
+from capvector.fileio import atomic_write_bytes, check_output
 from capvector.module import load_module
 from capvector.policy import VLAPolicy
 
@@ -73,6 +73,9 @@ def main(argv: list[str] | None = None) -> int:
     )  # fmt: skip
     parser.add_argument("--json", default=None, help="also write the rows as JSON")
     args = parser.parse_args(argv)
+    for what, out in (("--json", args.json), ("--video", args.video)):
+        if out is not None:  # before minutes of rollouts
+            check_output(out, overwrite=True, inputs=[args.ckpt], what=what)
     tasks = [
         EvalTask(t, args.episodes, args.robot, args.start_seed, gripper=args.gripper, variant=v)
         for t in args.task

@@ -27,7 +27,7 @@ from capvector.comparison import (
 )
 from capvector.errors import CapVectorError, ToolParser
 from capvector.evaluation import metric_key
-from capvector.fileio import atomic_write_bytes
+from capvector.fileio import atomic_write_bytes, check_output
 
 SUCCESS = "val/success_rate"
 EPISODES = "val/episodes"
@@ -285,6 +285,10 @@ def report(
     """The table and plot; with ``compare_to``, differences against those arms with paired
     bootstrap intervals from the fits' per-episode outcomes (and for ``zero_shot`` arms: label,
     glob of each seed's ``evaluate`` stage with variants)."""
+    globs = [(label, pattern) for label, pattern, _ in arms] + list(zero_shot or [])
+    stages = [run_dir / stage for *_, stage in [*arms, *references]]
+    stages += [d for label, pattern in globs for d in _stage_dirs(run_dir, label, pattern)]
+    check_output(out, overwrite=True, inputs=stages)  # the results are rewritten on each run
     summaries, stage_dirs = [], {}
     for label, pattern, start_stage in arms:
         dirs = _stage_dirs(run_dir, label, pattern)

@@ -20,7 +20,7 @@ from tqdm import tqdm
 from capvector.data.episodes import EvalTask
 from capvector.errors import CapVectorError, ToolParser
 from capvector.evaluation import success_cell, wilson_interval
-from capvector.fileio import atomic_write_bytes
+from capvector.fileio import atomic_write_bytes, atomic_write_file, check_output
 from capvector.module import held_out_action_l1, load_module
 from capvector.sim.episodes import VALIDATION_SEED_START
 
@@ -90,7 +90,7 @@ def sweep(
         else []
     )
     c = load_vector(vector)  # a bad task or vector fails before the output folder is made
-    out_dir = Path(out)
+    out_dir = check_output(out, overwrite=True, inputs=[base, vector, demos])  # resumed when there
     out_dir.mkdir(parents=True, exist_ok=True)
     results_path = out_dir / "sweep.json"
     rows: list[dict[str, Any]] = (
@@ -165,10 +165,9 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
     ax.set_xlabel("merge scale λ")
     ax.set_title("θ_pre + λ·c")
     fig.tight_layout()
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=120)
+    with atomic_write_file(path) as tmp:
+        fig.savefig(tmp, dpi=120)
     plt.close(fig)
-    tmp.replace(path)
 
 
 def _scales(text: str) -> list[float]:

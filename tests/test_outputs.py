@@ -1,0 +1,234 @@
+"""No command loses data: an output is never an input, never inside one and never holds one; an
+existing output is replaced only with --overwrite; of two writers of one output one wins and the
+other stops at once; a writer that is killed leaves nothing the next run does not remove.
+
+Each case: exit code 2, one line naming the problem, no output left, every input byte-identical.
+Writers that run at once or are killed are real ``capvector merge`` processes.
+"""
+
+from __future__ import annotations
+
+import re
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+# Lightning binds its log handler to the stderr of the moment it is imported: import it now, not
+# inside a test whose captured stream closes after it.
+import lightning.pytorch  # noqa: F401
+import pytest
+import torch
+
+from capvector.backbones import build_backbone
+from capvector.cli import main
+from capvector.errors import CapVectorError
+from capvector.fileio import atomic_directory
+from capvector.vectors import extract
+from test_cli_errors import tree_digest
+
+PRESET = "openvla-oft-tiny"
+
+
+@pytest.fixture(scope="module")
+def project(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``P`` holding a base (= θ_sft), θ_aux (θ_sft with one tensor moved) and their vector."""
+    root = tmp_path_factory.mktemp("project") / "P"
+    model = build_backbone(PRESET)
+    model.save_pretrained(root / "base")
+    model.save_pretrained(root / "sft")
+    with torch.no_grad():
+        dict(model.named_parameters())[model.capability_parameter_names()[0]].add_(0.01)
+    model.save_pretrained(root / "aux")
+    extract(aux=root / "aux", sft=root / "sft", out=root / "vec")
+    return root
+
+
+def merge_args(project: Path, out: Path | str, *extra: str) -> list[str]:
+    return ["merge", "--base", str(project / "base"), "--vector", f"{project / 'vec'}:1",
+            "--out", str(out), *extra]  # fmt: skip
+
+
+def leftovers(folder: Path, name: str) -> list[str]:
+    """Temporaries and lock files of the output ``name`` in ``folder``."""
+    return sorted(p.name for p in folder.iterdir() if p.name.startswith(f".{name}."))
+
+
+def run_refused(args: list[str], message: str, capfd: pytest.CaptureFixture[str]) -> None:
+    code = main(args)
+    errors = [line for line in capfd.readouterr().err.splitlines() if "error" in line]
+    assert code == 2
+    assert len(errors) == 1 and errors[0].startswith("capvector "), errors
+    assert re.search(message, errors[0]), errors[0]
+
+
+@pytest.mark.parametrize(
+    "case",
+    [
+        "merge --out the folder holding base and vector, --overwrite",
+        "extract --out the folder holding aux and sft, --overwrite",
+        "merge --out the base itself, --overwrite",
+        "merge --out inside the base",
+        "merge --out inside the vector",
+        "extract --out inside aux",
+        "compose --out the folder holding the vector, --overwrite",
+        "inspect --plot inside the vector",
+    ],
+)
+def test_an_output_never_touches_an_input(
+    case: str, project: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    p = project
+    extract_args = ["extract", "--aux", str(p / "aux"), "--sft", str(p / "sft"), "--out"]
+    args, new_output, message = {
+        "merge --out the folder holding base and vector, --overwrite": (
+            merge_args(p, p, "--overwrite"), None, f"--out {p} holds the input {p / 'base'}"),
+        "extract --out the folder holding aux and sft, --overwrite": (
+            [*extract_args, str(p), "--overwrite"], None, f"--out {p} holds the input {p / 'aux'}"),
+        "merge --out the base itself, --overwrite": (
+            merge_args(p, p / "base", "--overwrite"), None, f"--out {p / 'base'} is an input"),
+        "merge --out inside the base": (
+            merge_args(p, p / "base" / "merged"), p / "base" / "merged",
+            f"--out {p / 'base' / 'merged'} lies inside the input {p / 'base'}"),
+        "merge --out inside the vector": (
+            merge_args(p, p / "vec" / "sub" / "m"), p / "vec" / "sub",
+            f"--out {p / 'vec' / 'sub' / 'm'} lies inside the input {p / 'vec'}"),
+        "extract --out inside aux": (
+            [*extract_args, str(p / "aux" / "v")], p / "aux" / "v",
+            f"--out {p / 'aux' / 'v'} lies inside the input {p / 'aux'}"),
+        "compose --out the folder holding the vector, --overwrite": (
+            ["compose", "--vectors", str(p / "vec"), "--out", str(p), "--overwrite"], None,
+            f"--out {p} holds the input {p / 'vec'}"),
+        "inspect --plot inside the vector": (
+            ["inspect", str(p / "vec"), "--plot", str(p / "vec" / "norms.png")],
+            p / "vec" / "norms.png", f"--plot {p / 'vec' / 'norms.png'} lies inside the input {p / 'vec'}"),
+    }[case]  # fmt: skip
+    before = tree_digest(p)
+    what = message.split()[0]
+    run_refused(args, re.escape(f"{message}; an output must be outside every input: choose another {what}"), capfd)  # fmt: skip
+    assert tree_digest(p) == before  # nothing removed, nothing added
+    assert new_output is None or not new_output.exists()
+    assert not list(p.rglob(".*")), "a temporary or lock file was left"
+
+
+def test_an_out_that_is_a_symbolic_link_loop_is_one_line(
+    project: Path, tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    loop = tmp_path / "loop"
+    loop.symlink_to(loop)
+    before = tree_digest(project)
+    for out in (loop, loop / "merged"):
+        run_refused(merge_args(project, out), rf"--out {out} goes through a symbolic link that loops", capfd)  # fmt: skip
+    assert sorted(tmp_path.iterdir()) == [loop] and tree_digest(project) == before
+
+
+def test_without_overwrite_an_output_that_appears_meanwhile_is_never_moved_aside(
+    tmp_path: Path,
+) -> None:
+    target = tmp_path / "out"
+    appeared = re.escape(
+        f"{target} appeared while this command was writing it; it was left as it is"
+    )
+    with pytest.raises(CapVectorError, match=appeared), atomic_directory(target) as tmp:
+        (tmp / "ours.txt").write_text("ours")
+        target.mkdir()  # another program's result, made after the check
+        (target / "theirs.txt").write_text("theirs")
+    assert (target / "theirs.txt").read_text() == "theirs" and len(list(target.iterdir())) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    # With overwrite the new result replaces it whole, and nothing else is left beside it.
+    with atomic_directory(target, overwrite=True) as tmp:
+        (tmp / "ours.txt").write_text("ours")
+    assert [p.name for p in target.iterdir()] == ["ours.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+# A real `capvector merge` that stops once its temporary output holds every tensor and waits for
+# the file named by argv[1]: what the tests below do to it happens mid-write, every time. The
+# pause only delays `finish`; the merge itself is the real one.
+PAUSED_MERGE = textwrap.dedent("""
+    import os, sys, time
+    from capvector.cli import main
+    from capvector.vectors.io import SafetensorsWriter
+
+    finish = SafetensorsWriter.finish
+
+    def paused(self):
+        print("writing", flush=True)
+        while not os.path.exists(sys.argv[1]):
+            time.sleep(0.05)
+        finish(self)
+
+    SafetensorsWriter.finish = paused
+    sys.exit(main(sys.argv[2:]))
+""")
+
+
+def start_paused_merge(project: Path, out: Path, go: Path) -> subprocess.Popen[str]:
+    process = subprocess.Popen(
+        [sys.executable, "-c", PAUSED_MERGE, str(go), *merge_args(project, out)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    assert process.stdout is not None and process.stdout.readline() == "writing\n"
+    return process
+
+
+def capvector(args: list[str]) -> subprocess.Popen[str]:
+    command = [sys.executable, "-c", "import sys; from capvector.cli import main; sys.exit(main())"]
+    return subprocess.Popen([*command, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+
+
+def test_a_second_writer_of_one_output_stops_at_once(project: Path, tmp_path: Path) -> None:
+    out, go = tmp_path / "merged", tmp_path / "go"
+    before = tree_digest(project)
+    first = start_paused_merge(project, out, go)
+    others = [capvector(merge_args(project, out)) for _ in range(2)]
+    for other in others:
+        _, err = other.communicate(timeout=300)
+        assert other.returncode == 2, err
+        assert re.fullmatch(
+            rf"capvector merge: error: another capvector process is writing {out} "
+            rf"\(pid {first.pid}\); wait for it to finish or choose another --out\n", err
+        ), err  # fmt: skip
+    go.touch()
+    _, err = first.communicate(timeout=300)
+    assert first.returncode == 0, err
+    assert main(merge_args(project, tmp_path / "alone")) == 0
+    assert tree_digest(out)["model.safetensors"] == tree_digest(tmp_path / "alone")["model.safetensors"]  # fmt: skip
+    assert leftovers(tmp_path, "merged") == [] and tree_digest(project) == before
+
+
+def test_writers_racing_for_one_output_exactly_one_wins(project: Path, tmp_path: Path) -> None:
+    out = tmp_path / "merged"
+    racers = [capvector(merge_args(project, out)) for _ in range(3)]
+    results = [(r.wait(timeout=300), r.communicate()[1]) for r in racers]
+    assert sorted(code for code, _ in results) == [0, 2, 2], results
+    for code, err in results:
+        if code == 2:  # it met the winner writing, or its finished result
+            assert re.fullmatch(
+                rf"capvector merge: error: (another capvector process is writing {out} .*|"
+                rf"{out} exists; choose another --out or pass --overwrite)\n", err
+            ), err  # fmt: skip
+    assert leftovers(tmp_path, "merged") == []
+    assert (out / "model.safetensors").is_file()
+
+
+@pytest.mark.parametrize("how", [signal.SIGKILL, signal.SIGTERM])
+def test_a_killed_writer_leaves_nothing_behind_after_the_next_run(
+    how: signal.Signals, project: Path, tmp_path: Path
+) -> None:
+    out, go = tmp_path / "merged", tmp_path / "go"
+    before = tree_digest(project)
+    writer = start_paused_merge(project, out, go)
+    temporaries = [n for n in leftovers(tmp_path, "merged") if ".tmp-" in n]
+    assert len(temporaries) == 1 and temporaries[0].startswith(f".merged.tmp-{writer.pid}-")
+    writer.send_signal(how)
+    writer.communicate(timeout=60)
+    if how == signal.SIGTERM:  # the CLI turns it into an exit that cleans up
+        assert writer.returncode == 128 + how
+        assert leftovers(tmp_path, "merged") == [] and not out.exists()
+    else:  # nothing runs on SIGKILL: its temporary folder stays, until the next writer
+        assert writer.returncode == -how
+        assert temporaries[0] in leftovers(tmp_path, "merged") and not out.exists()
+    assert main(merge_args(project, out)) == 0
+    assert leftovers(tmp_path, "merged") == [] and tree_digest(project) == before
