@@ -74,12 +74,17 @@ def sweep(
     demos: str | None = None,
     finetune_steps: int = 0,
     orth_weight: float = 1.0,
+    allow_large_scale: bool = False,
 ) -> list[dict[str, Any]]:
     from capvector.data.episodes import EpisodeDataset
     from capvector.policy import VLAPolicy
     from capvector.sim.rollout import RolloutEvaluator
     from capvector.vectors import apply_vector_, load_vector
+    from capvector.vectors.merge import check_scale
     from capvector.vectors.precision import MergePrecision
+
+    for scale in scales:  # all of them before the first (minutes-long) λ
+        check_scale(scale, vector, allow_large_scale)
 
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -99,7 +104,7 @@ def sweep(
             continue
         module = load_module(base)  # float32 weights: the merge keeps all of λc (recorded)
         precision = MergePrecision()
-        apply_vector_(module.backbone, c, scale, precision)
+        apply_vector_(module.backbone, c, scale, precision, allow_large_scale)
         if finetune_steps:
             if demos is None:
                 raise ValueError("--finetune-steps needs --demos (the downstream training demos)")
@@ -181,6 +186,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--demos", default=None, help="held-out demos (HDF5) for the action L1")
     parser.add_argument("--finetune-steps", type=int, default=0, help="downstream SFT steps per λ")
     parser.add_argument("--orth-weight", type=float, default=1.0)
+    parser.add_argument(
+        "--allow-large-scale", action="store_true", help="accept |λ| > 100 in --scales"
+    )
     parser.add_argument("--out", required=True, help="folder for sweep.json and sweep.png")
     args = parser.parse_args(argv)
     scales = [float(s) for s in args.scales.split(",")]
@@ -189,7 +197,7 @@ def main(argv: list[str] | None = None) -> int:
             "capvector sweep-scale: give --task/--episodes (rollouts) and/or --demos (held-out L1)"
         )
     rows = sweep(args.base, args.vector, scales, args.out, args.task, args.episodes, args.robot,
-                 args.demos, args.finetune_steps, args.orth_weight)  # fmt: skip
+                 args.demos, args.finetune_steps, args.orth_weight, args.allow_large_scale)  # fmt: skip
     plot(rows, Path(args.out) / "sweep.png")
     print(format_table(rows))
     print(f"\nbest λ = {best_scale(rows):g}  (plot: {Path(args.out) / 'sweep.png'})")
