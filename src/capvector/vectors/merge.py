@@ -167,9 +167,9 @@ def merge(
     A vector the base already holds is refused unless ``allow_repeat``, as are a vector whose
     tensors no longer match its recorded fingerprint, a zero vector, and |λ| > 100 unless
     ``allow_large_scale``. All vectors are checked against the base before anything is written,
-    and a NaN/Inf found while streaming leaves no output. The sum is computed in float32 and written in ``dtype`` (default: the base's); how much
-    of Σλc that dtype kept is measured (``capvector.vectors.precision``) and recorded under
-    ``precision``.
+    and a NaN/Inf found while streaming leaves no output. The sum is computed in float32 and
+    written in ``dtype`` (default: the base's); how much of Σλc that dtype kept is measured
+    (``capvector.vectors.precision``) and recorded under ``precision``.
 
     Returns:
         The record written to ``capvector_merge.json``.
