@@ -7,10 +7,12 @@ then runs each stage in a fresh subprocess that reports its own peak RSS (VmHWM)
 - ``import torch``: the floor every stage pays (the interpreter and torch's libraries);
 - ``baseline``: read both inputs with ``safetensors.torch.load_file`` (touching every byte) and
   write one of them with ``save_file``, shard by shard;
-- ``extract``: c = θ_aux − θ_sft;
-- ``merge``: θ_pre + c.
+- ``extract``: c = θ_aux − θ_sft (the vector's fingerprint is hashed as it is written);
+- ``merge``: θ_pre + c (c's fingerprint is checked first: one more read of the vector);
+- ``read vector``: one plain read of the vector's files, the baseline of
+- ``fingerprint``: ``VectorFolder.fingerprint()``, the hash of every tensor of the vector.
 
-Targets: peak RSS ≤ 1 GB and wall time ≤ 2× the baseline. Inputs are freshly written, so every stage
+Targets: peak RSS ≤ 1 GB and wall time ≤ 2× the baseline (extract, merge). Inputs are freshly written, so every stage
 reads from the page cache; outputs are fsynced in every stage (the baseline too), and dirty
 pages are flushed (``sync``) before each stage.
 
@@ -156,6 +158,20 @@ def run_stage(stage: str, root: Path, out: Path) -> float:
         start = time.perf_counter()
         merge(root / "pre", [(root / "vector", 1.0)], out)
         return time.perf_counter() - start
+    if stage == "read vector":
+        start = time.perf_counter()
+        buffer = memoryview(bytearray(8 * 1024**2))  # the fingerprint's piece size
+        for path in sorted((root / "vector").glob("*.safetensors")):
+            with open(path, "rb", buffering=0) as f:
+                while f.readinto(buffer):
+                    pass
+        return time.perf_counter() - start
+    if stage == "fingerprint":
+        from capvector.vectors import VectorFolder
+
+        start = time.perf_counter()
+        VectorFolder(root / "vector").fingerprint()
+        return time.perf_counter() - start
     raise ValueError(stage)
 
 
@@ -242,13 +258,13 @@ def main() -> None:
         }
         # Stages alternate, so drifting disk/writeback conditions hit all of them alike.
         for i in range(args.repeats):
-            for stage in ("baseline", "extract", "merge"):
+            for stage in ("baseline", "extract", "merge", "read vector", "fingerprint"):
                 out = root / ("vector" if (stage, i) == ("extract", 0) else f"{stage}-{i}")
                 runs.setdefault(stage, []).append(measure(stage, root, out))
                 if stage == "merge" and i == 0:
                     spot_check(root, out)
                 if out.name != "vector":
-                    shutil.rmtree(out)
+                    shutil.rmtree(out, ignore_errors=True)  # the reading stages write nothing
         vector_bytes = sum(f.stat().st_size for f in (root / "vector").glob("*.safetensors"))
     finally:
         if not args.keep:
@@ -276,8 +292,13 @@ def main() -> None:
         label = {"import": "python + import torch (floor)"}.get(stage, stage)
         shown = "–" if stage == "import" else f"{seconds:.1f}"
         print(f"| {label} | {shown} | {ratio} | {rss:.0f} | {ok} |")
+    fingerprint, read = results["fingerprint"][0], results["read vector"][0]
+    print(
+        f"\nfingerprint of the {vector_bytes / 1e9:.2f} GB vector: {fingerprint:.2f} s = "
+        f"{fingerprint / read:.2f}× one plain read of its files ({read:.2f} s, page cache)"
+    )
     every = {
-        stage: ", ".join(f"{t:.1f}" for t, _ in r) for stage, r in runs.items() if stage != "import"
+        stage: ", ".join(f"{t:.2f}" for t, _ in r) for stage, r in runs.items() if stage != "import"
     }
     print("\nall runs (s): " + "; ".join(f"{k} {v}" for k, v in every.items()))
 

@@ -41,7 +41,7 @@ def inputs(tmp_path_factory: pytest.TempPathFactory) -> Path:
     for preset, name in (("openvla-oft-tiny", "oft"), ("pi05-tiny", "pi05")):
         model = build_backbone(preset)
         model.save_pretrained(root / f"{name}_sft")
-        model.save_pretrained(root / f"{name}_aux")  # a zero vector: only its keys matter here
+        build_backbone(preset).save_pretrained(root / f"{name}_aux")  # another init: a vector
         extract(aux=root / f"{name}_aux", sft=root / f"{name}_sft", out=root / f"{name}_vector")
     merge(root / "oft_sft", [(root / "oft_vector", 1.0)], root / "oft_meta")
     (root / "a_file").write_text("not a folder")

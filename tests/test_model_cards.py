@@ -35,7 +35,7 @@ def test_exports_vectors_and_merges_carry_model_cards(tmp_path: Path) -> None:
     meta = json.loads((tmp_path / "vec" / "capability_vector.json").read_text())
     assert header["base_model"] == [str((tmp_path / n).resolve()) for n in ("aux", "sft")]
     assert {"capability-vector", "peft", "lora"} <= set(header["tags"])
-    assert meta["sources"]["aux"]["fingerprint"][:23] in body
+    assert meta["fingerprint"] in body and meta["sources"]["aux"]["preset"] == "openvla-oft-tiny"
     assert meta["command"].startswith("capvector extract --aux") and meta["command"] in body
 
     merge = ["merge", "--base", str(tmp_path / "sft"), "--vector", f"{tmp_path / 'vec'}:0.7"]

@@ -90,17 +90,19 @@ def test_merge_equals_state_dict_arithmetic(setup) -> None:
     assert config == json.loads((paths["pre"] / "config.json").read_text())
     card = (tmp / "meta" / "README.md").read_text()
     assert card.startswith("---\nlibrary_name: capvector\n") and "base_model:" in card
-    assert all(v["fingerprint"][:23] in card for v in record["vectors"])
+    assert all(v["fingerprint"][:27] in card for v in record["vectors"])
     index = json.loads((tmp / "meta" / "model.safetensors.index.json").read_text())
     assert (
         index["weight_map"]
         == json.loads((paths["pre"] / "model.safetensors.index.json").read_text())["weight_map"]
     )
     assert [v["scale"] for v in record["vectors"]] == [0.7, -0.3]
-    assert (
-        json.loads((tmp / "meta" / MERGE_RECORD).read_text())["base"]["fingerprint"]
-        == record["base"]["fingerprint"]
-    )
+    assert json.loads((tmp / "meta" / MERGE_RECORD).read_text())["base"] == record["base"]
+    # The record holds each vector's fingerprint as recorded when it was written.
+    assert [v["fingerprint"] for v in record["vectors"]] == [
+        json.loads((tmp / name / "capability_vector.json").read_text())["fingerprint"]
+        for name in ("c1", "c2")
+    ]
 
 
 def test_merge_of_a_peft_lora_folder_matches_merge_and_unload(tmp_path: Path) -> None:

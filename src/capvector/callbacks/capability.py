@@ -10,6 +10,7 @@ from lightning.pytorch.utilities.rank_zero import rank_zero_info, rank_zero_warn
 
 from capvector.objectives.orthogonality import OrthogonalityLoss
 from capvector.vectors import VectorFolder, apply_vector_, validate_vector
+from capvector.vectors.merge import check_scale
 from capvector.vectors.precision import MergePrecision
 from capvector.vectors.record import (
     BY_FIT_START,
@@ -24,23 +25,32 @@ from capvector.vectors.record import (
 class MergeCapabilityVector(L.Callback):
     """θ ← θ + scale·c once, at the start of fit (θ_meta = θ_pre + λ·c).
 
-    The vector is validated in ``setup`` (shapes, dtypes, keys, finite values, and that θ_pre does
-    not hold it already), so a bad vector stops the run before anything changes. What was merged
-    is recorded in the model itself (``VLAModule.merged_vectors``: the vector's fingerprint and λ,
-    saved in checkpoints and exports), not in this callback's state: a resumed run never merges
-    again, however the vector's path is spelled, and a resume with another vector or λ is an error
-    naming both. Under FSDP2 each rank adds its own shard of c, no communication.
+    The vector is validated in ``setup`` (λ, shapes, dtypes, keys, finite and not all-zero values,
+    its tensors as they were written, and that θ_pre does not hold it already), so a bad vector
+    stops the run before anything changes. What was merged is recorded in the model itself
+    (``VLAModule.merged_vectors``: the vector's fingerprint and λ, saved in checkpoints and
+    exports), not in this callback's state: a resumed run never merges again, however the vector's
+    path is spelled, and a resume with another vector or λ, or with the vector's tensors changed
+    since, is an error naming both. Under FSDP2 each rank adds its own shard of c, no communication.
 
     Args:
         vector: the vector folder (full, low-rank or PEFT LoRA).
         scale: λ.
         allow_repeat: merge even when θ_pre's record says it already holds this vector.
+        allow_large_scale: accept |λ| > 100.
     """
 
-    def __init__(self, vector: str, scale: float = 1.0, allow_repeat: bool = False) -> None:
+    def __init__(
+        self,
+        vector: str,
+        scale: float = 1.0,
+        allow_repeat: bool = False,
+        allow_large_scale: bool = False,
+    ) -> None:
         self.vector = vector
         self.scale = scale
         self.allow_repeat = allow_repeat
+        self.allow_large_scale = allow_large_scale
         self._entry: MergedVector | None = None
         self._loaded: Any = None
         self._resumed = False
@@ -48,13 +58,15 @@ class MergeCapabilityVector(L.Callback):
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         if stage != "fit":
             return
+        check_scale(self.scale, self.vector, self.allow_large_scale)
         folder = VectorFolder(self.vector)
         self._entry = MergedVector.of(folder, self.scale, BY_FIT_START)
         check_not_merged(
             pl_module.merged_vectors, self._entry, "the pretrained model", self.allow_repeat
         )
         self._loaded = folder.load()
-        validate_vector(pl_module.backbone, self._loaded, self.scale)
+        validate_vector(pl_module.backbone, self._loaded, self.scale, self.allow_large_scale)
+        folder.check_not_zero()
         # Before configure_model casts frozen weights: what c lands in stays float32.
         pl_module.float32_parameters.update(self._loaded.keys())
 
@@ -76,7 +88,9 @@ class MergeCapabilityVector(L.Callback):
             rank_zero_info(f"{self._entry.describe()} was merged before this resume; not again")
             return
         precision = MergePrecision()
-        changed = apply_vector_(pl_module.backbone, self._loaded, self.scale, precision)
+        changed = apply_vector_(
+            pl_module.backbone, self._loaded, self.scale, precision, self.allow_large_scale
+        )
         pl_module.merged_vectors.append(self._entry)
         self._loaded = None
         rank_zero_info(

@@ -170,6 +170,11 @@ def merge_main(argv: list[str] | None = None) -> int:
         help="merge a vector the base already holds (its config.json records merged vectors)",
     )
     parser.add_argument(
+        "--allow-large-scale",
+        action="store_true",
+        help="accept |λ| > 100 (refused by default: it is almost always a typo)",
+    )
+    parser.add_argument(
         "--dtype",
         choices=("float32", "bfloat16", "float16"),
         help="dtype of the merged weights (default: the base's); float32 keeps all of Σλc",
@@ -187,12 +192,13 @@ def merge_main(argv: list[str] | None = None) -> int:
         overwrite=args.overwrite,
         progress=True,
         allow_repeat=args.allow_repeat,
+        allow_large_scale=args.allow_large_scale,
         command=command_line("merge", argv),
         dtype=args.dtype,
     )
     terms = " + ".join(f"{s:g}·{p}" for p, s in args.vector)
     print(f"wrote {args.out} = {args.base} + {terms}")
-    print(f"  base fingerprint {record['base']['fingerprint'][:23]}…; non-weight files copied")
+    print("  non-weight files of the base copied")
     kept = record["precision"]
     print(f"  {kept['dtype']} output keeps Σλc up to a {kept['relative_error']:.2%} relative error")
     if warning := precision_warning(kept):

@@ -87,6 +87,10 @@ def extract(
 
     Returns:
         The metadata written to ``capability_vector.json``.
+
+    Raises:
+        CapVectorError: for bad input, including aux and sft being the same folder (before any
+            work) or holding identical values (after streaming them; nothing is written).
     """
     if rank is not None and energy is not None:
         raise CapVectorError("pass either --rank or --energy, not both")
@@ -97,6 +101,11 @@ def extract(
     out_dtype = parse_dtype(dtype) if isinstance(dtype, str) else dtype
     inputs = [aux, sft, base]
     check_output(out, overwrite, inputs)
+    if Path(aux).resolve() == Path(sft).resolve():
+        raise CapVectorError(
+            f"--aux and --sft are the same ({aux}): c = θ_aux − θ_sft would be all zeros; give "
+            "the fine-tune with auxiliary objectives and the plain SFT one"
+        )
 
     sources: dict[str, WeightSource] = {"aux": open_weights(aux), "sft": open_weights(sft)}
     if base is not None:
@@ -184,6 +193,11 @@ def extract(
                     if base is not None:
                         meta["task_vectors"] = [TASK_VECTOR_AUX, TASK_VECTOR_SFT]
                 metas.append(w.finish(meta))
+            if metas[0]["norm"] == 0.0:  # raised inside the output block: nothing is left
+                raise CapVectorError(
+                    f"aux {aux} and sft {sft} are identical in all {len(keys)} extracted tensors: "
+                    "c would be all zeros. Were they the same export? Nothing was written"
+                )
         except BaseException:
             for w in writers:
                 w.abort()

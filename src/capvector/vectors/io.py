@@ -165,35 +165,68 @@ def select_keys(
     return [k for k in chosen if not any(fnmatch.fnmatchcase(k, g) for g in exclude or ())]
 
 
-# -- fingerprints ---------------------------------------------------------------------------
+# -- content fingerprints --------------------------------------------------------------------
 
-_SAMPLE_BYTES = 64 * 1024
+FINGERPRINT_PREFIX = "tensors-sha256:"
+"""Marks a content fingerprint (``fingerprint_of``); earlier records hold sampled "sha256:" ones."""
+_HASH_PIECE = 8 * 1024**2
 
 
-def file_fingerprint(path: Path, hasher: Any, header_bytes: int = 0) -> None:
-    """Feed a cheap identity of ``path`` into ``hasher``: size, header, and three 64 KiB samples.
+def tensor_bytes(t: Tensor) -> memoryview:
+    """The bytes of ``t`` in row-major order, as safetensors stores them."""
+    return memoryview(t.detach().contiguous().reshape(-1).view(torch.uint8).numpy())
 
-    An identity check for provenance (which files a vector came from), not an integrity check:
-    hashing gigabytes would cost as much as the extraction itself.
+
+def fingerprint_of(lines: Mapping[str, str]) -> str:
+    """The content fingerprint of named tensors: sha256 over ``name: line`` in sorted name order.
+
+    Each line describes one tensor (dtype, shape, how it is stored, the sha256 of its bytes), so the
+    fingerprint changes exactly when a tensor does, whatever the file layout, shard split or order.
     """
-    size = path.stat().st_size
-    hasher.update(f"{path.name}:{size}:".encode())
-    with open(path, "rb") as f:
-        if header_bytes:
-            hasher.update(f.read(header_bytes))
-        for offset in (
-            header_bytes,
-            (header_bytes + size) // 2,
-            max(header_bytes, size - _SAMPLE_BYTES),
-        ):
-            f.seek(offset)
-            hasher.update(f.read(_SAMPLE_BYTES))
+    hasher = hashlib.sha256()
+    for key in sorted(lines):
+        hasher.update(f"{key}: {lines[key]}\n".encode())
+    return FINGERPRINT_PREFIX + hasher.hexdigest()
 
 
-def _safetensors_header_size(path: Path) -> int:
-    with open(path, "rb") as f:
-        raw = f.read(8)
-    return 8 + struct.unpack("<Q", raw)[0] if len(raw) == 8 else 0
+def full_line(info: TensorInfo, digest: str) -> str:
+    """``fingerprint_of``'s line of a tensor stored as is; ``digest``: the sha256 of its bytes."""
+    return f"{dtype_name(info.dtype)} {list(info.shape)} {digest}"
+
+
+def short_fingerprint(fingerprint: str) -> str:
+    """``tensors-sha256:0123456789ab…``, for messages and model cards."""
+    kind, _, digest = fingerprint.rpartition(":")
+    return f"{kind}:{digest[:12]}…"
+
+
+def safetensors_digests(path: Path) -> dict[str, str]:
+    """The sha256 of every tensor's bytes in the safetensors file ``path``, by name.
+
+    One sequential read of the file in 8 MiB pieces through one buffer: bounded memory, and no
+    memory map whose pages would stay resident.
+    """
+    buffer = memoryview(bytearray(_HASH_PIECE))
+    digests: dict[str, str] = {}
+    with open(path, "rb", buffering=0) as f:
+        (header_size,) = struct.unpack("<Q", f.read(8))
+        header = json.loads(f.read(header_size))
+        header.pop("__metadata__", None)
+        for key, entry in sorted(header.items(), key=lambda item: item[1]["data_offsets"][0]):
+            begin, end = entry["data_offsets"]
+            f.seek(8 + header_size + begin)
+            hasher = hashlib.sha256()
+            remaining = end - begin
+            while remaining:
+                n = f.readinto(buffer[: min(remaining, _HASH_PIECE)])
+                if not n:
+                    raise CapVectorError(
+                        f"{path} ends inside tensor `{key}`: it is truncated; write it again"
+                    )
+                hasher.update(buffer[:n])
+                remaining -= n
+            digests[key] = hasher.hexdigest()
+    return digests
 
 
 # -- reading --------------------------------------------------------------------------------
@@ -224,10 +257,6 @@ class WeightSource(ABC):
     def read(self, key: str, rows: slice | None = None) -> Tensor:
         """Rows ``rows`` (all when None) of tensor ``key``; the caller owns the returned tensor."""
 
-    @abstractmethod
-    def fingerprint(self) -> str:
-        """The fingerprint of this source."""
-
     @property
     def capability_parameters(self) -> list[str] | None:
         globs = self.config.get("capability_parameters")
@@ -244,15 +273,18 @@ class WeightSource(ABC):
         return list(names) if names is not None else None
 
     def describe(self) -> dict[str, Any]:
-        """Provenance recorded in the metadata of what is written from this source."""
-        out: dict[str, Any] = {
-            "path": str(self.path.resolve()),
-            "kind": self.kind,
-            "fingerprint": self.fingerprint(),
-        }
-        for field in ("family", "preset"):
-            if field in self.config:
-                out[field] = self.config[field]
+        """Provenance recorded in the metadata of what is written from this source.
+
+        By path, not by content: hashing the inputs would cost another read of every model
+        (vectors, what the merge record compares, are fingerprinted by content).
+        """
+        out: dict[str, Any] = {"path": str(self.path.resolve()), "kind": self.kind}
+        preset = self.config.get("preset") or (self.config.get("backbone_config") or {}).get(
+            "preset"
+        )
+        for field, value in (("family", self.config.get("family")), ("preset", preset)):
+            if value is not None:
+                out[field] = value
         return out
 
 
@@ -359,14 +391,13 @@ class SafetensorsFolder(WeightSource):
     def weight_files(self) -> list[str]:
         return list(self.files) + ([self.index_path.name] if self.index_path else [])
 
-    def fingerprint(self) -> str:
-        hasher = hashlib.sha256()
-        if self.index_path is not None:
-            hasher.update(self.index_path.read_bytes())
+    def tensor_lines(self) -> dict[str, str]:
+        """``fingerprint_of``'s line of every tensor: each file read once."""
+        lines = {}
         for name in self.files:
-            path = self.path / name
-            file_fingerprint(path, hasher, _safetensors_header_size(path))
-        return "sha256:" + hasher.hexdigest()
+            for key, digest in safetensors_digests(self.path / name).items():
+                lines[key] = full_line(self._infos[key], digest)
+        return lines
 
 
 class CheckpointSource(WeightSource):
@@ -464,13 +495,6 @@ class CheckpointSource(WeightSource):
             return layer.merged(base, rows).to(base.dtype)
         return (t if rows is None else t[rows]).clone()
 
-    def fingerprint(self) -> str:
-        # A zip checkpoint ends with its central directory, which holds a CRC-32 of every record, so
-        # the sampled tail identifies the content cheaply.
-        hasher = hashlib.sha256()
-        file_fingerprint(self.path, hasher)
-        return "sha256:" + hasher.hexdigest()
-
 
 def open_weights(path: str | Path) -> WeightSource:
     """An export folder, a bare ``.safetensors`` file's folder, or a Lightning ``.ckpt``."""
@@ -530,10 +554,16 @@ class SafetensorsWriter:
     The header (names, dtypes, shapes, offsets) is known before any data, so it is written first and
     tensor bytes are appended as they are computed; nothing larger than a chunk is held. The writer
     refuses bytes out of order or of the wrong size, so a bug cannot produce a malformed file.
+    With ``digests``, the sha256 of every tensor's bytes is computed as they are written
+    (``self.digests``), so fingerprinting what was written costs no second read.
     """
 
     def __init__(
-        self, folder: Path, layout: ShardLayout, metadata: Mapping[str, str] | None = None
+        self,
+        folder: Path,
+        layout: ShardLayout,
+        metadata: Mapping[str, str] | None = None,
+        digests: bool = False,
     ) -> None:
         self.folder = folder
         self.layout = layout
@@ -543,6 +573,8 @@ class SafetensorsWriter:
         self._written = 0
         self._file: Any = None
         self._file_name: str | None = None
+        self.digests: dict[str, str] | None = {} if digests else None
+        self._hasher: Any = None
 
     @property
     def current_key(self) -> str | None:
@@ -555,13 +587,18 @@ class SafetensorsWriter:
         name, _, info = self._queue[self._pos]
         if self._file_name != name:
             self._open(name)
-        data = chunk.detach().to(device="cpu", dtype=info.dtype).contiguous()
-        raw = data.reshape(-1).view(torch.uint8).numpy()
-        self._file.write(memoryview(raw))
+        raw = tensor_bytes(chunk.to(device="cpu", dtype=info.dtype))
+        self._file.write(raw)
+        if self.digests is not None:
+            if self._written == 0:
+                self._hasher = hashlib.sha256()
+            self._hasher.update(raw)
         self._written += raw.nbytes
         if self._written > info.nbytes:
             raise RuntimeError(f"`{key}`: {self._written} bytes written, {info.nbytes} planned")
         if self._written == info.nbytes:
+            if self.digests is not None:
+                self.digests[key] = self._hasher.hexdigest()
             self._pos += 1
             self._written = 0
             if self._pos == len(self._queue) or self._queue[self._pos][0] != name:

@@ -36,6 +36,7 @@ from capvector.vectors.io import (
     parse_dtype,
     read_json,
     row_chunks,
+    short_fingerprint,
     write_json,
 )
 from capvector.vectors.precision import MergePrecision
@@ -50,6 +51,8 @@ from capvector.vectors.record import (
 from capvector.vectors.vector import CapabilityVector, VectorFolder, load_vector
 
 MERGE_RECORD = "capvector_merge.json"
+MAX_SCALE = 100.0
+"""|λ| above this is refused unless allowed: θ + λ·c would be mostly c (λ ≈ 1 in the paper)."""
 
 # Module names that wrappers insert between a model's own names: peft's LoRA layers
 # (`X.base_layer.weight`), torch.compile, activation checkpointing and FSDP1.
@@ -126,6 +129,20 @@ def check_compatible(
         )
 
 
+def check_scale(scale: float, vector: str = "the vector", allow_large_scale: bool = False) -> None:
+    """λ must be finite, fit float32 (the merge adds in float32) and, unless allowed, |λ| ≤ 100."""
+    if not math.isfinite(scale):
+        raise CapVectorError(f"λ for {vector} is {scale}; it must be a finite number")
+    if abs(scale) > torch.finfo(torch.float32).max:
+        raise CapVectorError(f"λ = {scale:g} for {vector} overflows float32, in which it is added")
+    if abs(scale) > MAX_SCALE and not allow_large_scale:
+        raise CapVectorError(
+            f"λ = {scale:g} for {vector} is outside [-{MAX_SCALE:g}, {MAX_SCALE:g}]: the result "
+            "would be mostly the vector (λ ≈ 1 is usual); pass --allow-large-scale "
+            "(allow_large_scale: true) if you mean it"
+        )
+
+
 # -- streaming merge into an export folder ---------------------------------------------------
 
 
@@ -137,6 +154,7 @@ def merge(
     overwrite: bool = False,
     progress: bool = False,
     allow_repeat: bool = False,
+    allow_large_scale: bool = False,
     command: str | None = None,
     dtype: torch.dtype | str | None = None,
 ) -> dict[str, Any]:
@@ -145,11 +163,12 @@ def merge(
     Vectors may be full, low-rank or plain PEFT LoRA folders. Every non-weight file of the base
     (tokenizer, dataset statistics) is copied unchanged; ``config.json`` gains the merged vectors
     (``merged_vectors``: fingerprint and λ) and ``capvector_merge.json`` records what was merged.
-    A vector the base already holds is refused unless ``allow_repeat``. All vectors are checked
-    against the base before anything is written, and a NaN/Inf found while streaming leaves no
-    output. The sum is computed in float32 and written in ``dtype`` (default: the base's); how much
-    of Σλc that dtype kept is measured (``capvector.vectors.precision``) and recorded under
-    ``precision``.
+    A vector the base already holds is refused unless ``allow_repeat``, as are a vector whose
+    tensors no longer match its recorded fingerprint, a zero vector, and |λ| > 100 unless
+    ``allow_large_scale``. All vectors are checked against the base before anything is written,
+    and a NaN/Inf found while streaming leaves no output. The sum is computed in float32 and
+    written in ``dtype`` (default: the base's); how much of Σλc that dtype kept is measured
+    (``capvector.vectors.precision``) and recorded under ``precision``.
 
     Returns:
         The record written to ``capvector_merge.json``.
@@ -166,13 +185,13 @@ def merge(
         )
     folders = []
     for path, scale in vectors:
-        if not math.isfinite(scale):
-            raise CapVectorError(f"λ for {path} is {scale}; it must be a finite number")
+        check_scale(scale, str(path), allow_large_scale)
         folder = VectorFolder(path)
         infos = {k: folder.info(k) for k in folder}
         check_compatible(
             {k: source.info(k) for k in source}, infos, f"the base {base}", f"vector {path}"
         )
+        folder.check_not_zero()
         folders.append((folder, float(scale)))
     record = read_record(source.config.get(MERGED_VECTORS))
     for folder, scale in folders:
@@ -239,10 +258,12 @@ def _merged_card(source: SafetensorsFolder, provenance: Mapping[str, Any]) -> st
     facts: dict[str, Any] = {
         "family": source.config.get("family"),
         "preset": (source.config.get("backbone_config") or {}).get("preset"),
-        "base": f"{source.path.resolve()} ({provenance['base']['fingerprint'][:23]}…)",
+        "base": str(source.path.resolve()),
     }
     for i, v in enumerate(provenance["vectors"], 1):
-        facts[f"vector {i}"] = f"{v['path']} x {v['scale']:g} ({v['fingerprint'][:23]}…)"
+        facts[f"vector {i}"] = (
+            f"{v['path']} x {v['scale']:g} ({short_fingerprint(v['fingerprint'])})"
+        )
     return render_model_card(
         "θ_meta: pretrained weights with capability vectors merged",
         f"θ_meta = θ_pre + {terms}, written by `capvector merge` in capvector's export layout; "
@@ -367,15 +388,15 @@ def validate_vector(
     target: nn.Module | MutableMapping[str, Tensor],
     vector: str | Path | Mapping[str, Tensor] | CapabilityVector,
     scale: float = 1.0,
+    allow_large_scale: bool = False,
 ) -> None:
     """Raise ``CapVectorError`` unless ``apply_vector_(target, vector, scale)`` would succeed.
 
     Checks that every vector tensor has a matching target tensor (``X.weight`` also matches peft's
-    ``X.base_layer.weight``), with the same shape, both floating, and that the vector and ``scale``
-    are finite.
+    ``X.base_layer.weight``), with the same shape, both floating, that the vector is finite and
+    ``scale`` passes ``check_scale``.
     """
-    if not math.isfinite(scale):
-        raise CapVectorError(f"scale λ is {scale}; it must be a finite number")
+    check_scale(scale, allow_large_scale=allow_large_scale)
     _resolve(target, load_vector(vector))
 
 
@@ -384,6 +405,7 @@ def apply_vector_(
     vector: str | Path | Mapping[str, Tensor] | CapabilityVector,
     scale: float = 1.0,
     precision: MergePrecision | None = None,
+    allow_large_scale: bool = False,
 ) -> list[str]:
     """In place: θ ← θ + scale·c for every tensor of the vector; validates everything first.
 
@@ -396,8 +418,7 @@ def apply_vector_(
     Returns:
         The target names that were changed.
     """
-    if not math.isfinite(scale):
-        raise CapVectorError(f"scale λ is {scale}; it must be a finite number")
+    check_scale(scale, allow_large_scale=allow_large_scale)
     vec = load_vector(vector)
     resolved = _resolve(target, vec)
     changed = []

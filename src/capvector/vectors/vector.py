@@ -8,12 +8,18 @@ A vector folder holds ``capability_vector.json`` (metadata) and the tensors in o
   tensors stored in low-rank form.
 
 A plain PEFT LoRA adapter folder (no metadata) is read as a vector too.
+
+``capability_vector.json`` records the vector's ``fingerprint`` (a hash of every tensor, the identity
+the merge record compares) and ``metadata_sha256`` (a hash of the JSON's own content), both checked
+when the folder is read: edited tensors or an edited JSON are an error, a re-indented JSON is not.
+Folders written before these fields existed are read as they are, their fingerprint computed.
 """
 
 from __future__ import annotations
 
 import datetime
 import hashlib
+import json
 import math
 from collections.abc import Collection, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -26,7 +32,6 @@ from torch import Tensor
 from capvector.modelcard import render_model_card, write_model_card
 from capvector.vectors.io import (
     ADAPTER_CONFIG,
-    ADAPTER_WEIGHTS,
     EXPORT_CONFIG,
     VECTOR_FORMAT,
     VECTOR_INDEX,
@@ -40,11 +45,37 @@ from capvector.vectors.io import (
     capvector_version,
     dtype_name,
     examples,
-    file_fingerprint,
+    fingerprint_of,
+    full_line,
     read_json,
+    row_chunks,
+    short_fingerprint,
+    tensor_bytes,
     write_json,
 )
 from capvector.vectors.lowrank import LoraFactors, read_adapter, write_adapter
+
+FINGERPRINT = "fingerprint"
+METADATA_DIGEST = "metadata_sha256"
+
+
+def metadata_digest(meta: Mapping[str, Any]) -> str:
+    """sha256 of ``meta`` (without this digest) as canonical JSON: formatting and key order do not
+    count, any changed value does."""
+    fields = {k: v for k, v in meta.items() if k != METADATA_DIGEST}
+    text = json.dumps(fields, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def lora_line(factors: LoraFactors) -> str:
+    """``fingerprint_of``'s line of a tensor stored as low-rank factors (c = scale · B @ A)."""
+    b, a = factors.lora_b, factors.lora_a
+    hasher = hashlib.sha256(tensor_bytes(b))
+    hasher.update(tensor_bytes(a))
+    return (
+        f"lora B {dtype_name(b.dtype)} {list(b.shape)} A {dtype_name(a.dtype)} {list(a.shape)} "
+        f"scale {factors.scale!r} {hasher.hexdigest()}"
+    )
 
 
 class VectorFolder:
@@ -93,12 +124,42 @@ class VectorFolder:
             raise CapVectorError(f"{self.path} stores some tensors twice, e.g. {examples(twice)}")
         listed = self.metadata.get("tensors")
         if isinstance(listed, dict):
-            missing = sorted(set(listed) - set(self.keys()))
-            if missing:
-                raise CapVectorError(
-                    f"{self.path}: {len(missing)} tensor(s) listed in {VECTOR_META} are missing "
-                    f"from its weight files, e.g. {examples(missing)}; the folder is incomplete"
-                )
+            self._check_listed(listed)
+        recorded = self.metadata.get(METADATA_DIGEST)
+        if recorded is not None and recorded != metadata_digest(self.metadata):
+            raise CapVectorError(
+                f"{self.path / VECTOR_META} was edited after the vector was written (it no longer "
+                f"matches its {METADATA_DIGEST}), so its family, preset, shapes and sources cannot "
+                "be trusted: restore it, or extract the vector again"
+            )
+        self._fingerprint: str | None = None
+
+    def _check_listed(self, listed: Mapping[str, Any]) -> None:
+        """What ``capability_vector.json`` says of each tensor must be what the weight files hold."""
+        missing = sorted(set(listed) - set(self.keys()))
+        if missing:
+            raise CapVectorError(
+                f"{self.path}: {len(missing)} tensor(s) listed in {VECTOR_META} are missing "
+                f"from its weight files, e.g. {examples(missing)}; the folder is incomplete"
+            )
+        wrong = [
+            f"{key}: {field} {claim[field]} in the JSON, {actual} in the weights"
+            for key, claim in listed.items()
+            if isinstance(claim, Mapping)
+            for field, actual in (
+                ("shape", list(self.info(key).shape)),
+                ("dtype", dtype_name(self.info(key).dtype)),
+                ("storage", self.storage(key)),
+            )
+            if field in claim and claim[field] != actual
+        ]
+        wrong += [f"{key}: not listed" for key in self.keys() if key not in listed]
+        if wrong:
+            raise CapVectorError(
+                f"{self.path / VECTOR_META} does not describe this folder's weight files "
+                f"({len(wrong)} mismatch(es), e.g. {examples(wrong, 1)}): it was edited or belongs "
+                "to another vector; restore it, or extract the vector again"
+            )
 
     def keys(self) -> list[str]:
         full = self._full.keys() if self._full else []
@@ -144,13 +205,49 @@ class VectorFolder:
         return self._full.read(key, rows)
 
     def fingerprint(self) -> str:
-        hasher = hashlib.sha256()
-        for name in (VECTOR_META, ADAPTER_CONFIG, ADAPTER_WEIGHTS):
-            if (self.path / name).is_file():
-                file_fingerprint(self.path / name, hasher)
-        if self._full is not None:
-            hasher.update(self._full.fingerprint().encode())
-        return "sha256:" + hasher.hexdigest()
+        """The content fingerprint of the tensors (``io.fingerprint_of``), checked against the one
+        recorded when the vector was written: one read of the weight files per folder object.
+
+        Raises ``CapVectorError`` when they differ (the tensors changed since). A folder that
+        records none (written before fingerprints, or a plain PEFT adapter) gets it computed.
+        """
+        if self._fingerprint is None:
+            lines = self._full.tensor_lines() if self._full is not None else {}
+            lines.update({key: lora_line(f) for key, f in self._lowrank.items()})
+            for key, t in self._extra.items():
+                digest = hashlib.sha256(tensor_bytes(t)).hexdigest()
+                lines[key] = full_line(TensorInfo(t.dtype, tuple(t.shape)), digest)
+            actual = fingerprint_of(lines)
+            recorded = self.metadata.get(FINGERPRINT)
+            if recorded is not None and recorded != actual:
+                raise CapVectorError(
+                    f"vector {self.path}: its tensors changed since it was written (they hash to "
+                    f"{short_fingerprint(actual)}, {VECTOR_META} records "
+                    f"{short_fingerprint(str(recorded))}); restore its weight files, or extract "
+                    "the vector again"
+                )
+            self._fingerprint = actual
+        return self._fingerprint
+
+    def norm(self) -> float:
+        """‖c‖: as recorded when the vector was written, else computed from its tensors."""
+        recorded = self.metadata.get("norm")
+        if isinstance(recorded, (int, float)):
+            return float(recorded)
+        total = sum(f.norm_sq() for f in self._lowrank.values())
+        total += sum(float(t.double().square().sum()) for t in self._extra.values())
+        for key in self._full.keys() if self._full is not None else []:
+            for rows in row_chunks(self._full.info(key)):
+                total += float(self._full.read(key, rows).double().square().sum())
+        return math.sqrt(total)
+
+    def check_not_zero(self) -> None:
+        """A zero vector merges to nothing: it is a mistake upstream, said before any work."""
+        if self.norm() == 0.0:
+            raise CapVectorError(
+                f"vector {self.path} is all zeros (‖c‖ = 0): were aux and sft the same export? "
+                "Extract it again from the two different fine-tunes"
+            )
 
     def describe(self) -> dict[str, Any]:
         out = {
@@ -258,7 +355,7 @@ class VectorFolderWriter:
         self.embeddings = frozenset(embeddings)
         stem = VECTOR_WEIGHTS.removesuffix(".safetensors")
         self._writer = (
-            SafetensorsWriter(folder, ShardLayout.plan(full, stem, max_shard_size))
+            SafetensorsWriter(folder, ShardLayout.plan(full, stem, max_shard_size), digests=True)
             if full
             else None
         )
@@ -305,7 +402,10 @@ class VectorFolderWriter:
         if self._lowrank:
             write_adapter(self.folder, self._lowrank, self.embeddings)
         total_sq = sum(t["norm"] ** 2 for t in self.tensors.values())
-        meta = {
+        written = (self._writer.digests if self._writer is not None else None) or {}
+        lines = {key: full_line(self._infos[key], digest) for key, digest in written.items()}
+        lines.update({key: lora_line(f) for key, f in self._lowrank.items()})
+        meta: dict[str, Any] = {
             "format": VECTOR_FORMAT,
             **metadata,
             "norm": math.sqrt(total_sq),
@@ -315,7 +415,9 @@ class VectorFolderWriter:
             "tensors": self.tensors,
             "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "capvector_version": capvector_version(),
+            FINGERPRINT: fingerprint_of(lines),
         }
+        meta[METADATA_DIGEST] = metadata_digest(meta)
         write_json(self.folder / VECTOR_META, meta)
         write_model_card(self.folder, vector_card(meta))
         return meta
@@ -350,12 +452,14 @@ def vector_card(meta: Mapping[str, Any]) -> str:
         )
     )
     facts: dict[str, Any] = {
-        f"source {name}": f"{src.get('path')} ({src.get('fingerprint', '')[:23]}…)"
+        f"source {name}": str(src.get("path"))
+        + (f" ({short_fingerprint(src['fingerprint'])})" if src.get("fingerprint") else "")
         for name, src in sources.items()
         if isinstance(src, Mapping)
     }
     facts.update(
         {
+            "fingerprint": meta.get(FINGERPRINT),
             "objectives": meta.get("objectives"),
             "method": meta.get("method"),
             "include": meta.get("include"),

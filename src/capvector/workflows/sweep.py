@@ -75,15 +75,19 @@ def sweep(
     demos: str | None = None,
     finetune_steps: int = 0,
     orth_weight: float = 1.0,
+    allow_large_scale: bool = False,
 ) -> list[dict[str, Any]]:
     from capvector.data.episodes import EpisodeDataset
     from capvector.policy import VLAPolicy
     from capvector.sim.rollout import RolloutEvaluator
     from capvector.vectors import apply_vector_, load_vector
+    from capvector.vectors.merge import check_scale
     from capvector.vectors.precision import MergePrecision
 
     if finetune_steps and demos is None:
         raise CapVectorError("--finetune-steps needs --demos (the downstream training demos)")
+    for scale in scales:  # all of them before the first (minutes-long) λ
+        check_scale(scale, vector, allow_large_scale)
     specs = (
         EpisodeDataset([EvalTask(task, episodes, robot, VALIDATION_SEED_START)]).specs
         if task and episodes
@@ -102,7 +106,7 @@ def sweep(
             continue
         module = load_module(base)  # float32 weights: the merge keeps all of λc (recorded)
         precision = MergePrecision()
-        apply_vector_(module.backbone, c, scale, precision)
+        apply_vector_(module.backbone, c, scale, precision, allow_large_scale)
         if finetune_steps:
             finetune(module, vector, demos, finetune_steps, orth_weight)
         module.eval()
@@ -195,12 +199,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--demos", default=None, help="held-out demos (HDF5) for the action L1")
     parser.add_argument("--finetune-steps", type=int, default=0, help="downstream SFT steps per λ")
     parser.add_argument("--orth-weight", type=float, default=1.0)
+    parser.add_argument(
+        "--allow-large-scale", action="store_true", help="accept |λ| > 100 in --scales"
+    )
     parser.add_argument("--out", required=True, help="folder for sweep.json and sweep.png")
     args = parser.parse_args(argv)
     if not (args.task and args.episodes) and not args.demos:
         raise CapVectorError("give --task/--episodes (rollouts) and/or --demos (held-out L1)")
     rows = sweep(args.base, args.vector, args.scales, args.out, args.task, args.episodes, args.robot,
-                 args.demos, args.finetune_steps, args.orth_weight)  # fmt: skip
+                 args.demos, args.finetune_steps, args.orth_weight, args.allow_large_scale)  # fmt: skip
     plot(rows, Path(args.out) / "sweep.png")
     print(format_table(rows))
     print(f"\nbest λ = {best_scale(rows):g}  (plot: {Path(args.out) / 'sweep.png'})")
