@@ -26,10 +26,17 @@ from typing import Any, ClassVar, TypeVar
 import torch
 from torch import Tensor, nn
 
+from capvector.data.statistics import check_finite_statistics
 from capvector.errors import CapVectorError
 from capvector.fileio import atomic_directory
 from capvector.modelcard import render_model_card, write_model_card
-from capvector.names import EXPORT_CONFIG, EXPORT_FORMAT, EXPORT_INDEX, EXPORT_WEIGHTS
+from capvector.names import (
+    EXPORT_CONFIG,
+    EXPORT_FORMAT,
+    EXPORT_INDEX,
+    EXPORT_WEIGHTS,
+    STATISTICS_FILE,
+)
 
 EMBEDDING_PARAMETERS = "embedding_parameters"
 
@@ -246,6 +253,9 @@ class VLABackbone(nn.Module, ABC):
         """
         from safetensors.torch import save_file
 
+        statistics = (extra_json or {}).get(STATISTICS_FILE)
+        if statistics is not None:  # the last guard: evaluation would normalise with them
+            check_finite_statistics(statistics, f"{folder}/{STATISTICS_FILE}")
         tensors = dict(state_dict if state_dict is not None else self.state_dict())
         tensors = {k: v.detach().to("cpu").contiguous() for k, v in tensors.items()}
         with atomic_directory(folder, overwrite=overwrite) as tmp:
