@@ -26,17 +26,10 @@ from typing import Any, ClassVar, TypeVar
 import torch
 from torch import Tensor, nn
 
-from capvector.data.statistics import check_finite_statistics
 from capvector.errors import CapVectorError
 from capvector.fileio import atomic_directory
 from capvector.modelcard import render_model_card, write_model_card
-from capvector.names import (
-    EXPORT_CONFIG,
-    EXPORT_FORMAT,
-    EXPORT_INDEX,
-    EXPORT_WEIGHTS,
-    STATISTICS_FILE,
-)
+from capvector.names import EXPORT_CONFIG, EXPORT_FORMAT, EXPORT_INDEX, EXPORT_WEIGHTS
 
 EMBEDDING_PARAMETERS = "embedding_parameters"
 
@@ -252,6 +245,9 @@ class VLABackbone(nn.Module, ABC):
         steps, objectives, the command) and ``base_model`` go into the model card.
         """
         from safetensors.torch import save_file
+
+        from capvector.data.statistics import check_finite_statistics
+        from capvector.names import STATISTICS_FILE
 
         statistics = (extra_json or {}).get(STATISTICS_FILE)
         if statistics is not None:  # the last guard: evaluation would normalise with them
