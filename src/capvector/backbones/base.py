@@ -248,6 +248,12 @@ class VLABackbone(nn.Module, ABC):
         """
         from safetensors.torch import save_file
 
+        from capvector.data.statistics import check_finite_statistics
+        from capvector.names import STATISTICS_FILE
+
+        statistics = (extra_json or {}).get(STATISTICS_FILE)
+        if statistics is not None:  # the last guard: evaluation would normalise with them
+            check_finite_statistics(statistics, f"{folder}/{STATISTICS_FILE}")
         tensors = dict(state_dict if state_dict is not None else self.state_dict())
         tensors = {k: v.detach().to("cpu").contiguous() for k, v in tensors.items()}
         with atomic_directory(folder, overwrite, inputs) as tmp:

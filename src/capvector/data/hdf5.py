@@ -17,6 +17,7 @@ of an episode: as OFT (``chunk_act_obs``), only steps 0..len-T start a sample.
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,7 +48,10 @@ class EpisodeRef:
 
 def _demo_names(data: h5py.Group) -> list[str]:
     names = [k for k in data if k.startswith("demo_")]
-    return sorted(names, key=lambda k: int(k.split("_")[1]) if k.split("_")[1].isdigit() else k)
+    # demo_2 before demo_10; names without a number after them (a mixed sort would raise)
+    return sorted(
+        names, key=lambda k: (not k[5:].isdigit(), int(k[5:]) if k[5:].isdigit() else 0, k)
+    )
 
 
 def _instruction(data: h5py.Group, demo: h5py.Group, fallback: str | None, path: str) -> str:
@@ -63,6 +67,46 @@ def _instruction(data: h5py.Group, demo: h5py.Group, fallback: str | None, path:
         f"{path} has no language instruction (attr `language_instruction` on `data` or the demo, "
         "or LIBERO's `problem_info`); set data.instruction in the config"
     )
+
+
+def _open(path: str) -> h5py.File:
+    """``path`` opened for reading, or a DatasetError that says why it cannot be."""
+    if not Path(path).is_file():
+        raise DatasetError(f"dataset file {path} does not exist")
+    if Path(path).stat().st_size == 0:
+        raise DatasetError(
+            f"{path} is empty (0 bytes); re-record it or remove it from the config's data files"
+        )
+    try:
+        return h5py.File(path, "r")
+    except OSError as exc:  # not HDF5, or truncated
+        raise DatasetError(
+            f"{path} is not a readable HDF5 file (h5py: {exc}); re-record or re-download it"
+        ) from exc
+
+
+def _check_steps(steps: int, length: int, key: str) -> None:
+    if steps != length:
+        raise DatasetError(
+            f"{key} has {steps} steps but the demo's actions have {length}: every key of a demo "
+            "needs one row per step; repair or re-record this demo"
+        )
+
+
+def _float32(values: np.ndarray) -> np.ndarray:
+    with np.errstate(over="ignore"):  # beyond float32 becomes inf, which _check_finite names
+        return np.asarray(values, np.float32)
+
+
+def _check_finite(values: np.ndarray, key: str) -> None:
+    """One nan in one demo would make the loss and the normalisation statistics nan."""
+    bad = ~np.isfinite(values)
+    if bad.any():
+        first = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise DatasetError(
+            f"{key} has {int(bad.sum())} non-finite value(s) in float32, the first "
+            f"{values[first]} at step {first[0]}, dimension {first[1]}; fix or drop this demo"
+        )
 
 
 class HDF5RobotDataset(Dataset):
@@ -94,19 +138,23 @@ class HDF5RobotDataset(Dataset):
         self.load_annotations = load_annotations
         self.episodes: list[EpisodeRef] = []
         self.index: list[tuple[int, int]] = []  # (episode, start step)
+        # kind ("actions", "image", ...) -> (per-step shape, the key it was first seen at)
+        self._shapes: dict[str, tuple[tuple[int, ...], str]] = {}
         all_actions, all_proprio = [], []
         for file_index, path in enumerate(self.files):
-            if not Path(path).is_file():
-                raise DatasetError(f"dataset file {path} does not exist")
-            with h5py.File(path, "r") as f:
+            with _open(path) as f:
                 if "data" not in f:
                     raise DatasetError(f"{path} has no `data` group: not a robomimic/LIBERO file")
                 data = f["data"]
-                for name in _demo_names(data):
+                names = _demo_names(data)
+                if not names:
+                    raise DatasetError(
+                        f"{path}:data holds no demonstration (no `demo_N` group); re-record the "
+                        "file or remove it from the config's data files"
+                    )
+                for name in names:
                     demo = data[name]
-                    self._check_demo(demo, path, name)
-                    actions = demo["actions"][()]
-                    proprio = self._read_proprio(demo)
+                    actions, proprio = self._read_demo(demo, path, name)
                     length = actions.shape[0]
                     episode = EpisodeRef(
                         file_index, name, length, _instruction(data, demo, instruction, path)
@@ -124,8 +172,8 @@ class HDF5RobotDataset(Dataset):
             )
         with h5py.File(self.files[0], "r") as f:
             attrs = f["data"].attrs
-            first = f["data"][self.episodes[0].demo]["obs"][f"{self.cameras[0]}_image"]
-            self.image_size = int(attrs.get("image_size", first.shape[1]))
+            height = self._shapes["image"][0][0]
+            self.image_size = int(attrs.get("image_size", height))
             self.camera_fovy = json.loads(attrs["camera_fovy"]) if "camera_fovy" in attrs else None
         self.action_dim = all_actions[0].shape[1]
         self.proprio_dim = all_proprio[0].shape[1]
@@ -182,18 +230,69 @@ class HDF5RobotDataset(Dataset):
                 f"{where} has no `annotations`; regenerate the demos or set load_annotations=false"
             )
 
-    def _read_proprio(self, demo: h5py.Group, step: int | None = None) -> np.ndarray:
-        """(T, P) for the whole episode, or (P,) at ``step``."""
-        length = demo["actions"].shape[0]
-        parts = []
-        for key in self.proprio_keys:
-            values = np.asarray(
-                demo["obs"][key][()] if step is None else demo["obs"][key][step], np.float32
+    def _read_demo(self, demo: h5py.Group, path: str, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """(T, A) actions and (T, P) proprio of one demo, read once for the statistics and checked
+        on the way: every key the config reads has one row per step and the same per-step shape as
+        in the first demo (one image size for every camera), and the numbers are finite in
+        float32. A bad demo is named here, before training, not met as a nan loss or a collate
+        error mid-run. Images and depth are checked from their metadata only (no pixel is read)."""
+        self._check_demo(demo, path, name)
+        where = f"{path}:data/{name}"
+        actions = demo["actions"][()]  # as stored: the statistics are computed from these
+        if actions.ndim != 2:
+            raise DatasetError(
+                f"{where}/actions has shape {actions.shape}; actions must be (T, A): repair or "
+                "re-record this demo"
             )
-            parts.append(values.reshape(length, -1) if step is None else values.reshape(-1))
-        if not parts:
-            return np.zeros((length, 0) if step is None else (0,), np.float32)
-        return np.concatenate(parts, axis=-1)
+        length = actions.shape[0]
+        _check_finite(_float32(actions), f"{where}/actions")  # what the model trains on
+        self._check_shape("actions", actions.shape[1:], f"{where}/actions")
+        obs = demo["obs"]
+        for camera in self.cameras:
+            image = obs[f"{camera}_image"]
+            key = f"{where}/obs/{camera}_image"
+            if image.dtype != np.uint8 or image.ndim != 4 or image.shape[-1] != 3:
+                raise DatasetError(
+                    f"{key} is {image.dtype} of shape {image.shape}; images must be uint8 "
+                    "(T, H, W, 3) RGB, as robomimic and LIBERO store them: convert the file"
+                )
+            _check_steps(image.shape[0], length, key)
+            self._check_shape("image", image.shape[1:], key)
+            if self.load_depth:  # (T, H, W): the images' size, so both follow one crop
+                depth = obs[f"{camera}_depth"]
+                self._shapes.setdefault("depth", (image.shape[1:3], key))
+                key = f"{where}/obs/{camera}_depth"
+                _check_steps(depth.shape[0], length, key)
+                self._check_shape("depth", depth.shape[1:], key)
+        if self.load_annotations:
+            _check_steps(demo["annotations"].shape[0], length, f"{where}/annotations")
+        parts = [np.zeros((length, 0), np.float32)]
+        for feature in self.proprio_keys:
+            key = f"{where}/obs/{feature}"
+            values = np.atleast_1d(_float32(obs[feature][()]))
+            _check_steps(values.shape[0], length, key)
+            values = values.reshape(length, math.prod(values.shape[1:]))
+            _check_finite(values, key)
+            self._check_shape(f"obs/{feature}", values.shape[1:], key)
+            parts.append(values)
+        return actions, np.concatenate(parts, axis=-1)
+
+    def _check_shape(self, kind: str, shape: tuple[int, ...], key: str) -> None:
+        """Every demo's per-step ``shape`` of ``kind`` is the first demo's: samples are stacked."""
+        first, first_key = self._shapes.setdefault(kind, (shape, key))
+        if shape != first:
+            raise DatasetError(
+                f"{key} has per-step shape {shape} but {first_key} has {first}: every demo (and "
+                "every camera) needs the same shape; resize or drop the odd demos, or train on "
+                "them separately"
+            )
+
+    def _read_proprio(self, demo: h5py.Group, step: int) -> np.ndarray:
+        """(P,) at ``step``."""
+        parts = [
+            np.asarray(demo["obs"][k][step], np.float32).reshape(-1) for k in self.proprio_keys
+        ]
+        return np.concatenate(parts) if parts else np.zeros(0, np.float32)
 
     def __len__(self) -> int:
         return len(self.index)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 from collections import OrderedDict
 from collections.abc import Mapping, Sequence
@@ -39,6 +40,7 @@ from capvector.data.hdf5 import DatasetError
 from capvector.data.statistics import (
     BOUNDS_Q99,
     Normalizer,
+    check_finite_statistics,
     check_normalization,
     compute_statistics,
 )
@@ -379,11 +381,16 @@ class LeRobotV3Dataset(Dataset):
             part = pq.read_table(path, columns=columns)
             episode_index = part.column("episode_index").to_numpy()
             keep = np.isin(episode_index, sorted(wanted))
-            for c in columns:
-                values = (
+            kept = {
+                c: (
                     _vectors(part.column(c), path, c) if c in vectors else part.column(c).to_numpy()
-                )
-                parts[c].append(values[keep])
+                )[keep]
+                for c in columns
+            }
+            for c in vectors:
+                self._check_vectors(kept[c], c, path, kept["episode_index"], kept["frame_index"])
+            for c in columns:
+                parts[c].append(kept[c])
         data = {c: np.concatenate(v) for c, v in parts.items()}
         order = np.lexsort((data["frame_index"], data["episode_index"]))
         data = {c: v[order] for c, v in data.items()}
@@ -414,6 +421,33 @@ class LeRobotV3Dataset(Dataset):
             ],
         }
 
+    def _check_vectors(
+        self,
+        values: np.ndarray,
+        column: str,
+        path: Path,
+        episode_index: np.ndarray,
+        frame_index: np.ndarray,
+    ) -> None:
+        """``values`` (N, D) of one data file have the width info.json declares and are finite
+        (one nan would make the loss and recomputed statistics nan), checked before training."""
+        declared = self.info["features"][column].get("shape")
+        if declared is not None and values.shape[1] != math.prod(declared):
+            raise DatasetError(
+                f"{path}: column {column!r} has {values.shape[1]} values per frame but "
+                f"{self.root / INFO_PATH} declares shape {declared}; repair the data file or the "
+                "feature's shape"
+            )
+        bad = ~np.isfinite(values)
+        if bad.any():
+            row, dim = (int(i) for i in np.argwhere(bad)[0])
+            raise DatasetError(
+                f"{path}: column {column!r} has {int(bad.sum())} non-finite value(s) in float32, "
+                f"the first {values[row, dim]} in episode {episode_index[row]}, frame "
+                f"{frame_index[row]}, dimension {dim}; fix the episode or leave it out "
+                "(data.train_episodes)"
+            )
+
     # -- statistics ---------------------------------------------------------------------------
 
     def _statistics(self) -> dict[str, Any]:
@@ -428,6 +462,7 @@ class LeRobotV3Dataset(Dataset):
                 normalization=self.normalization,
             )
         if converted is not None:
+            check_finite_statistics(converted, str(stats_path))
             # Dataset-wide statistics even for an episode subset, as LeRobot normalises with them.
             dims = (len(converted["action"]["q01"]), len(converted["proprio"].get("q01", [])))
             if dims != (self.action_dim, self.proprio_dim):

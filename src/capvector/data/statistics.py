@@ -26,10 +26,14 @@ statistics into checkpoints and evaluation:
 
 from __future__ import annotations
 
+import math
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
+from capvector.errors import CapVectorError
 
 # OFT's BOUNDS_Q99 adds this to the denominator so constant dimensions do not divide by zero;
 # LeRobot's QUANTILES uses it only where the denominator is 0.
@@ -84,7 +88,31 @@ def compute_statistics(
     }
     if normalization != BOUNDS_Q99:
         entry["normalization"] = normalization
+    check_finite_statistics(entry, "the statistics computed from the data")
     return entry
+
+
+def check_finite_statistics(statistics: Mapping[str, Any], source: str) -> None:
+    """Refuse statistics that hold a nan or an infinity: they would normalise every sample to nan
+    and travel into checkpoints and exports. ``source`` names where they come from."""
+    for where, value in _numbers(statistics):
+        if not math.isfinite(value):
+            raise CapVectorError(
+                f"{source}: statistic {where} is {value}; the data it was computed from holds a "
+                "non-finite value: fix or drop that data and compute the statistics again"
+            )
+
+
+def _numbers(tree: Any, where: str = "") -> Iterator[tuple[str, float]]:
+    """(dotted path, value) of every number in nested dicts and lists, e.g. ``action.q99[3]``."""
+    if isinstance(tree, Mapping):
+        for key, value in tree.items():
+            yield from _numbers(value, f"{where}.{key}" if where else str(key))
+    elif isinstance(tree, list | tuple | np.ndarray):
+        for i, value in enumerate(tree):
+            yield from _numbers(value, f"{where}[{i}]")
+    elif isinstance(tree, int | float | np.number):
+        yield where, float(tree)
 
 
 @dataclass
