@@ -132,8 +132,8 @@ class ImportOption:
     name: str
     help: str
     type: Callable[[str], Any] = str
-    """Turns the argument's text into the value (``str``, ``int``, ``float``, ``Path``); ``bool``
-    makes a flag that passes True when given."""
+    """Turns the argument's text into the value (``str``, ``int``, ``float``); ``Path`` for a file
+    or folder the import reads; ``bool`` makes a flag that passes True when given."""
 
 
 class VLABackbone(nn.Module, ABC):

@@ -439,7 +439,9 @@ class Pi05(VLABackbone):
     config_class = Pi05Config
     original_loader = "capvector.backbones.pi05.convert"
     import_options = (
-        ImportOption("tokenizer", "a PaliGemma tokenizer folder (pi05 folders carry none)"),
+        ImportOption(
+            "tokenizer", "a PaliGemma tokenizer folder (pi05 folders carry none)", type=Path
+        ),
     )
 
     # peft full-match regex: the linear layers of both Gemma streams (attention and MLP), as openpi's

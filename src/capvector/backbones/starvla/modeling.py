@@ -146,6 +146,7 @@ class StarVLA(VLABackbone):
             "qwen_folder",
             "the Qwen-VL folder the StarVLA run started from (without it, --folder is a plain "
             "Qwen-VL folder and the head starts fresh)",
+            type=Path,
         ),
     )
     # peft full-match regex: every Linear of the Qwen language model, the vision blocks and the
