@@ -18,7 +18,8 @@ from pathlib import Path
 import torch
 from safetensors.torch import load_file
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests" / "backbones" / "starvla"))
+TESTS = Path(__file__).resolve().parents[2] / "tests"
+sys.path[:0] = [str(TESTS), str(TESTS / "backbones" / "starvla")]  # conftest, test_parity_starvla
 
 from test_parity_starvla import FIXTURES, batch_of, qwen_folder  # noqa: E402
 

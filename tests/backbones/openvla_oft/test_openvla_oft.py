@@ -21,7 +21,7 @@ from capvector.backbones import (
 from capvector.backbones.openvla_oft import OpenVLAOFT
 from capvector.cli import main
 from capvector.data import keys
-from conftest import assert_field_changes_the_model
+from conftest import UPSTREAM_FIXTURES, assert_field_changes_the_model
 
 
 def make_batch(batch_size: int = 2, instructions: list[str] | None = None, seed: int = 0) -> dict:
@@ -212,7 +212,7 @@ def test_mismatched_camera_count_is_a_clear_error(tiny: OpenVLAOFT) -> None:
 # Parity with upstream's outputs is test_parity_openvla_oft.py; these check the loader's
 # handling of variations of upstream's run folder (a copy of the LIBERO fixture).
 
-UPSTREAM_LIBERO = Path(__file__).parents[2] / "fixtures" / "upstream" / "openvla_oft" / "libero"
+UPSTREAM_LIBERO = UPSTREAM_FIXTURES / "openvla_oft" / "libero"
 
 
 @pytest.fixture

@@ -20,8 +20,9 @@ from safetensors.torch import load_file
 from capvector.backbones import BackboneError, OutputRequest
 from capvector.backbones.openvla_oft import OpenVLAOFT
 from capvector.data import keys
+from conftest import UPSTREAM_FIXTURES
 
-FIXTURES = Path(__file__).parents[2] / "fixtures" / "upstream" / "openvla_oft"
+FIXTURES = UPSTREAM_FIXTURES / "openvla_oft"
 # fp32 on both sides. LIBERO matches bit for bit; the FiLM run differs by up to ~1.1e-5 (at values
 # of order 1-10) because upstream runs its vision LoRA unmerged and we merge it into the weights.
 TOLERANCE = dict(atol=2e-5, rtol=1e-5)

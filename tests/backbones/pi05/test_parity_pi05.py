@@ -24,8 +24,9 @@ from capvector.backbones import BackboneError, OutputRequest
 from capvector.backbones.pi05 import IMAGE_MASK, Pi05, flow_matching_path, resize_with_pad
 from capvector.data import keys
 from capvector.data.statistics import QUANTILES, Normalizer
+from conftest import UPSTREAM_FIXTURES
 
-FIXTURE = Path(__file__).parents[2] / "fixtures" / "upstream" / "pi05" / "lerobot"
+FIXTURE = UPSTREAM_FIXTURES / "pi05" / "lerobot"
 ATOL = 1e-5
 # The toy sizes the generating script patched into LeRobot (its config.json still names the
 # full-size variants gemma_2b / gemma_300m, so sizes come in as overrides of pi05-tiny), and

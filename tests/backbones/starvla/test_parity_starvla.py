@@ -19,8 +19,9 @@ from safetensors.torch import load_file
 from capvector.backbones.base import BackboneError
 from capvector.backbones.starvla import StarVLA
 from capvector.data import keys
+from conftest import UPSTREAM_FIXTURES
 
-FIXTURES = Path(__file__).parents[2] / "fixtures" / "upstream" / "starvla"
+FIXTURES = UPSTREAM_FIXTURES / "starvla"
 QWEN = {"qwen2.5-vl": "Qwen2.5-VL-tiny", "qwen3-vl": "Qwen3-VL-tiny"}
 INSTRUCTIONS = ["pick up the red block", "open the top drawer please"]  # as in the tool
 TOL = 1e-5
