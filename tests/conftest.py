@@ -21,6 +21,9 @@ from capvector.backbones import base as backbone_registry
 from capvector.data import keys
 
 CAMERAS = ("agentview", "robot0_eye_in_hand")
+UPSTREAM_FIXTURES = Path(__file__).parent / "fixtures" / "upstream"
+"""Checkpoints and outputs written by the original projects' own code, a folder per family with
+its PROVENANCE; read by the family tests in tests/backbones/<family>/."""
 
 
 def write_demo_file(

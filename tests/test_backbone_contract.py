@@ -10,6 +10,8 @@ out by their parameter count. Family-specific behaviour stays in the family test
 from __future__ import annotations
 
 import fnmatch
+import importlib
+import inspect
 import re
 from collections.abc import Mapping
 from pathlib import Path
@@ -28,6 +30,7 @@ from capvector.backbones import (
     list_presets,
     preset_config,
 )
+from capvector.backbones.base import registered_families
 from capvector.data import keys
 from capvector.distributed import parallelize
 from capvector.lora import LoraSettings, set_trainable
@@ -88,6 +91,29 @@ def test_every_family_has_a_preset_that_runs_here() -> None:
     families = {preset_config(name).family for name in PRESET_SIZES}
     covered = {preset_config(name).family for name in CPU_PRESETS}
     assert families and families == covered, f"no CPU-sized preset for {families - covered}"
+
+
+LOADERS = {
+    family: cls for family, cls in registered_families().items() if cls.original_loader is not None
+}
+LOADER_ARGUMENTS = {"cls", "source", "preset", "overrides"}
+"""What every ``load_original`` takes; the rest are the family's own options."""
+
+
+@pytest.mark.parametrize("family", sorted(LOADERS))
+def test_import_options_are_exactly_the_loader_options(family: str) -> None:
+    """`capvector import-original` offers what ``import_options`` declares; an option the loader
+    takes but the family does not declare could not be reached from the command line."""
+    cls = LOADERS[family]
+    loader = importlib.import_module(cls.original_loader).load_original
+    own = set(inspect.signature(loader).parameters) - LOADER_ARGUMENTS
+    assert {option.name for option in cls.import_options} == own
+
+
+@pytest.mark.parametrize("family", sorted(LOADERS))
+def test_from_original_refuses_an_undeclared_option(family: str, tmp_path: Path) -> None:
+    with pytest.raises(BackboneError, match=r"has no option\(s\) \['colour'\]; its options: \["):
+        LOADERS[family].from_original(tmp_path, colour="red")
 
 
 each_preset = pytest.mark.parametrize("preset", CPU_PRESETS)

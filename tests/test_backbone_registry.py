@@ -3,7 +3,9 @@
 The package is written into a folder outside ``src/`` and reached the two ways a user would: an
 installed distribution's entry point (a ``.dist-info`` folder with ``entry_points.txt``, which
 ``importlib.metadata`` reads as it reads any installed package), and a ``module:preset`` name.
-Nothing in capvector is edited. The runs are subprocesses, as a user's shell would start them.
+It also reads its own "original" checkpoints, with an import option of its own that
+``capvector import-original`` offers. Nothing in capvector is edited. The runs are subprocesses,
+as a user's shell would start them.
 """
 
 from __future__ import annotations
@@ -27,7 +29,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from capvector.backbones import (
-    BackboneConfig, OutputRequest, VLABackbone, VLAOutput, register_family, register_preset,
+    BackboneConfig, ImportOption, OutputRequest, VLABackbone, VLAOutput, register_family,
+    register_preset,
 )
 from capvector.data import keys
 
@@ -41,6 +44,8 @@ class PooledMLPConfig(BackboneConfig):
 @register_family
 class PooledMLP(VLABackbone):
     config_class = PooledMLPConfig
+    original_loader = "pooled_vla.convert"
+    import_options = (ImportOption("scale", "multiply the original weights by this", type=float),)
     lora_target_modules = ["body.0"]
     lora_trainable_modules = ("head.*",)
     capability_parameters = ("body.*",)
@@ -66,6 +71,20 @@ def pooled_mlp_tiny():
     return PooledMLPConfig(image_size=64)
 """
 
+# The "original project" stores the same tensors under `net.` and has no statistics.
+CONVERT = """
+from safetensors.torch import load_file
+
+from capvector.backbones import OriginalCheckpoint, preset_config
+
+
+def load_original(cls, source, preset=None, overrides=None, scale: float = 1.0):
+    state = load_file(f"{source}/original.safetensors")
+    model = cls(preset_config(preset or "pooled-mlp-tiny", **(overrides or {})))
+    model.load_state_dict({k.removeprefix("net."): v * scale for k, v in state.items()})
+    return OriginalCheckpoint(model, statistics={})
+"""
+
 
 @pytest.fixture(scope="module")
 def outside(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
@@ -74,6 +93,7 @@ def outside(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     package.mkdir(parents=True)
     (package / "__init__.py").write_text("")
     (package / "model.py").write_text(BACKBONE)
+    (package / "convert.py").write_text(CONVERT)
     installed = root / "installed"  # what `pip install` of a package with an entry point leaves
     info = installed / "pooled_vla-0.1.dist-info"
     info.mkdir(parents=True)
@@ -83,8 +103,15 @@ def outside(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     return {"code": root / "code", "installed": installed, "data": data, "root": root}
 
 
+def python_path(*paths: Path) -> dict[str, str]:
+    """The environment with ``paths`` put before the current PYTHONPATH (which may name the
+    capvector under test)."""
+    entries = [*map(str, paths), os.environ.get("PYTHONPATH", "")]
+    return dict(os.environ, PYTHONPATH=os.pathsep.join(e for e in entries if e))
+
+
 def capvector(args: list[str], paths: list[Path]) -> subprocess.CompletedProcess:
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(map(str, paths)))
+    env = python_path(*paths)
     command = [sys.executable, "-c", "import sys; from capvector.cli import main; sys.exit(main())"]
     return subprocess.run(command + args, env=env, capture_output=True, text=True, timeout=600)
 
@@ -135,7 +162,7 @@ def test_a_module_path_names_a_backbone_without_installing_it(outside, tmp_path)
         model = from_pretrained({str(export)!r})
         assert type(model).__name__ == "PooledMLP", type(model)
     """)
-    env = dict(os.environ, PYTHONPATH=str(outside["code"]))
+    env = python_path(outside["code"])
     done = subprocess.run([sys.executable, "-c", check], env=env, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-3000:]
 
@@ -151,3 +178,74 @@ def test_an_unknown_backbone_says_how_to_add_one(outside) -> None:
         ["fit", "--model.backbone=not_a_module:x", f"--data.train_files=[{outside['data']}]"], []
     )
     assert done.returncode != 0 and "cannot import backbone module 'not_a_module'" in done.stderr
+
+
+def test_an_outside_family_declares_an_import_option_and_receives_it(outside, tmp_path) -> None:
+    """`capvector import-original` builds its options from the families' `import_options`: the
+    outside family's `--scale` is in the help and reaches its loader; other presets refuse it."""
+    import torch
+    from safetensors.torch import load_file, save_file
+
+    width, inputs, outputs = 32, 2 * 3 + 8, 8 * 7  # PooledMLPConfig's defaults
+    weights = {
+        "net.body.0.weight": torch.randn(width, inputs),
+        "net.body.0.bias": torch.randn(width),
+        "net.head.weight": torch.randn(outputs, width),
+        "net.head.bias": torch.randn(outputs),
+    }
+    original = tmp_path / "original"
+    original.mkdir()
+    save_file(weights, str(original / "original.safetensors"))
+    paths = [outside["code"], outside["installed"]]
+
+    shown = capvector(["import-original", "--help"], paths)
+    assert shown.returncode == 0, shown.stderr[-3000:]
+    assert "options of pooled-mlp presets" in shown.stdout and "--scale SCALE" in shown.stdout
+    assert "--apply-lora-adapter" in shown.stdout  # the built-in families' options too
+
+    export = tmp_path / "export"
+    args = ["import-original", "--folder", str(original), "--scale", "2.5"]
+    done = capvector([*args, "--preset", "pooled-mlp-tiny", "--out", str(export)], paths)
+    assert done.returncode == 0, done.stderr[-3000:]
+    imported = load_file(str(export / "model.safetensors"))
+    assert imported.keys() == {k.removeprefix("net.") for k in weights}
+    for key, value in weights.items():
+        torch.testing.assert_close(imported[key.removeprefix("net.")], value * 2.5)
+
+    other = tmp_path / "other"
+    done = capvector([*args, "--preset", "openvla-oft-tiny", "--out", str(other)], paths)
+    assert done.returncode == 2 and "unrecognized arguments: --scale 2.5" in done.stderr
+    assert not other.exists()
+
+
+# Where the built-in families lived before each became a package (capvector.backbones.<family>
+# was a module): exports and checkpoints may record `capvector.backbones.pi05:pi05-tiny`.
+PRE_PACKAGE_MODULES = {
+    "openvla-oft-tiny": "capvector.backbones.openvla_oft",
+    "pi05-tiny": "capvector.backbones.pi05",
+    "starvla-tiny-oft": "capvector.backbones.starvla",
+}
+
+
+def test_exports_naming_a_built_in_family_by_its_old_module_path_still_load(tmp_path) -> None:
+    """The recorded name is resolved both ways a reader does: `from_pretrained` (the family) and
+    `build_backbone` of the recorded preset (what `load_module` does with a checkpoint's), in a
+    fresh process; the shipped θ_pre (a plain preset name) loads as well."""
+    from capvector.backbones import build_backbone
+
+    folders = {str(Path(__file__).parents[1] / "assets" / "theta_pre"): "openvla-oft-tiny"}
+    for preset, module in PRE_PACKAGE_MODULES.items():
+        folder = build_backbone(preset).save_pretrained(tmp_path / preset)
+        config = json.loads((folder / "config.json").read_text())
+        config["backbone_config"]["preset"] = f"{module}:{preset}"
+        (folder / "config.json").write_text(json.dumps(config))
+        folders[str(folder)] = config["backbone_config"]["preset"]
+    check = textwrap.dedent(f"""
+        from capvector.backbones import build_backbone, from_pretrained
+        for folder, preset in {folders!r}.items():
+            model = from_pretrained(folder)
+            assert model.config.preset == preset, (folder, model.config.preset)
+            assert type(build_backbone(preset)) is type(model), folder
+    """)
+    done = subprocess.run([sys.executable, "-c", check], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-3000:]

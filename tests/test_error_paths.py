@@ -16,8 +16,8 @@ from safetensors.torch import load_file, save_file
 
 from capvector import cli
 from capvector.cli import main
+from conftest import UPSTREAM_FIXTURES
 from test_cli_errors import fit_args, inputs, tree_digest  # noqa: F401 (inputs: a fixture)
-from test_openvla_oft import UPSTREAM_LIBERO
 
 
 def _cut(path: Path) -> None:
@@ -28,7 +28,7 @@ def _cut(path: Path) -> None:
 def _sharded_original(folder: Path) -> Path:
     """The OpenVLA-OFT fixture with its VLM weights in two shards + index, as save_pretrained
     writes a large model."""
-    shutil.copytree(UPSTREAM_LIBERO, folder)
+    shutil.copytree(UPSTREAM_FIXTURES / "openvla_oft" / "libero", folder)
     state = load_file(str(folder / "model.safetensors"))
     (folder / "model.safetensors").unlink()
     names = sorted(state)
@@ -53,7 +53,7 @@ def bad(tmp_path_factory: pytest.TempPathFactory, inputs: Path) -> Path:  # noqa
     missing = _sharded_original(root / "missing_shard")
     (missing / "model-00002-of-00002.safetensors").unlink()
     _cut(_sharded_original(root / "cut_shard") / "model-00002-of-00002.safetensors")
-    shutil.copytree(UPSTREAM_LIBERO, root / "cut_component")
+    shutil.copytree(UPSTREAM_FIXTURES / "openvla_oft" / "libero", root / "cut_component")
     _cut(next((root / "cut_component").glob("action_head--*checkpoint.pt")))
     info = ["openvla-oft-tiny"]
     _recipe(root / "nosuch.yaml", root / "never" / "run", [

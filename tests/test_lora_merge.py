@@ -18,7 +18,7 @@ from peft import LoraConfig, get_peft_model
 from torch import nn
 from transformers.pytorch_utils import Conv1D
 
-from capvector.backbones.convert_openvla_oft import merge_peft_adapter
+from capvector.backbones.openvla_oft.convert import merge_peft_adapter
 from capvector.lora_layers import constant_scaling, merge_lora
 from capvector.names import CheckpointMetadata
 from capvector.vectors.io import CheckpointSource

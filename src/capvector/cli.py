@@ -14,12 +14,16 @@ import shlex
 import signal
 import sys
 import threading
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from capvector.errors import CapVectorError, ToolParser, config_error
 from capvector.fileio import check_output
+
+if TYPE_CHECKING:
+    from capvector.backbones import VLABackbone
 
 LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
 
@@ -319,10 +323,12 @@ def export_main(argv: list[str]) -> int:
 def import_original_main(argv: list[str]) -> int:
     """Convert an original project's checkpoint (OpenVLA-OFT run folder, LeRobot pi05 policy folder,
     StarVLA checkpoint + Qwen folder) into an export folder usable as ``--model.pretrained`` (θ_pre).
-    The architecture comes from the checkpoint's own config files; statistics are always written."""
+    The architecture comes from the checkpoint's own config files; statistics are always written.
+    Each family adds its own options (below, by family; ``--preset P --help`` shows P's)."""
     import json
 
     from capvector.backbones import backbone_class, preset_config
+    from capvector.backbones.base import registered_families
 
     parser = ToolParser(prog="capvector import-original", description=import_original_main.__doc__)
     parser.add_argument(
@@ -338,14 +344,15 @@ def import_original_main(argv: list[str]) -> int:
         help='JSON of config fields to change, e.g. \'{"featurizer": {"depth": 2}}\' (a nested '
         "object changes only the fields it names)",
     )
-    parser.add_argument("--qwen-folder", help="StarVLA: the Qwen-VL folder the run started from")
-    parser.add_argument(
-        "--tokenizer", help="Pi0.5: a PaliGemma tokenizer folder (pi05 folders carry none)"
-    )
-    parser.add_argument(
-        "--apply-lora-adapter", action="store_true", help="OpenVLA-OFT: merge lora_adapter/"
-    )
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    # The family's own options (VLABackbone.import_options): the preset's family only, or every
+    # registered family's when no preset is given (for --help).
+    peek = ToolParser(prog=parser.prog, add_help=False)
+    peek.add_argument("--preset")
+    preset = peek.parse_known_args(argv)[0].preset
+    family = None if preset is None else preset_config(preset).family
+    families = registered_families() if family is None else {family: backbone_class(family)}
+    _add_import_options(parser, families)
     args = parser.parse_args(argv)
     try:
         overrides = json.loads(args.override)
@@ -353,17 +360,12 @@ def import_original_main(argv: list[str]) -> int:
         raise CapVectorError(f"--override is not JSON ({exc}): {args.override!r}") from exc
     if not isinstance(overrides, dict):
         raise CapVectorError(f"--override must be a JSON object, got {args.override!r}")
-    inputs = [args.folder, args.qwen_folder, args.tokenizer]
+    cls = families[family]
+    options = {o.name: getattr(args, o.name) for o in cls.import_options if o.name in args}
+    # The family's Path options name files the import reads: the output must stay clear of them.
+    inputs = [args.folder, *(options.get(o.name) for o in cls.import_options if o.type is Path)]
     check_output(args.out, args.overwrite, inputs)  # before reading the checkpoint
-    family = preset_config(args.preset).family
-    options = {
-        "openvla-oft": {"apply_lora_adapter": args.apply_lora_adapter},
-        "starvla": {"qwen_folder": args.qwen_folder},
-        "pi05": {"tokenizer": args.tokenizer},
-    }.get(family, {})
-    imported = backbone_class(family).from_original(
-        args.folder, preset=args.preset, overrides=overrides, **options
-    )
+    imported = cls.from_original(args.folder, preset=args.preset, overrides=overrides, **options)
     imported.model.save_pretrained(
         args.out,
         extra_json={"dataset_statistics.json": imported.statistics},
@@ -378,6 +380,35 @@ def import_original_main(argv: list[str]) -> int:
     n_params = sum(p.numel() for p in imported.model.parameters())
     print(f"wrote {args.out} ({family}, {n_params:,} parameters)")
     return 0
+
+
+def _add_import_options(parser: ToolParser, families: Mapping[str, type[VLABackbone]]) -> None:
+    """One argument group per family with its ``import_options``; an option two families declare
+    is one flag whose help names both. Absent options are left out of the parsed namespace, so
+    the loader's own defaults apply."""
+    import argparse
+
+    from capvector.backbones import BackboneError
+
+    added: dict[str, argparse.Action] = {}
+    for family, cls in families.items():
+        if not cls.import_options:
+            continue
+        group = parser.add_argument_group(f"options of {family} presets")
+        for option in cls.import_options:
+            flag = "--" + option.name.replace("_", "-")
+            if flag in added:
+                added[flag].help = f"{added[flag].help}; {family}: {option.help}"
+                continue
+            kind = {"action": "store_true"} if option.type is bool else {"type": option.type}
+            try:
+                added[flag] = group.add_argument(
+                    flag, dest=option.name, default=argparse.SUPPRESS, help=option.help, **kind
+                )
+            except argparse.ArgumentError as err:
+                raise BackboneError(
+                    f"{cls.__name__}.import_options: {err}; rename the option"
+                ) from err
 
 
 if __name__ == "__main__":

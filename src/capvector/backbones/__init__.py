@@ -3,6 +3,7 @@
 from capvector.backbones.base import (
     BackboneConfig,
     BackboneError,
+    ImportOption,
     OriginalCheckpoint,
     OutputRequest,
     VLABackbone,
@@ -19,6 +20,7 @@ from capvector.backbones.base import (
 __all__ = [
     "BackboneConfig",
     "BackboneError",
+    "ImportOption",
     "OriginalCheckpoint",
     "OutputRequest",
     "VLABackbone",

@@ -5,8 +5,11 @@ and whatever auxiliary objectives need: hidden states of requested layers, a mas
 positions and, when asked, language-model logits. Objectives only use this contract, never a
 family's internals, so every objective works with every backbone.
 
-Adding a VLA means one file: a config dataclass (subclass of ``BackboneConfig``), a module
-(subclass of ``VLABackbone``), and preset functions decorated with ``@register_preset``.
+A VLA family is a config dataclass (subclass of ``BackboneConfig``) with preset functions decorated
+with ``@register_preset``, a module (subclass of ``VLABackbone``) and, to read the original
+project's checkpoints, a loader module. The built-in families keep them in one package each,
+``backbones/<family>/{configuration,modeling,convert}.py``; a family of another package lives
+wherever that package likes.
 """
 
 from __future__ import annotations
@@ -120,6 +123,19 @@ class OriginalCheckpoint:
     """The upstream config files that were read, by file name, kept for provenance."""
 
 
+@dataclass(frozen=True)
+class ImportOption:
+    """A keyword argument of a family's ``load_original`` besides the source, preset and overrides,
+    declared in ``VLABackbone.import_options`` so that ``capvector import-original`` offers it as
+    ``--<name>`` (underscores become dashes) for that family's presets."""
+
+    name: str
+    help: str
+    type: Callable[[str], Any] = str
+    """Turns the argument's text into the value (``str``, ``int``, ``float``); ``Path`` for a file
+    or folder the import reads; ``bool`` makes a flag that passes True when given."""
+
+
 class VLABackbone(nn.Module, ABC):
     """Base class of every VLA backbone. Subclasses set ``config_class`` and implement the methods."""
 
@@ -130,6 +146,9 @@ class VLABackbone(nn.Module, ABC):
     """Globs of parameters trained from scratch (heads, projectors) that stay trainable under LoRA."""
     original_loader: ClassVar[str | None] = None
     """Module with ``load_original`` for the original project's checkpoints (``from_original``)."""
+    import_options: ClassVar[tuple[ImportOption, ...]] = ()
+    """The loader's own options (OpenVLA-OFT's ``apply_lora_adapter``), offered by
+    ``capvector import-original``; ``from_original`` accepts these and no others."""
     capability_parameters: ClassVar[tuple[str, ...]] = ("*",)
     """Globs of the parameters a capability vector covers by default: the pretrained VLM, not task
     heads that a pretrained model does not have."""
@@ -304,15 +323,21 @@ class VLABackbone(nn.Module, ABC):
         architecture comes from the upstream config files that travel with it; ``preset`` names the
         preset those values start from and ``overrides`` changes named fields (a nested mapping
         changes only the fields it names). A config field we do not support is an error naming it.
-        ``options`` are the family's loader options (OpenVLA-OFT's ``apply_lora_adapter``,
-        Pi0.5's ``tokenizer``, StarVLA's ``qwen_folder``). The conversion code lives in the module
-        ``original_loader`` names (``convert_<family>.py`` beside the model file), whose
+        ``options`` are the ones the family declares in ``import_options`` (OpenVLA-OFT's
+        ``apply_lora_adapter``, Pi0.5's ``tokenizer``, StarVLA's ``qwen_folder``). The conversion
+        code lives in the module ``original_loader`` names (the family's ``convert.py``), whose
         ``load_original(cls, source, preset, overrides, **options)`` documents them.
         """
         if cls.original_loader is None:
             raise BackboneError(
                 f"{cls.__name__} has no loader for an original project's checkpoint; use "
                 "capvector.backbones.from_pretrained for a capvector export folder"
+            )
+        declared = [option.name for option in cls.import_options]
+        unknown = sorted(set(options) - set(declared))
+        if unknown:
+            raise BackboneError(
+                f"{cls.__name__}.from_original has no option(s) {unknown}; its options: {declared}"
             )
         loader = importlib.import_module(cls.original_loader)
         return loader.load_original(cls, source, preset, overrides, **options)
@@ -508,6 +533,12 @@ def build_backbone(preset: str, /, **overrides: Any) -> VLABackbone:
     """Build a preset with random weights (use ``torch.device('meta')`` to only count parameters)."""
     config = preset_config(preset, **overrides)
     return backbone_class(config.family, config.preset)(config)
+
+
+def registered_families() -> dict[str, type[VLABackbone]]:
+    """Every registered family by name: the built-in ones and those of installed entry points."""
+    _load_families(everything=True)
+    return dict(sorted(_FAMILIES.items()))
 
 
 def load_export_config(folder: str | Path) -> dict[str, Any]:

@@ -3,9 +3,9 @@
 Runs in a scratch environment with upstream's pins (timm==0.9.10, tokenizers==0.19.1,
 peft==0.11.1, transformers from moojink/transformers-openvla-oft), never in capvector's own::
 
-    PYTHONHASHSEED=0 python tools/make_upstream_fixtures_openvla_oft.py --upstream /path/to/openvla-oft \\
+    PYTHONHASHSEED=0 python tools/openvla_oft/make_upstream_fixtures.py --upstream /path/to/openvla-oft \\
         --variant libero --out tests/fixtures/upstream/openvla_oft/libero
-    PYTHONHASHSEED=0 python tools/make_upstream_fixtures_openvla_oft.py --upstream /path/to/openvla-oft \\
+    PYTHONHASHSEED=0 python tools/openvla_oft/make_upstream_fixtures.py --upstream /path/to/openvla-oft \\
         --variant aloha --out tests/fixtures/upstream/openvla_oft/aloha_film
 
 It imports upstream's own classes from the checkout and walks through what ``vla-scripts/finetune.py``

@@ -11,10 +11,17 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from capvector.backbones import BackboneError, OutputRequest, build_backbone, list_presets
+from capvector.backbones import (
+    BackboneError,
+    OutputRequest,
+    build_backbone,
+    from_pretrained,
+    list_presets,
+)
 from capvector.backbones.openvla_oft import OpenVLAOFT
+from capvector.cli import main
 from capvector.data import keys
-from conftest import assert_field_changes_the_model
+from conftest import UPSTREAM_FIXTURES, assert_field_changes_the_model
 
 
 def make_batch(batch_size: int = 2, instructions: list[str] | None = None, seed: int = 0) -> dict:
@@ -202,10 +209,10 @@ def test_mismatched_camera_count_is_a_clear_error(tiny: OpenVLAOFT) -> None:
 
 
 # -- original OpenVLA-OFT checkpoint folders -----------------------------------------------------
-# Parity with upstream's outputs is tests/test_parity_openvla_oft.py; these check the loader's
+# Parity with upstream's outputs is test_parity_openvla_oft.py; these check the loader's
 # handling of variations of upstream's run folder (a copy of the LIBERO fixture).
 
-UPSTREAM_LIBERO = Path(__file__).parent / "fixtures" / "upstream" / "openvla_oft" / "libero"
+UPSTREAM_LIBERO = UPSTREAM_FIXTURES / "openvla_oft" / "libero"
 
 
 @pytest.fixture
@@ -336,3 +343,29 @@ def test_a_partial_nested_override_changes_only_the_fields_it_names() -> None:
 )
 def test_config_fields_have_an_effect(overrides: dict) -> None:
     assert_field_changes_the_model("openvla-oft-tiny", overrides, make_batch())
+
+
+def test_import_original_writes_a_usable_theta_pre(tmp_path: Path) -> None:
+    """An OpenVLA-OFT run folder written by upstream's code -> a capvector export."""
+    folder = UPSTREAM_LIBERO
+    out = tmp_path / "theta_pre"
+    assert (
+        main(
+            [
+                "import-original",
+                "--preset",
+                "openvla-oft-tiny",
+                "--folder",
+                str(folder),
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
+    assert (out / "dataset_statistics.json").is_file()
+    model = OpenVLAOFT.from_original(folder, preset="openvla-oft-tiny").model.eval()
+    batch = upstream_batch(model)
+    torch.testing.assert_close(
+        from_pretrained(out).eval().predict_action(batch), model.predict_action(batch)
+    )

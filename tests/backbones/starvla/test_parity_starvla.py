@@ -2,7 +2,7 @@
 ``StarVLA.from_original``, must compute what StarVLA computed.
 
 The fixtures under ``tests/fixtures/upstream/starvla/`` were produced by
-``tools/make_upstream_fixtures_starvla.py`` in a scratch environment with StarVLA's pinned stack
+``tools/starvla/make_upstream_fixtures.py`` in a scratch environment with StarVLA's pinned stack
 (see PROVENANCE there); no StarVLA code is needed here. Each ``<variant>/run`` is a run folder as
 StarVLA's trainer writes it; ``reference.safetensors`` holds the fixed batch and StarVLA's outputs.
 All comparisons are in fp32 with ``TOL`` absolute tolerance.
@@ -19,8 +19,9 @@ from safetensors.torch import load_file
 from capvector.backbones.base import BackboneError
 from capvector.backbones.starvla import StarVLA
 from capvector.data import keys
+from conftest import UPSTREAM_FIXTURES
 
-FIXTURES = Path(__file__).parent / "fixtures" / "upstream" / "starvla"
+FIXTURES = UPSTREAM_FIXTURES / "starvla"
 QWEN = {"qwen2.5-vl": "Qwen2.5-VL-tiny", "qwen3-vl": "Qwen3-VL-tiny"}
 INSTRUCTIONS = ["pick up the red block", "open the top drawer please"]  # as in the tool
 TOL = 1e-5

@@ -2,7 +2,7 @@
 
 Runs in capvector's environment on the committed fixtures (no StarVLA code)::
 
-    PYTHONPATH=src python tools/parity_report_starvla.py [--fixtures tests/fixtures/upstream/starvla]
+    PYTHONPATH=src python tools/starvla/parity_report.py [--fixtures tests/fixtures/upstream/starvla]
 
 Prints one Markdown table row per variant: token ids equal, and the max abs difference of the
 vision features, each stored hidden-state layer, the training loss (recorded noise and times) and
@@ -18,11 +18,13 @@ from pathlib import Path
 import torch
 from safetensors.torch import load_file
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+TESTS = Path(__file__).resolve().parents[2] / "tests"
+sys.path[:0] = [str(TESTS), str(TESTS / "backbones" / "starvla")]  # conftest, test_parity_starvla
+
+from test_parity_starvla import FIXTURES, batch_of, qwen_folder  # noqa: E402
 
 from capvector.backbones.starvla import StarVLA  # noqa: E402
 from capvector.data import keys  # noqa: E402
-from test_parity_starvla import FIXTURES, batch_of, qwen_folder  # noqa: E402
 
 
 def diff(a: torch.Tensor, b: torch.Tensor) -> float:

@@ -1,7 +1,7 @@
 """OpenVLA-OFT parity: our model against outputs of the upstream code (moojink/openvla-oft).
 
 The fixtures under ``tests/fixtures/upstream/openvla_oft/`` were written by upstream's own classes
-(``tools/make_upstream_fixtures_openvla_oft.py``, see each folder's PROVENANCE): a run folder exactly
+(``tools/openvla_oft/make_upstream_fixtures.py``, see each folder's PROVENANCE): a run folder exactly
 as ``vla-scripts/finetune.py`` saves it, and the references upstream computed from it in fp32. Here
 we import the folder through ``OpenVLAOFT.from_original`` and compare, with no upstream code.
 """
@@ -20,8 +20,9 @@ from safetensors.torch import load_file
 from capvector.backbones import BackboneError, OutputRequest
 from capvector.backbones.openvla_oft import OpenVLAOFT
 from capvector.data import keys
+from conftest import UPSTREAM_FIXTURES
 
-FIXTURES = Path(__file__).parent / "fixtures" / "upstream" / "openvla_oft"
+FIXTURES = UPSTREAM_FIXTURES / "openvla_oft"
 # fp32 on both sides. LIBERO matches bit for bit; the FiLM run differs by up to ~1.1e-5 (at values
 # of order 1-10) because upstream runs its vision LoRA unmerged and we merge it into the weights.
 TOLERANCE = dict(atol=2e-5, rtol=1e-5)

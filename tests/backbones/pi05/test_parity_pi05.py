@@ -1,4 +1,4 @@
-"""Pi0.5 against the upstream code itself: fixtures written by ``tools/make_upstream_fixtures_pi05.py``
+"""Pi0.5 against the upstream code itself: fixtures written by ``tools/pi05/make_upstream_fixtures.py``
 with PyPI ``lerobot==0.4.4`` and with openpi's PyTorch model (commit 15a9616a), see the ``PROVENANCE``
 files in ``tests/fixtures/upstream/pi05/{lerobot,openpi}/``, loaded through ``Pi05.from_original``
 and compared in fp32. No upstream code runs here.
@@ -24,8 +24,9 @@ from capvector.backbones import BackboneError, OutputRequest
 from capvector.backbones.pi05 import IMAGE_MASK, Pi05, flow_matching_path, resize_with_pad
 from capvector.data import keys
 from capvector.data.statistics import QUANTILES, Normalizer
+from conftest import UPSTREAM_FIXTURES
 
-FIXTURE = Path(__file__).parent / "fixtures" / "upstream" / "pi05" / "lerobot"
+FIXTURE = UPSTREAM_FIXTURES / "pi05" / "lerobot"
 ATOL = 1e-5
 # The toy sizes the generating script patched into LeRobot (its config.json still names the
 # full-size variants gemma_2b / gemma_300m, so sizes come in as overrides of pi05-tiny), and

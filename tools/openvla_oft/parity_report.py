@@ -3,7 +3,7 @@
 Uses only the committed fixtures (``tests/fixtures/upstream/openvla_oft``), in capvector's own
 environment::
 
-    PYTHONPATH=src python tools/parity_report_openvla_oft.py
+    PYTHONPATH=src python tools/openvla_oft/parity_report.py
 
 Besides each output it measures what the fixed mismatches of issue 16 cost: SigLIP with the
 tanh-approximate GELU, and an OFT+ folder loaded without its FiLM vision backbone file (what the
@@ -24,7 +24,7 @@ from capvector.backbones import OutputRequest
 from capvector.backbones.openvla_oft import OpenVLAOFT
 from capvector.data import keys
 
-FIXTURES = Path(__file__).resolve().parents[1] / "tests" / "fixtures" / "upstream" / "openvla_oft"
+FIXTURES = Path(__file__).resolve().parents[2] / "tests" / "fixtures" / "upstream" / "openvla_oft"
 
 
 def outputs(model: OpenVLAOFT, batch: dict) -> dict[str, torch.Tensor]:

@@ -487,7 +487,7 @@ def load_original(
     qwen_folder: str | Path | None = None,
 ) -> OriginalCheckpoint:
     """A StarVLA run (its folder or ``checkpoints/steps_N_*`` file) with the Qwen-VL folder it
-    started from, read by ``convert_starvla`` (config.yaml -> config, key map, statistics); or,
+    started from, read by this module (config.yaml -> config, key map, statistics); or,
     without ``qwen_folder``, a plain transformers Qwen-VL folder as the VLM with a fresh head
     (``from_qwen``).
 
@@ -507,8 +507,8 @@ def _from_run(
     preset: str | None,
     overrides: Mapping[str, Any] | None,
 ) -> OriginalCheckpoint:
-    from capvector.backbones.starvla import (
-        QWEN_VERSIONS,
+    from capvector.backbones.starvla.configuration import QWEN_VERSIONS
+    from capvector.backbones.starvla.modeling import (
         _architecture,
         _check_model_type,
         _folder,

@@ -12,12 +12,12 @@ import pytest
 import torch
 
 from capvector.backbones import BackboneError, OutputRequest, build_backbone, from_pretrained
+from capvector.backbones.common import discretize_state
 from capvector.backbones.pi05 import (
     IMAGE_MASK,
     AdaRMSNorm,
     Pi05,
     build_prompt,
-    discretize_state,
     flow_matching_path,
     make_attention_mask,
     resize_with_pad,

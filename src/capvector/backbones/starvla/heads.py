@@ -14,7 +14,7 @@ Heads, following starVLA/starVLA (``starVLA/model/modules/action_model/``):
 - ``layerwise``: PI_v3-style layer-wise flow matching. Per-layer projectors to a narrow width, DiT
   block i cross-attends to VLM layer i (``LayerwiseFM_ActionHeader.py``, ``VLM4A/QwenPI_v3.py``).
 
-Parameter names match StarVLA's, so its checkpoints load through a prefix map (``starvla.py``).
+Parameter names match StarVLA's, so its checkpoints load through a prefix map (``convert.py``).
 StarVLA duplicates ``ActionEncoder``/``MLP``/the DiT between its two flow heads; here they are shared.
 """
 
@@ -783,3 +783,22 @@ class LayerwiseHead(FlowMatchingHead):
         self, tokens: Tensor, context: list[Tensor], mask: Tensor, timestep: Tensor
     ) -> Tensor:
         return self.model(tokens, context, mask, timestep)
+
+
+__all__ = [
+    "ActionHead",
+    "FlowHeadConfig",
+    "FlowMatchingHead",
+    "GR00THead",
+    "GR00THeadConfig",
+    "HeadDims",
+    "HeadInput",
+    "LayerwiseHead",
+    "LayerwiseHeadConfig",
+    "OFTHead",
+    "OFTHeadConfig",
+    "build_head",
+    "head_class",
+    "head_names",
+    "register_head",
+]

@@ -18,12 +18,13 @@ from capvector.backbones import (
     list_presets,
     preset_config,
 )
-from capvector.backbones.action_heads import HeadDims, build_head
 from capvector.backbones.base import draw_flow_noise
 from capvector.backbones.starvla import (
     HALF,
     HEADS,
+    HeadDims,
     StarVLA,
+    build_head,
     tiny_qwen_architecture,
     tiny_qwen_tokenizer,
 )
@@ -34,7 +35,7 @@ from capvector.lora import LoraSettings
 from capvector.module import VLAModule, load_module
 from conftest import CAMERAS, assert_field_changes_the_model, cpu_trainer
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[3]
 PROPRIO_KEYS = ["robot0_eef_pos", "robot0_eef_axis_angle", "robot0_gripper_qpos"]
 FULL_SIZE = sorted(p for p in list_presets() if p.startswith("starvla-") and "tiny" not in p)
 

@@ -6,7 +6,7 @@ transformers that openpi patches (``src/openpi/models_pytorch/transformers_repla
 ``transformers==4.53.2``, as openpi's README and LeRobot 0.4.4's ``pip install lerobot[pi]`` do); the
 openpi checkout whose patch was applied is passed with ``--openpi`` and recorded in PROVENANCE.
 
-    python tools/make_upstream_fixtures_pi05.py --openpi /path/to/openpi --out tests/fixtures/upstream/pi05
+    python tools/pi05/make_upstream_fixtures.py --openpi /path/to/openpi --out tests/fixtures/upstream/pi05
 
 What it writes for the variant ``lerobot`` (a tiny PI05Policy with random weights from a fixed seed):
 
