@@ -63,17 +63,22 @@ def test_a_recipe_stage_gives_the_same_weights_whatever_jobs(tmp_path: Path) -> 
     data = write_demo_file(tmp_path / "demos.hdf5")
     stage = {"name": "fit", "command": "fit", "args": fit_args(data)}
     env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS")}
-    for jobs in (1, 2):
-        recipe = tmp_path / f"jobs{jobs}.yaml"
-        run_dir = tmp_path / f"jobs{jobs}"
+    weights = {}
+    for jobs, threads in [(1, None), (2, None), (2, 2)]:
+        run_dir = tmp_path / f"jobs{jobs}_threads{threads}"
+        recipe = run_dir.with_suffix(".yaml")
         recipe.write_text(json.dumps({"run_dir": str(run_dir), "jobs": jobs, "stages": [stage]}))
+        more = [] if threads is None else ["--threads", str(threads)]
         completed = subprocess.run(
-            [sys.executable, "-m", "capvector.cli", "recipe", "--config", str(recipe)],
+            [sys.executable, "-m", "capvector.cli", "recipe", "--config", str(recipe), *more],
             capture_output=True, text=True, env=env, timeout=600,
         )  # fmt: skip
         assert completed.returncode == 0, completed.stderr[-3000:]
-        assert json.loads((run_dir / "fit/.done").read_text())["threads"] == 1
-    assert_bit_identical(exported(tmp_path / "jobs1/fit"), exported(tmp_path / "jobs2/fit"))
+        assert json.loads((run_dir / "fit/.done").read_text())["threads"] == (threads or 1)
+        weights[jobs, threads] = exported(run_dir / "fit")
+    assert_bit_identical(weights[1, None], weights[2, None])
+    # The thread count is what decides: 2 threads round other sums.
+    assert not all(torch.equal(t, weights[2, 2][k]) for k, t in weights[2, None].items())
 
 
 @pytest.mark.sim
