@@ -256,10 +256,12 @@ def run(
     With ``jobs > 1`` each stage's output goes to ``<stage>/log.txt``.
     """
     run_dir, raw = _load_raw(recipe, overrides)
-    jobs = int(jobs or raw.get("jobs", 1))
     threads = int(raw.get("threads", DEFAULT_THREADS) if threads is None else threads)
-    if jobs < 1 or threads < 1:
-        raise CapVectorError(f"jobs and threads must be at least 1, got {jobs} and {threads}")
+    if threads < 1:
+        raise CapVectorError(f"threads must be at least 1, got {threads}")
+    jobs = int(jobs or raw.get("jobs", 1))
+    if jobs < 1:
+        raise CapVectorError(f"jobs must be at least 1, got {jobs}")
     run_dir.mkdir(parents=True, exist_ok=True)
     names = [str(s.name) for s in raw.stages]
     waits_for = {names[i]: dependencies(raw, i) for i in range(len(names))}
