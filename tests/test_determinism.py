@@ -81,6 +81,15 @@ def test_a_recipe_stage_gives_the_same_weights_whatever_jobs(tmp_path: Path) -> 
     assert not all(torch.equal(t, weights[2, 2][k]) for k, t in weights[2, None].items())
 
 
+def test_a_recipe_refuses_fewer_than_one_thread(tmp_path: Path, capsys) -> None:
+    recipe = tmp_path / "recipe.yaml"
+    stages = [{"name": "info", "command": "backbone-info", "args": ["openvla-oft-tiny"]}]
+    recipe.write_text(json.dumps({"run_dir": str(tmp_path / "run"), "stages": stages}))
+    assert main(["recipe", "--config", str(recipe), "--threads", "0"]) == 2
+    assert "threads (torch threads per stage) must be at least 1, got 0" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
+
+
 @pytest.mark.sim
 @pytest.mark.slow
 def test_batched_rollouts_of_a_trained_policy_do_not_depend_on_the_workers(tmp_path: Path) -> None:
