@@ -1,4 +1,5 @@
-"""File names of the folders capvector writes, and the metadata record of its checkpoints.
+"""File names of the folders capvector writes, the metadata record of its checkpoints, and the
+environment variable ``capvector recipe`` passes to its stages.
 
 One leaf module that imports nothing of the project: the writers (``VLABackbone.save_pretrained``,
 ``VLAModule``) and the readers (``capvector.vectors``, which must not import Lightning or the
@@ -37,6 +38,11 @@ CHECKPOINT_MODEL_PREFIX = "backbone."
 CHECKPOINT_OBJECTIVES_PREFIX = "objectives."
 CHECKPOINT_METADATA = "capvector"
 MERGED_VECTORS = "merged_vectors"
+
+# What `capvector recipe` tells a stage's process besides its fixed torch thread count.
+STAGE_CORES = "CAPVECTOR_CORES"
+"""The stage's share of the machine's cores, for simulator worker processes (their number does not
+change outcomes, unlike torch's thread count)."""
 
 
 @dataclass(frozen=True)

@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from capvector.names import STAGE_CORES
 from capvector.sim.envs import SimEnv, SimulationFault
 from capvector.sim.episodes import EVAL_SEED_START, EpisodeSpec, eval_specs
 from capvector.sim.policy import EpisodeResult, Observation, Policy, as_chunk
@@ -307,9 +308,12 @@ def act(policy: Policy, observations: Sequence[Observation]) -> list[np.ndarray]
 
 def default_workers(batch_size: int) -> int:
     """Worker processes for ``batch_size`` episodes in flight: one per core this process may use
-    (``OMP_NUM_THREADS`` when set, as ``capvector recipe`` sets it per stage), at most one per
-    episode; fewer than 2 runs the simulators in this process."""
-    cores = int(os.environ.get("OMP_NUM_THREADS") or os.cpu_count() or 1)
+    (``CAPVECTOR_CORES``, a ``capvector recipe`` stage's share of the machine, else
+    ``OMP_NUM_THREADS``, else all), at most one per episode; fewer than 2 runs the simulators in
+    this process. Outcomes do not depend on it."""
+    cores = int(
+        os.environ.get(STAGE_CORES) or os.environ.get("OMP_NUM_THREADS") or os.cpu_count() or 1
+    )
     workers = min(cores, batch_size)
     return workers if workers >= 2 else 0
 
@@ -409,9 +413,12 @@ class RolloutEvaluator:
                 else:
                     observations[slot] = reply
             if observations:
-                chunks = act(policy, list(observations.values()))
+                # In slot order, not in the order the workers replied: the batched forward sees
+                # the same batch whatever the number of workers.
+                order = sorted(observations)
+                chunks = act(policy, [observations[slot] for slot in order])
                 next_commands += [
-                    (slot, "act", chunk) for slot, chunk in zip(observations, chunks, strict=True)
+                    (slot, "act", chunk) for slot, chunk in zip(order, chunks, strict=True)
                 ]
             commands = next_commands
         return results  # type: ignore[return-value]

@@ -19,6 +19,11 @@ A stage waits for the stage before it, or for the stages in its ``after:`` list,
 the stages whose outputs it names. With ``jobs: N`` (or ``--jobs N``) up to N stages whose waits
 are over run at once, e.g. the seeds of a downstream comparison.
 
+Every stage's process gets ``threads: T`` (or ``--threads T``, default 1) torch threads, whatever
+``jobs``, the machine's core count or its load: a float reduction split over another number of
+threads rounds differently, so weights and rollout outcomes would follow them. A seeded recipe
+gives the same results on one kind of machine (the CPU's instruction set picks torch's kernels).
+
 A stage with ``seeds: [0, 1, 2]`` stands for one stage per seed, ``<name>_s<seed>``; a ``fit``
 stage gets ``--seed_everything=<seed>``, and seed k of a stage reads seed k of any seeded stage it
 names (``--ckpt ${out.down.export}`` in a seeded ``evaluate`` stage evaluates each seed's fit of
@@ -44,11 +49,17 @@ from typing import Any
 from capvector.errors import CapVectorError, ToolParser, config_error, did_you_mean
 from capvector.evaluation import SuccessRow, format_success_table
 from capvector.fileio import atomic_write_bytes
+from capvector.names import STAGE_CORES
 
 DONE = ".done"
 OUT_REFERENCE = re.compile(r"\$\{out\.([A-Za-z0-9_]+)\.([A-Za-z0-9_]*)")
 """``${out.<stage>.<output>`` (groups: the stage, the output)."""
 FIT_VERSION = "version_0"
+DEFAULT_THREADS = 1
+"""Torch threads per stage: two 1-thread trainings of a tiny preset outrun one 2-thread training
+(torch's intra-op parallelism scales poorly at these sizes), and threads beyond the free cores
+wait on each other (the demo's fits, 2 threads each beside other work on 2 cores: 15 s a step
+against 1 s with 1 thread)."""
 
 
 @dataclass
@@ -271,21 +282,32 @@ def required_stages(waits_for: dict[str, set[str]], targets: list[str]) -> set[s
     return required
 
 
+def stage_environment(threads: int, jobs: int) -> dict[str, str]:
+    """A stage process's environment: ``threads`` torch (OpenMP, MKL) threads, fixed so the
+    numbers do not depend on how many stages run at once; its share of the cores for simulator
+    workers, whose number does not change outcomes (``capvector.sim.rollout.default_workers``)."""
+    cores = max(1, (os.cpu_count() or 1) // jobs)
+    fixed = {"OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
+    return {**os.environ, **fixed, STAGE_CORES: str(cores)}
+
+
 def run(
     recipe: str | Path,
     overrides: list[str] | None = None,
     dry_run: bool = False,
     jobs: int | None = None,
     only: list[str] | None = None,
+    threads: int | None = None,
 ) -> list[dict]:
-    """Run the stages, up to ``jobs`` at a time once their dependencies have finished; with
-    ``only``, just those stages and what they wait for.
+    """Run the stages, up to ``jobs`` at a time once their dependencies have finished, each with
+    ``threads`` torch threads; with ``only``, just those stages and what they wait for.
 
-    With ``jobs > 1`` each stage's output goes to ``<stage>/log.txt`` and its process gets
-    ``cpu_count // jobs`` threads (two 1-thread trainings outrun one 2-thread training on small
-    models: torch's intra-op parallelism scales poorly at these sizes).
+    With ``jobs > 1`` each stage's output goes to ``<stage>/log.txt``.
     """
     run_dir, raw = _load_raw(recipe, overrides)
+    threads = int(raw.get("threads", DEFAULT_THREADS) if threads is None else threads)
+    if threads < 1:
+        raise CapVectorError(f"threads (torch threads per stage) must be at least 1, got {threads}")
     jobs = int(jobs or raw.get("jobs", 1))
     if jobs < 1:
         raise CapVectorError(f"jobs must be at least 1, got {jobs}")
@@ -302,7 +324,7 @@ def run(
     finished: set[str] = set()
     running: dict[str, tuple[subprocess.Popen, float, Any]] = {}
     failed: list[str] = []
-    threads = max(1, (os.cpu_count() or 1) // jobs)
+    env = stage_environment(threads, jobs)
     index = {str(s.name): i for i, s in enumerate(raw.stages)}
 
     def status(name: str) -> str:
@@ -321,10 +343,9 @@ def run(
             return
         stage.directory.mkdir(parents=True, exist_ok=True)
         if jobs == 1:
-            running[name] = (subprocess.Popen(cmd), time.time(), None)
+            running[name] = (subprocess.Popen(cmd, env=env), time.time(), None)
             return
         log = open(stage.directory / "log.txt", "ab")  # noqa: SIM115 (closed when it ends)
-        env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
         process = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
         print(f"  log: {stage.directory / 'log.txt'}", flush=True)
         running[name] = (process, time.time(), log)
@@ -341,8 +362,8 @@ def run(
                 tail = (stage.directory / "log.txt").read_bytes()[-3000:].decode(errors="replace")
                 print(tail, flush=True)
             return
-        marker = {"command": process.args[2:], "seconds": round(time.time() - began, 1),
-                  "finished": time.ctime()}  # fmt: skip
+        marker = {"command": process.args[2:], "threads": threads,
+                  "seconds": round(time.time() - began, 1), "finished": time.ctime()}  # fmt: skip
         atomic_write_bytes(stage.done_marker, json.dumps(marker, indent=2).encode())
         finished.add(name)
         if jobs > 1:
@@ -399,12 +420,17 @@ def main(argv: list[str] | None = None) -> int:
         help="stages run at once when their `after` stages are done (default: the recipe's `jobs`, 1)",
     )  # fmt: skip
     parser.add_argument(
+        "--threads", type=int, default=None,
+        help=f"torch threads of every stage (default: the recipe's `threads`, {DEFAULT_THREADS}); "
+        "results depend on it, not on --jobs",
+    )  # fmt: skip
+    parser.add_argument(
         "--only", nargs="+", metavar="STAGE",
         help="run only these stages and the stages they wait for",
     )  # fmt: skip
     parser.add_argument("overrides", nargs="*", help="dotlist overrides, e.g. run_dir=runs/x")
     args = parser.parse_args(argv)
-    rows = run(args.config, args.overrides, args.dry_run, args.jobs, args.only)
+    rows = run(args.config, args.overrides, args.dry_run, args.jobs, args.only, args.threads)
     if rows:
         print("\nResults\n" + format_success_table(rows))
     return 0
