@@ -42,8 +42,8 @@ from pathlib import Path
 from typing import Any
 
 from capvector.errors import CapVectorError, ToolParser, config_error, did_you_mean
-from capvector.evaluation import SuccessRow, format_success_table
-from capvector.fileio import atomic_write_bytes
+from capvector.eval.results import SuccessRow, format_success_table
+from capvector.io.outputs import atomic_write_bytes
 
 DONE = ".done"
 OUT_REFERENCE = re.compile(r"\$\{out\.([A-Za-z0-9_]+)\.([A-Za-z0-9_]*)")
@@ -176,7 +176,7 @@ def command_line(stage: Stage) -> list[str]:
         outputs = stage_outputs(stage.directory.parent, stage.name)
         args += [
             f"--trainer.default_root_dir={stage.directory}",
-            "--trainer.logger=capvector.loggers.CSVLogger",
+            "--trainer.logger=capvector.training.loggers.CSVLogger",
             f"--trainer.logger.init_args.save_dir={stage.directory}",
             "--trainer.logger.init_args.name=fit",
             f"--trainer.logger.init_args.version={FIT_VERSION}",
