@@ -31,9 +31,9 @@ import torch
 from capvector.backbones.base import build_backbone
 from capvector.data.spec import DataSpec
 from capvector.data.statistics import compute_statistics
-from capvector.policy import VLAPolicy
-from capvector.sim.episodes import eval_specs
-from capvector.sim.rollout import EnvCache, RolloutEvaluator, close_envs, default_workers
+from capvector.eval.episodes import eval_specs
+from capvector.eval.policy import VLAPolicy
+from capvector.eval.rollout import EnvCache, RolloutEvaluator, close_envs, default_workers
 
 
 def tiny_policy() -> VLAPolicy:

@@ -20,8 +20,8 @@ import torch
 
 from capvector.backbones import list_presets
 from capvector.data.datamodule import RobotDataModule
-from capvector.lora import LoraSettings
 from capvector.module import VLAModule
+from capvector.training.lora import LoraSettings
 
 
 class RecordLoss(L.Callback):

@@ -81,8 +81,8 @@ def training_step(
     import torch
 
     from capvector.backbones import build_backbone
-    from capvector.lora import FROZEN_DTYPES, cast_frozen_parameters, set_trainable
-    from capvector.workflows.memory import lora_settings, synthetic_batch
+    from capvector.profiling.memory import lora_settings, synthetic_batch
+    from capvector.training.lora import FROZEN_DTYPES, cast_frozen_parameters, set_trainable
 
     torch.manual_seed(0)
     model = build_backbone(preset)
@@ -125,7 +125,7 @@ def measure(preset: str, batch_size: int, lora_rank: int, frozen_dtype: str) -> 
     """Run in a fresh process: the estimates, and one real step's peak memory."""
     import torch
 
-    from capvector.workflows.memory import estimate_memory, saved_activation_bytes
+    from capvector.profiling.memory import estimate_memory, saved_activation_bytes
 
     torch.manual_seed(0)
     torch.set_num_threads(1)

@@ -29,11 +29,11 @@ from collections.abc import Callable
 
 import numpy as np
 
+from capvector.eval.rollout import EnvCache, EpisodeSpec, run_episode
 from capvector.sim.annotations import Annotator
 from capvector.sim.demos import record_episode
 from capvector.sim.envs import SimEnv, make_env_kwargs, suite
 from capvector.sim.experts import make_expert
-from capvector.sim.rollout import EnvCache, EpisodeSpec, run_episode
 
 CAMERAS = ["agentview", "robot0_eye_in_hand"]
 CHUNK = 8

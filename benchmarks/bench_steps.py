@@ -23,8 +23,8 @@ from capvector.data.hdf5 import HDF5RobotDataset
 from capvector.module import VLAModule
 from capvector.objectives import ReasoningCoTraining, SpatialAlignment
 from capvector.objectives.orthogonality import OrthogonalityLoss
+from capvector.profiling.memory import saved_activation_bytes
 from capvector.vectors import extract
-from capvector.workflows.memory import saved_activation_bytes
 
 
 def make_data(root: Path) -> Path:

@@ -16,8 +16,8 @@ import torch.distributed as dist
 
 from capvector.callbacks import ExportOnFitEnd, MergeCapabilityVector, OrthogonalRegularization
 from capvector.data.datamodule import RobotDataModule
-from capvector.lora import LoraSettings
 from capvector.module import VLAModule
+from capvector.training.lora import LoraSettings
 
 
 class RecordGlobalLoss(L.Callback):

@@ -32,8 +32,8 @@ from capvector.backbones import (
 )
 from capvector.backbones.base import registered_families
 from capvector.data import keys
-from capvector.distributed import parallelize
-from capvector.lora import LoraSettings, set_trainable
+from capvector.training.distributed import parallelize
+from capvector.training.lora import LoraSettings, set_trainable
 
 CPU_PARAMETER_LIMIT = 50_000_000
 """Presets up to this many parameters run here (tiny ones have under 1 M, full-size billions)."""

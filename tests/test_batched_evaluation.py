@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from capvector.sim.episodes import eval_specs
-from capvector.sim.rollout import RolloutEvaluator, act, close_envs
+from capvector.eval.episodes import eval_specs
+from capvector.eval.rollout import RolloutEvaluator, act, close_envs
 
 CAMERAS = ("agentview", "robot0_eye_in_hand")
 
@@ -84,7 +84,7 @@ def test_the_vla_policy_batched_forward_matches_one_observation_at_a_time() -> N
     from capvector.backbones.base import build_backbone
     from capvector.data.spec import DataSpec
     from capvector.data.statistics import compute_statistics
-    from capvector.policy import VLAPolicy
+    from capvector.eval.policy import VLAPolicy
 
     torch.manual_seed(0)
     rng = np.random.default_rng(0)

@@ -342,7 +342,7 @@ def test_bf16_frozen_export_keeps_what_trained_in_float32(setup: dict, tmp_path:
     """Without a vector, LoRA with frozen bf16 weights: frozen tensors are exported in bf16, the
     LoRA-merged and trained ones in float32, and the export loads back."""
     from capvector.backbones import from_pretrained
-    from capvector.lora import LoraSettings
+    from capvector.training.lora import LoraSettings
 
     dm = RobotDataModule(train_files=[str(setup["data"])], batch_size=4)
     module = VLAModule(

@@ -51,7 +51,7 @@ def inputs(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def fit_args(inputs: Path, out: Path, *extra: str) -> list[str]:
     return [
         "fit", "--trainer.accelerator=cpu", "--trainer.max_steps=1", f"--trainer.default_root_dir={out}",
-        "--trainer.logger.class_path=capvector.loggers.CSVLogger",
+        "--trainer.logger.class_path=capvector.training.loggers.CSVLogger",
         f"--trainer.logger.init_args.save_dir={out}", "--model.backbone=openvla-oft-tiny",
         f"--data.train_files=[{inputs / 'demos.hdf5'}]", "--data.batch_size=4", *extra,
     ]  # fmt: skip
@@ -101,6 +101,10 @@ CASES: dict[str, tuple[Callable[[Path, Path], list[str]], str]] = {
     "fit: logs inside a file": (
         lambda i, o: fit_args(i, o, f"--trainer.logger.init_args.save_dir={i / 'a_file' / 'logs'}"),
         r"cannot write into the CSVLogger's save_dir .*is a file",
+    ),
+    "fit: the export folder inside a file": (
+        lambda i, o: fit_args(i, o, "--trainer.callbacks+=capvector.callbacks.ExportOnFitEnd", f"--trainer.callbacks.dirpath={i / 'a_file' / 'export'}"),
+        r"cannot write into ExportOnFitEnd's dirpath .*is a file",
     ),
     "fit: --ckpt_path last with no earlier run": (
         lambda i, o: fit_args(i, o, "--ckpt_path=last"),

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from capvector.comparison import (
+from capvector.errors import CapVectorError
+from capvector.eval.comparison import (
     ArmOutcomes,
     PairedBootstrap,
     area_under_curve,
@@ -14,7 +15,6 @@ from capvector.comparison import (
     format_difference,
     interval,
 )
-from capvector.errors import CapVectorError
 
 SEEDS = list(range(50))
 

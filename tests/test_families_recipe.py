@@ -14,9 +14,9 @@ from capvector.backbones import from_pretrained
 from capvector.callbacks import AuxiliaryObjective, OrthogonalRegularization
 from capvector.data import keys
 from capvector.data.datamodule import RobotDataModule, noise_seeds
-from capvector.lora import LoraSettings
 from capvector.module import VLAModule
 from capvector.objectives import ReasoningCoTraining, SpatialAlignment
+from capvector.training.lora import LoraSettings
 from capvector.vectors import extract, merge
 from conftest import cpu_trainer, write_demo_file
 

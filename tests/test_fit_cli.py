@@ -16,7 +16,7 @@ from conftest import write_demo_file
 def fit(root: Path, data: Path, steps: int, *extra: str) -> None:
     args = [
         "fit", "--trainer.accelerator=cpu", f"--trainer.max_steps={steps}",
-        "--trainer.enable_progress_bar=false", "--trainer.logger.class_path=capvector.loggers.CSVLogger",
+        "--trainer.enable_progress_bar=false", "--trainer.logger.class_path=capvector.training.loggers.CSVLogger",
         f"--trainer.logger.init_args.save_dir={root}", "--trainer.logger.init_args.name=fit",
         "--trainer.callbacks+=lightning.pytorch.callbacks.ModelCheckpoint",
         "--trainer.callbacks.save_last=true", "--model.backbone=openvla-oft-tiny",

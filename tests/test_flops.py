@@ -10,13 +10,9 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from capvector.backbones import build_backbone, list_presets
 from capvector.cli import main
-from capvector.lora import set_trainable
-from capvector.workflows.memory import (
-    FlopsEstimate,
-    estimate_flops,
-    make_objective,
-    synthetic_batch,
-)
+from capvector.profiling.flops import FlopsEstimate, estimate_flops, make_objective
+from capvector.profiling.memory import synthetic_batch
+from capvector.training.lora import set_trainable
 
 TINY_PRESETS = [name for name in list_presets() if "tiny" in name]
 

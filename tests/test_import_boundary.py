@@ -15,7 +15,11 @@ TRAINING_MODULES = [
     "capvector.callbacks",
     "capvector.vectors",
     "capvector.sim",
-    "capvector.sim.episodes",
+    "capvector.eval",
+    "capvector.eval.episodes",
+    "capvector.eval.policy",
+    "capvector.eval.results",
+    "capvector.training.resume",
 ]
 
 

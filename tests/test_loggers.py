@@ -7,7 +7,7 @@ from pathlib import Path
 
 from lightning.pytorch.loggers import CSVLogger as LightningCSVLogger
 
-from capvector.loggers import CSVLogger
+from capvector.training.loggers import CSVLogger
 
 
 def rows(logger: LightningCSVLogger) -> list[dict[str, str]]:

@@ -1,7 +1,7 @@
 """One LoRA merge for every path, refereed by peft's own ``merge_and_unload``.
 
 The paths: export (``VLAModule.export`` merges a live peft state dict), a LoRA checkpoint read as a
-vector source (``vectors.io.CheckpointSource``), a PEFT adapter read as a vector
+vector source (``io.weights.CheckpointSource``), a PEFT adapter read as a vector
 (``vectors.lowrank.read_adapter``) and OpenVLA-OFT's adapter import (``merge_peft_adapter``). Each
 must give peft's merged weights, including a ``lora_B`` bias, embedding LoRA and
 ``fan_in_fan_out`` (GPT-2's Conv1D) layers.
@@ -19,9 +19,9 @@ from torch import nn
 from transformers.pytorch_utils import Conv1D
 
 from capvector.backbones.openvla_oft.convert import merge_peft_adapter
-from capvector.lora_layers import constant_scaling, merge_lora
-from capvector.names import CheckpointMetadata
-from capvector.vectors.io import CheckpointSource
+from capvector.io.lora_layers import constant_scaling, merge_lora
+from capvector.io.names import CheckpointMetadata
+from capvector.io.weights import CheckpointSource
 from capvector.vectors.lowrank import read_adapter
 
 R, ALPHA = 2, 3.0

@@ -9,8 +9,7 @@ from capvector.backbones import build_backbone, list_presets
 from capvector.backbones.starvla import HALF, tiny_qwen_architecture
 from capvector.cli import main
 from capvector.errors import CapVectorError
-from capvector.lora import cast_frozen_parameters, set_trainable
-from capvector.workflows.memory import (
+from capvector.profiling.memory import (
     efficient_attention,
     estimate_memory,
     lora_settings,
@@ -18,6 +17,7 @@ from capvector.workflows.memory import (
     saved_activation_bytes,
     synthetic_batch,
 )
+from capvector.training.lora import cast_frozen_parameters, set_trainable
 
 TINY_PRESETS = [name for name in list_presets() if "tiny" in name]
 

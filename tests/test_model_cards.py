@@ -51,7 +51,7 @@ def test_written_folders_and_files_follow_the_umask(tmp_path: Path) -> None:
     import os
     import stat
 
-    from capvector.fileio import atomic_write_bytes
+    from capvector.io.outputs import atomic_write_bytes
 
     old = os.umask(0o022)
     try:

@@ -12,8 +12,8 @@ import torch
 from capvector.backbones import BackboneError, from_pretrained
 from capvector.cli import main
 from capvector.data.datamodule import RobotDataModule
-from capvector.lora import LoraSettings
 from capvector.module import OptimizerSettings, VLAModule, load_module
+from capvector.training.lora import LoraSettings
 from conftest import cpu_trainer, write_demo_file
 
 REPO = Path(__file__).resolve().parents[1]

@@ -24,7 +24,7 @@ import torch
 from capvector.backbones import build_backbone
 from capvector.cli import main
 from capvector.errors import CapVectorError
-from capvector.fileio import atomic_directory
+from capvector.io.outputs import atomic_directory
 from capvector.vectors import extract
 from test_cli_errors import tree_digest
 
@@ -149,7 +149,7 @@ def test_without_overwrite_an_output_that_appears_meanwhile_is_never_moved_aside
 PAUSED_MERGE = textwrap.dedent("""
     import os, sys, time
     from capvector.cli import main
-    from capvector.vectors.io import SafetensorsWriter
+    from capvector.io.weights import SafetensorsWriter
 
     finish = SafetensorsWriter.finish
 

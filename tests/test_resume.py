@@ -20,7 +20,7 @@ def fit(out: Path, data: Path, steps: int, *extra: str) -> int:
             f"--trainer.max_steps={steps}", "--trainer.log_every_n_steps=1",
             "--trainer.enable_progress_bar=false", "--trainer.enable_model_summary=false",
             f"--trainer.default_root_dir={out}",
-            "--trainer.logger.class_path=capvector.loggers.CSVLogger",
+            "--trainer.logger.class_path=capvector.training.loggers.CSVLogger",
             f"--trainer.logger.init_args.save_dir={out}", "--trainer.logger.init_args.name=fit",
             "--trainer.callbacks+=lightning.pytorch.callbacks.ModelCheckpoint",
             "--trainer.callbacks.save_last=true",

@@ -9,8 +9,7 @@ import imageio.v2 as imageio
 import numpy as np
 import pytest
 
-from capvector.sim.demos import record_demos
-from capvector.sim.rollout import (
+from capvector.eval.rollout import (
     EVAL_SEED_START,
     EnvCache,
     EpisodeSpec,
@@ -19,7 +18,8 @@ from capvector.sim.rollout import (
     run_episode,
     to_env_action,
 )
-from capvector.sim.video import write_video
+from capvector.eval.video import write_video
+from capvector.sim.demos import record_demos
 
 SIZE = 32
 CAMERAS = ["agentview", "robot0_eye_in_hand"]

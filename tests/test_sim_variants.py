@@ -60,9 +60,9 @@ def test_unknown_variant_names_the_known_ones() -> None:
 
 
 def test_the_evaluator_runs_variants_and_names_them_in_rows_and_videos(tmp_path) -> None:
-    from capvector.evaluation import format_success_table, success_rows
-    from capvector.sim.episodes import eval_specs
-    from capvector.sim.rollout import RolloutEvaluator, close_envs
+    from capvector.eval.episodes import eval_specs
+    from capvector.eval.results import format_success_table, success_rows
+    from capvector.eval.rollout import RolloutEvaluator, close_envs
 
     def still(observation):
         return np.zeros((4, 7))

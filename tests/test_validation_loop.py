@@ -12,7 +12,7 @@ import pytest
 
 from capvector.cli import main
 from capvector.data.episodes import EpisodeDataset, EpisodeSampler, EvalTask
-from capvector.evaluation import wilson_interval
+from capvector.eval.results import wilson_interval
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = Path(__file__).with_name("distributed_fit.py")

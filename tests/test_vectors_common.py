@@ -12,7 +12,7 @@ import torch
 from safetensors.torch import save_file
 from torch import Tensor, nn
 
-from capvector.names import CheckpointMetadata
+from capvector.io.names import CheckpointMetadata
 
 CAPABILITY = ("language_model.*",)
 HIDDEN, FFN, VOCAB = 16, 24, 32

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from capvector.errors import CapVectorError, ToolParser, config_error
-from capvector.fileio import check_output
+from capvector.io.outputs import check_output
 
 if TYPE_CHECKING:
     from capvector.backbones import VLABackbone
@@ -135,7 +135,7 @@ def run_lightning_cli(args: list[str] | None) -> object:
 
     class CapVectorCLI(LightningCLI):
         def parse_arguments(self, parser, args) -> None:  # noqa: ANN001 (Lightning's)
-            from capvector.resume import check_ckpt_path
+            from capvector.training.resume import check_ckpt_path
 
             super().parse_arguments(parser, args)
             # LightningCLI reads a given checkpoint's hyperparameters right after parsing.
@@ -154,7 +154,7 @@ def run_lightning_cli(args: list[str] | None) -> object:
             trainer = config.trainer
             if trainer.logger in (None, True):
                 trainer.logger = Namespace(
-                    class_path="capvector.loggers.CSVLogger",
+                    class_path="capvector.training.loggers.CSVLogger",
                     init_args=Namespace(
                         save_dir=trainer.default_root_dir or os.getcwd(), name="lightning_logs"
                     ),
@@ -163,7 +163,11 @@ def run_lightning_cli(args: list[str] | None) -> object:
                 _check_before_recording(config)
 
         def before_fit(self) -> None:
-            from capvector.resume import check_ckpt_path, check_fit_outputs, resume_latest_run
+            from capvector.training.resume import (
+                check_ckpt_path,
+                check_fit_outputs,
+                resume_latest_run,
+            )
 
             check_fit_outputs(self.trainer)
             settings = self.config_init[self.subcommand]
@@ -208,7 +212,7 @@ def _check_before_recording(config: object) -> None:
     model, the trainer and ``before_fit``'s output checks. What the config alone can tell is
     checked first, so a typo does not cost a recording."""
     from capvector.backbones import preset_config
-    from capvector.fileio import check_writable
+    from capvector.io.outputs import check_writable
 
     model, trainer = config.model, config.trainer  # type: ignore[attr-defined]
     if not model.get("pretrained"):
@@ -229,7 +233,7 @@ def backbone_info_main(argv: list[str]) -> int:
     import torch
 
     from capvector.backbones import build_backbone, list_presets
-    from capvector.workflows.memory import ATTENTION_PATHS, FROZEN_DTYPES, PRECISIONS, STRATEGIES
+    from capvector.profiling.memory import ATTENTION_PATHS, FROZEN_DTYPES, PRECISIONS, STRATEGIES
 
     parser = ToolParser(prog="capvector backbone-info", description=backbone_info_main.__doc__)
     parser.add_argument("preset", nargs="?", help="a registered preset; omit with --list")
@@ -283,7 +287,7 @@ def backbone_info_main(argv: list[str]) -> int:
     print(f"  {'total':<{width}}  {total:>15,}")
     print(f"  {'capability':<{width}}  {in_vector:>15,}  (parameters a capability vector covers)")
     if args.memory:
-        from capvector.workflows.memory import describe, estimate_memory
+        from capvector.profiling.memory import describe, estimate_memory
 
         settings = {
             "batch_size": args.batch, "precision": args.precision, "strategy": args.strategy,
@@ -293,7 +297,7 @@ def backbone_info_main(argv: list[str]) -> int:
         }  # fmt: skip
         print(describe(estimate_memory(args.preset, **settings), **settings))
     if args.flops:
-        from capvector.workflows.memory import estimate_flops
+        from capvector.profiling.flops import estimate_flops
 
         flops = estimate_flops(args.preset, batch_size=args.batch, lora_rank=args.lora_rank)
         print(

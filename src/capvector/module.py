@@ -28,19 +28,14 @@ from capvector.backbones.base import (
 from capvector.data import keys
 from capvector.data.episodes import EpisodeDataset, EpisodeItem, is_episode_batch
 from capvector.data.spec import DataSpec
-from capvector.distributed import full_state_dict, is_rank_zero, parallelize
 from capvector.errors import CapVectorError
-from capvector.evaluation import metric_key
-from capvector.loading import load_torch, read_json
-from capvector.lora import (
-    LoraSettings,
-    cast_frozen_parameters,
-    frozen_dtype_of,
-    set_trainable,
-)
-from capvector.lora_layers import constant_scaling, merge_lora
-from capvector.metrics import SuccessRate
-from capvector.names import (
+from capvector.eval.episodes import EpisodeSpec
+from capvector.eval.metrics import SuccessRate
+from capvector.eval.policy import VLAPolicy
+from capvector.eval.results import metric_key
+from capvector.io.loading import load_torch, read_json
+from capvector.io.lora_layers import constant_scaling, merge_lora
+from capvector.io.names import (
     CHECKPOINT_METADATA,
     DATA_SPEC_FILE,
     EPISODES_LOG,
@@ -48,11 +43,16 @@ from capvector.names import (
     STATISTICS_FILE,
     CheckpointMetadata,
 )
+from capvector.io.weights import dtype_name
 from capvector.objectives.base import Objective
-from capvector.policy import VLAPolicy
-from capvector.sim.episodes import EpisodeSpec
-from capvector.vectors.io import dtype_name
-from capvector.vectors.record import MergedVector, read_record, record_dicts
+from capvector.training.distributed import full_state_dict, is_rank_zero, parallelize
+from capvector.training.lora import (
+    LoraSettings,
+    cast_frozen_parameters,
+    frozen_dtype_of,
+    set_trainable,
+)
+from capvector.vectors import MergedVector, read_record, record_dicts
 
 
 @dataclass
@@ -67,7 +67,7 @@ class RolloutSettings:
     """Episodes in flight at once, one batched policy forward for all (1: one at a time)."""
     workers: int | None = None
     """Processes stepping the simulators (0: this one); None: one per usable core, up to
-    ``batch_size`` (``capvector.sim.rollout.default_workers``)."""
+    ``batch_size`` (``capvector.eval.rollout.default_workers``)."""
 
 
 @dataclass
@@ -265,7 +265,7 @@ class VLAModule(L.LightningModule):
 
     def teardown(self, stage: str) -> None:
         if self.success_rates:  # rollouts ran: release the cached simulators and their GL contexts
-            from capvector.sim.rollout import close_envs
+            from capvector.eval.rollout import close_envs
 
             close_envs()
 
@@ -329,7 +329,7 @@ class VLAModule(L.LightningModule):
         self._episode_rows = []
 
     def _evaluator(self) -> Any:
-        from capvector.sim.rollout import RolloutEvaluator
+        from capvector.eval.rollout import RolloutEvaluator
 
         spec = self.data_spec
         return RolloutEvaluator(

@@ -29,10 +29,10 @@ import torch
 from torch import Tensor, nn
 
 from capvector.errors import CapVectorError, did_you_mean
-from capvector.fileio import Inputs, atomic_directory
-from capvector.loading import COPY_AGAIN, load_safetensors, read_json
-from capvector.modelcard import render_model_card, write_model_card
-from capvector.names import EXPORT_CONFIG, EXPORT_FORMAT, EXPORT_INDEX, EXPORT_WEIGHTS
+from capvector.io.loading import COPY_AGAIN, load_safetensors, read_json
+from capvector.io.modelcard import render_model_card, write_model_card
+from capvector.io.names import EXPORT_CONFIG, EXPORT_FORMAT, EXPORT_INDEX, EXPORT_WEIGHTS
+from capvector.io.outputs import Inputs, atomic_directory
 
 EMBEDDING_PARAMETERS = "embedding_parameters"
 
@@ -268,7 +268,7 @@ class VLABackbone(nn.Module, ABC):
         from safetensors.torch import save_file
 
         from capvector.data.statistics import check_finite_statistics
-        from capvector.names import STATISTICS_FILE
+        from capvector.io.names import STATISTICS_FILE
 
         statistics = (extra_json or {}).get(STATISTICS_FILE)
         if statistics is not None:  # the last guard: evaluation would normalise with them

@@ -15,7 +15,7 @@ import torch
 from torch import Tensor, nn
 
 from capvector.backbones.base import BackboneError
-from capvector.loading import read_json
+from capvector.io.loading import read_json
 
 IGNORE_INDEX = -100
 """Label of the positions a text loss skips (``torch.nn.functional.cross_entropy``'s default)."""

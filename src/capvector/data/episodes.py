@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 from torch.utils.data import Dataset, DistributedSampler
 
-from capvector.sim.episodes import DEFAULT_ROBOT, EVAL_SEED_START, EpisodeSpec, eval_specs
+from capvector.eval.episodes import DEFAULT_ROBOT, EVAL_SEED_START, EpisodeSpec, eval_specs
 
 
 @dataclass

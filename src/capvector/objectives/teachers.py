@@ -25,7 +25,7 @@ from torch import Tensor, nn
 
 from capvector.data import keys
 from capvector.errors import CapVectorError
-from capvector.loading import load_safetensors, load_torch
+from capvector.io.loading import load_safetensors, load_torch
 
 
 class Teacher(nn.Module, ABC):

@@ -26,7 +26,7 @@ the states a slightly-off policy reaches and show how to recover. A replay of ``
 from the demo's seed reproduces the episode exactly (see ``tests/test_sim_rollout.py``).
 
 Seeds: episode attempts use consecutive seeds from ``--seed``; failed attempts are skipped, so the
-saved demos record their seed. Evaluation must use seeds no demo used: ``capvector.sim.rollout``
+saved demos record their seed. Evaluation must use seeds no demo used: ``capvector.eval.rollout``
 starts its default evaluation seeds at ``EVAL_SEED_START`` (1,000,000).
 """
 
@@ -47,7 +47,7 @@ import numpy as np
 from tqdm import tqdm
 
 from capvector.errors import CapVectorError, ToolParser
-from capvector.fileio import atomic_write_file, check_output
+from capvector.io.outputs import atomic_write_file, check_output
 from capvector.sim.annotations import Annotator
 from capvector.sim.envs import (
     DEFAULT_CAMERAS,

@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from capvector.errors import ToolParser
-from capvector.vectors.io import DEFAULT_MAX_SHARD_SIZE
+from capvector.io.weights import DEFAULT_MAX_SHARD_SIZE
 
 _OUT_HELP = "output folder; written atomically, an existing one is an error unless --overwrite"
 

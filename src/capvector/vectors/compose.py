@@ -22,8 +22,8 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from capvector.fileio import atomic_directory, check_output
-from capvector.vectors.io import (
+from capvector.io.outputs import atomic_directory, check_output
+from capvector.io.weights import (
     DEFAULT_MAX_SHARD_SIZE,
     CapVectorError,
     TensorInfo,

@@ -13,8 +13,8 @@ from pathlib import Path
 
 from tqdm.auto import tqdm
 
-from capvector.fileio import atomic_write_file, check_output
-from capvector.vectors.io import CapVectorError, examples, row_chunks
+from capvector.io.outputs import atomic_write_file, check_output
+from capvector.io.weights import CapVectorError, examples, row_chunks
 from capvector.vectors.vector import VectorFolder
 
 _LAYER = re.compile(r"^(?P<stack>(?:.*\.)?(?:layers|blocks))\.(?P<index>\d+)\.")

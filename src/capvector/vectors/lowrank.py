@@ -24,8 +24,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from capvector.lora_layers import LoraFormatError, adapter_scaling, split_lora
-from capvector.vectors.io import (
+from capvector.io.lora_layers import LoraFormatError, adapter_scaling, split_lora
+from capvector.io.weights import (
     ADAPTER_CONFIG,
     ADAPTER_WEIGHTS,
     CapVectorError,
@@ -124,7 +124,7 @@ def write_adapter(
     ``embeddings`` names the keys that are ``nn.Embedding`` weights."""
     from safetensors.torch import save_file
 
-    from capvector.vectors.io import write_json
+    from capvector.io.weights import write_json
 
     if not factors:
         raise ValueError("no low-rank tensors to write")

@@ -16,10 +16,10 @@ import torch
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
-from capvector.fileio import atomic_directory, check_output
-from capvector.modelcard import render_model_card, write_model_card
-from capvector.names import MODEL_CARD
-from capvector.vectors.io import (
+from capvector.io.modelcard import render_model_card, write_model_card
+from capvector.io.names import MODEL_CARD
+from capvector.io.outputs import atomic_directory, check_output
+from capvector.io.weights import (
     EXPORT_CONFIG,
     CapVectorError,
     SafetensorsFolder,

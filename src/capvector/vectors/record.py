@@ -16,8 +16,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from capvector.names import MERGED_VECTORS  # noqa: F401 (re-exported: the record's field)
-from capvector.vectors.io import FINGERPRINT_PREFIX, CapVectorError, short_fingerprint
+from capvector.io.names import MERGED_VECTORS  # noqa: F401 (re-exported: the record's field)
+from capvector.io.weights import FINGERPRINT_PREFIX, CapVectorError, short_fingerprint
 from capvector.vectors.vector import VectorFolder
 
 BY_MERGE = "capvector merge"

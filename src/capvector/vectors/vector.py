@@ -29,8 +29,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from capvector.modelcard import render_model_card, write_model_card
-from capvector.vectors.io import (
+from capvector.io.modelcard import render_model_card, write_model_card
+from capvector.io.weights import (
     ADAPTER_CONFIG,
     EXPORT_CONFIG,
     VECTOR_FORMAT,
@@ -336,7 +336,7 @@ def load_vector(source: str | Path | Mapping[str, Tensor] | CapabilityVector) ->
 
 
 class VectorFolderWriter:
-    """Writes a vector folder into ``folder`` (a temporary folder inside ``fileio.atomic_directory``).
+    """Writes a vector folder into ``folder`` (a temporary folder inside ``io.outputs.atomic_directory``).
 
     Full tensors stream through ``SafetensorsWriter`` chunk by chunk (their layout is planned up
     front); low-rank factors are small and collected for the adapter, written in ``finish``.

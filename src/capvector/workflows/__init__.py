@@ -4,7 +4,6 @@
 - :mod:`~capvector.workflows.evaluate`: ``capvector evaluate``, MuJoCo rollouts of a checkpoint
 - :mod:`~capvector.workflows.sweep`: ``capvector sweep-scale``, choosing the merge scale λ
 - :mod:`~capvector.workflows.report`: ``capvector report``, success against steps of a recipe's arms
-- :mod:`~capvector.workflows.memory`: the full-size memory planner of ``capvector backbone-info``
 
 The training core (``module``, ``backbones``, ``callbacks``, ``objectives``, ``data``, ``vectors``)
 never imports from here.

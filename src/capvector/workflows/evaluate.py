@@ -7,10 +7,10 @@ from pathlib import Path
 
 from capvector.data.episodes import EvalTask
 from capvector.errors import ToolParser
-from capvector.evaluation import SuccessRow, format_success_table, success_rows
-from capvector.fileio import atomic_write_bytes, check_output
+from capvector.eval.policy import VLAPolicy
+from capvector.eval.results import SuccessRow, format_success_table, success_rows
+from capvector.io.outputs import atomic_write_bytes, check_output
 from capvector.module import load_module
-from capvector.policy import VLAPolicy
 
 
 def evaluate(
@@ -26,7 +26,7 @@ def evaluate(
     ``batch_size`` episodes run at once, their simulators in ``workers`` processes (see
     ``RolloutEvaluator``)."""
     from capvector.data.episodes import EpisodeDataset
-    from capvector.sim.rollout import RolloutEvaluator
+    from capvector.eval.rollout import RolloutEvaluator
 
     specs = EpisodeDataset(tasks).specs  # an unknown task or variant fails before the load
     module = load_module(checkpoint).eval()

@@ -47,9 +47,9 @@ from pathlib import Path
 from typing import Any
 
 from capvector.errors import CapVectorError, ToolParser, config_error, did_you_mean
-from capvector.evaluation import SuccessRow, format_success_table
-from capvector.fileio import atomic_write_bytes
-from capvector.names import STAGE_CORES
+from capvector.eval.results import SuccessRow, format_success_table
+from capvector.io.names import STAGE_CORES
+from capvector.io.outputs import atomic_write_bytes
 
 DONE = ".done"
 OUT_REFERENCE = re.compile(r"\$\{out\.([A-Za-z0-9_]+)\.([A-Za-z0-9_]*)")
@@ -187,7 +187,7 @@ def command_line(stage: Stage) -> list[str]:
         outputs = stage_outputs(stage.directory.parent, stage.name)
         args += [
             f"--trainer.default_root_dir={stage.directory}",
-            "--trainer.logger=capvector.loggers.CSVLogger",
+            "--trainer.logger=capvector.training.loggers.CSVLogger",
             f"--trainer.logger.init_args.save_dir={stage.directory}",
             "--trainer.logger.init_args.name=fit",
             f"--trainer.logger.init_args.version={FIT_VERSION}",
@@ -285,7 +285,7 @@ def required_stages(waits_for: dict[str, set[str]], targets: list[str]) -> set[s
 def stage_environment(threads: int, jobs: int) -> dict[str, str]:
     """A stage process's environment: ``threads`` torch (OpenMP, MKL) threads, fixed so the
     numbers do not depend on how many stages run at once; its share of the cores for simulator
-    workers, whose number does not change outcomes (``capvector.sim.rollout.default_workers``)."""
+    workers, whose number does not change outcomes (``capvector.eval.rollout.default_workers``)."""
     cores = max(1, (os.cpu_count() or 1) // jobs)
     fixed = {"OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
     return {**os.environ, **fixed, STAGE_CORES: str(cores)}

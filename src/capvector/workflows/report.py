@@ -18,16 +18,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from capvector.comparison import (
+from capvector.errors import CapVectorError, ToolParser
+from capvector.eval.comparison import (
     ArmOutcomes,
     area_under_curve,
     arm_from_episodes,
     compare,
     format_difference,
 )
-from capvector.errors import CapVectorError, ToolParser
-from capvector.evaluation import metric_key
-from capvector.fileio import atomic_write_bytes, check_output
+from capvector.eval.results import metric_key
+from capvector.io.outputs import atomic_write_bytes, check_output
 
 SUCCESS = "val/success_rate"
 EPISODES = "val/episodes"

@@ -19,10 +19,10 @@ from tqdm import tqdm
 
 from capvector.data.episodes import EvalTask
 from capvector.errors import CapVectorError, ToolParser
-from capvector.evaluation import success_cell, wilson_interval
-from capvector.fileio import atomic_write_bytes, atomic_write_file, check_output
+from capvector.eval.episodes import VALIDATION_SEED_START
+from capvector.eval.results import success_cell, wilson_interval
+from capvector.io.outputs import atomic_write_bytes, atomic_write_file, check_output
 from capvector.module import held_out_action_l1, load_module
-from capvector.sim.episodes import VALIDATION_SEED_START
 
 
 def held_out_l1(module: Any, demos: str, batch_size: int = 16) -> float:
@@ -78,8 +78,8 @@ def sweep(
     allow_large_scale: bool = False,
 ) -> list[dict[str, Any]]:
     from capvector.data.episodes import EpisodeDataset
-    from capvector.policy import VLAPolicy
-    from capvector.sim.rollout import RolloutEvaluator
+    from capvector.eval.policy import VLAPolicy
+    from capvector.eval.rollout import RolloutEvaluator
     from capvector.vectors import apply_vector_, load_vector
     from capvector.vectors.merge import check_scale
     from capvector.vectors.precision import MergePrecision

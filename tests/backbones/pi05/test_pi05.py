@@ -24,8 +24,8 @@ from capvector.backbones.pi05 import (
 )
 from capvector.data import keys
 from capvector.data.datamodule import RobotDataModule
-from capvector.lora import LoraSettings
 from capvector.module import VLAModule
+from capvector.training.lora import LoraSettings
 
 CHUNK, ACTION_DIM, PAD_DIM = 8, 7, 32
 
@@ -347,7 +347,7 @@ def test_training_forward_outputs_and_gradients() -> None:
 def test_shard_units_recompute_whole_joint_layers() -> None:
     """Activation checkpointing of ``shard_units`` (as ``VLAModule`` applies it) recomputes both
     streams of a joint layer and leaves loss and gradients unchanged."""
-    from capvector.distributed import parallelize
+    from capvector.training.distributed import parallelize
 
     def run(checkpointing: bool) -> tuple[torch.Tensor, torch.Tensor, int]:
         torch.manual_seed(0)

@@ -31,8 +31,8 @@ from capvector.backbones.starvla import (
 from capvector.data import keys
 from capvector.data.datamodule import RobotDataModule
 from capvector.data.hdf5 import HDF5RobotDataset
-from capvector.lora import LoraSettings
 from capvector.module import VLAModule, load_module
+from capvector.training.lora import LoraSettings
 from conftest import CAMERAS, assert_field_changes_the_model, cpu_trainer
 
 REPO = Path(__file__).resolve().parents[3]

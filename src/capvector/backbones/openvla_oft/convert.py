@@ -48,8 +48,8 @@ from capvector.backbones.base import (
 )
 from capvector.backbones.common import read_required_json
 from capvector.data.statistics import BOUNDS, BOUNDS_Q99
-from capvector.loading import load_safetensors, load_torch
-from capvector.lora_layers import LoraFormatError, adapter_scaling, merge_lora, split_lora
+from capvector.io.loading import load_safetensors, load_torch
+from capvector.io.lora_layers import LoraFormatError, adapter_scaling, merge_lora, split_lora
 
 if TYPE_CHECKING:
     from capvector.backbones.openvla_oft import OpenVLAOFT

@@ -38,7 +38,7 @@ from capvector.backbones.base import (
     merge_nested,
     preset_config,
 )
-from capvector.loading import load_safetensors
+from capvector.io.loading import load_safetensors
 
 if TYPE_CHECKING:
     from capvector.backbones.pi05 import Pi05

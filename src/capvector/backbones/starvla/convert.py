@@ -39,7 +39,7 @@ from capvector.backbones.base import (
     merge_nested,
 )
 from capvector.backbones.common import read_required_json
-from capvector.loading import load_safetensors, load_torch
+from capvector.io.loading import load_safetensors, load_torch
 
 if TYPE_CHECKING:
     from capvector.backbones.starvla import StarVLA

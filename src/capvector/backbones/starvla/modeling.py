@@ -61,7 +61,7 @@ from capvector.backbones.starvla.configuration import (
 )
 from capvector.backbones.starvla.heads import HeadDims, HeadInput, build_head, head_class
 from capvector.data import keys
-from capvector.loading import load_safetensors
+from capvector.io.loading import load_safetensors
 
 # Qwen-VL's chat-format special tokens (the same strings in Qwen2-VL, Qwen2.5-VL and Qwen3-VL).
 IMAGE_PAD = "<|image_pad|>"
@@ -628,7 +628,7 @@ class StarVLA(VLABackbone):
         """The head's parameters alone, as one safetensors file (keys relative to the head)."""
         from safetensors.torch import save
 
-        from capvector.fileio import atomic_write_bytes
+        from capvector.io.outputs import atomic_write_bytes
 
         state = {k: v.detach().cpu().contiguous() for k, v in self.action_head.state_dict().items()}
         atomic_write_bytes(path, save(state, metadata={"format": "pt"}))

@@ -9,7 +9,7 @@ from pathlib import Path
 import imageio.v2 as imageio
 import numpy as np
 
-from capvector.fileio import atomic_write_file
+from capvector.io.outputs import atomic_write_file
 
 
 def write_video(

@@ -26,9 +26,9 @@ import torch
 from torch import Tensor
 
 from capvector.errors import CapVectorError  # noqa: F401 (re-exported: the vector tools' error)
-from capvector.loading import read_json
-from capvector.lora_layers import LoraFormatError, LoraLayer, split_lora
-from capvector.names import (  # noqa: F401 (re-exported: the vector modules' names)
+from capvector.io.loading import read_json
+from capvector.io.lora_layers import LoraFormatError, LoraLayer, split_lora
+from capvector.io.names import (  # noqa: F401 (re-exported: the vector modules' names)
     ADAPTER_CONFIG,
     ADAPTER_WEIGHTS,
     CHECKPOINT_MODEL_PREFIX,

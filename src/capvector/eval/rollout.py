@@ -14,11 +14,11 @@ dimension is binarised: > 0 closes (+1), otherwise opens (-1), the convention of
 robosuite. Success is ``env._check_success()`` after every step; the episode ends at the first
 success or at the step limit (``EpisodeSpec.max_steps``, else the task's default limit).
 
-Episodes are described by :class:`~capvector.sim.episodes.EpisodeSpec` (seeds, arm, scene
+Episodes are described by :class:`~capvector.eval.episodes.EpisodeSpec` (seeds, arm, scene
 variant; no simulator import). :class:`RolloutEvaluator` is the one loop every evaluation runs: the
 validation loop of ``VLAModule``, ``capvector evaluate`` and ``capvector sweep-scale``. It drives
 :class:`Episode` s one at a time (``batch_size=1``) or batched: ``batch_size`` episodes in flight
-in :class:`Slots` (here, or in :mod:`capvector.sim.workers` processes), one policy call per round
+in :class:`Slots` (here, or in :mod:`capvector.eval.workers` processes), one policy call per round
 for all of their next chunks (:func:`act`). Each episode has its own env, reset from its seed, so
 the outcome of an episode does not depend on how it was batched.
 """
@@ -35,9 +35,10 @@ from typing import Any
 
 import numpy as np
 
-from capvector.names import STAGE_CORES
+from capvector.eval.episodes import EVAL_SEED_START, EpisodeSpec, eval_specs
+from capvector.eval.workers import close_pools, worker_pool
+from capvector.io.names import STAGE_CORES
 from capvector.sim.envs import SimEnv, SimulationFault
-from capvector.sim.episodes import EVAL_SEED_START, EpisodeSpec, eval_specs
 from capvector.sim.policy import EpisodeResult, Observation, Policy, as_chunk
 from capvector.sim.variants import SceneRandomizer, get_variant
 
@@ -248,7 +249,7 @@ def run_episode(
 
 class Slots:
     """Episodes in flight in this process, one per slot, each slot with its own env cache (two
-    episodes running at once never share an env). :mod:`capvector.sim.workers` runs the same
+    episodes running at once never share an env). :mod:`capvector.eval.workers` runs the same
     in worker processes.
 
     ``handle`` takes ``(slot, "start", (spec, episode_kwargs))`` and ``(slot, "act", chunk)``
@@ -287,8 +288,6 @@ _local_slots = Slots()
 
 def close_envs() -> None:
     """Close the envs and worker processes that evaluations cached for reuse."""
-    from capvector.sim.workers import close_pools
-
     _default_envs.close()
     _local_slots.close()
     close_pools()
@@ -296,7 +295,7 @@ def close_envs() -> None:
 
 def act(policy: Policy, observations: Sequence[Observation]) -> list[np.ndarray]:
     """One chunk per observation; one call of ``policy.act_batch`` when the policy has it
-    (``capvector.policy.VLAPolicy``: one batched forward), else one call per observation."""
+    (``capvector.eval.policy.VLAPolicy``: one batched forward), else one call per observation."""
     batched = getattr(policy, "act_batch", None)
     chunks = batched(observations) if batched is not None else [policy(o) for o in observations]
     if len(chunks) != len(observations):
@@ -388,10 +387,8 @@ class RolloutEvaluator:
     ) -> list[EpisodeResult]:
         """Up to ``batch_size`` episodes at once: the simulators step (in worker processes, or
         here) while the policy waits, then one policy call serves every episode's next chunk."""
-        from capvector.sim.workers import worker_pool
-
         workers = default_workers(self.batch_size) if self.workers is None else self.workers
-        slots = worker_pool(workers) if workers >= 2 else _local_slots
+        slots = worker_pool(workers, Slots) if workers >= 2 else _local_slots
         pending = deque(zip(range(len(specs)), positions, specs, strict=True))
         results: list[EpisodeResult | None] = [None] * len(specs)
         running: dict[int, int] = {}  # slot -> index in specs
@@ -424,7 +421,7 @@ class RolloutEvaluator:
         return results  # type: ignore[return-value]
 
     def _write_video(self, result: EpisodeResult) -> None:
-        from capvector.sim.video import write_video
+        from capvector.eval.video import write_video
 
         assert self.video_dir is not None and result.frames
         variant = f"_{result.variant}" if result.variant else ""

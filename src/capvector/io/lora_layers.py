@@ -1,7 +1,7 @@
 """peft LoRA layers in state dicts: found, and merged ``W + s·ΔW``, in one place.
 
 Every path that turns LoRA into plain weights goes through here: ``VLAModule.export``, reading a
-LoRA checkpoint as a vector source (``vectors.io``), reading a PEFT adapter as a vector
+LoRA checkpoint as a vector source (``io.weights``), reading a PEFT adapter as a vector
 (``vectors.lowrank``), and importing OpenVLA-OFT's adapters (``backbones.openvla_oft.convert``). The delta
 follows peft's ``get_delta_weight`` (``peft/tuners/lora/layer.py``): ``B @ A`` for Linear and 1×1-B
 Conv layers, ``(B @ A)ᵀ`` for Embedding and for ``fan_in_fan_out`` (Conv1D) layers, times the

@@ -23,7 +23,7 @@ class VLAPolicy:
     """Callable ``policy(observation) -> (T, A) float32`` in the simulator's raw action units.
 
     ``observation``: ``images`` {camera: uint8 (H, W, 3) upright}, ``proprio`` raw (P,),
-    ``instruction`` str — the format ``capvector.sim.rollout.run_episode`` passes.
+    ``instruction`` str — the format ``capvector.eval.rollout.run_episode`` passes.
     """
 
     def __init__(self, backbone: VLABackbone, data_spec: DataSpec) -> None:

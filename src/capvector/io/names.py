@@ -49,7 +49,7 @@ change outcomes, unlike torch's thread count)."""
 class CheckpointMetadata:
     """``checkpoint["capvector"]``: what tools outside Lightning need to read a checkpoint.
 
-    ``VLAModule.on_save_checkpoint`` writes it; ``load_module`` and ``vectors.io`` read it.
+    ``VLAModule.on_save_checkpoint`` writes it; ``load_module`` and ``io.weights`` read it.
     """
 
     family: str

@@ -1,5 +1,5 @@
 """LoRA through peft: injection into a backbone, what trains, frozen dtypes (merging LoRA into
-plain weights is :mod:`capvector.lora_layers`)."""
+plain weights is :mod:`capvector.io.lora_layers`)."""
 
 from __future__ import annotations
 

@@ -2,11 +2,12 @@
 
 The simulators' Python controllers (robosuite's OSC runs in Python on every 2 ms substep) cost
 most of an evaluation; worker processes step several episodes on as many cores while the policy,
-in the calling process, waits for their observations. A pool runs :class:`~capvector.sim.rollout.
+in the calling process, waits for their observations. A pool runs :class:`~capvector.eval.rollout.
 Slots` in each worker, slot ``s`` on worker ``s % n``, and is kept for reuse across evaluations
 (a worker starts in seconds: robosuite's import and its envs' compilation) until
-:func:`capvector.sim.rollout.close_envs`. Workers are spawned, not forked, so no torch threads or
-GL contexts of the parent are copied into them.
+:func:`capvector.eval.rollout.close_envs`. Workers are spawned, not forked, so no torch threads or
+GL contexts of the parent are copied into them. The rollout hands its ``Slots`` class to the pool
+(``worker_pool(n, Slots)``), so this module does not import the loop that imports it.
 """
 
 from __future__ import annotations
@@ -14,17 +15,23 @@ from __future__ import annotations
 import contextlib
 import multiprocessing as mp
 import traceback
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from multiprocessing.connection import Connection
-from typing import Any
-
-from capvector.sim.rollout import Slots
+from typing import Any, Protocol
 
 __all__ = ["WorkerPool", "close_pools", "worker_pool"]
 
 
-def _serve(connection: Connection) -> None:
-    slots = Slots()
+class Slots(Protocol):
+    """What each worker runs: :class:`capvector.eval.rollout.Slots`."""
+
+    def handle(self, commands: Sequence[tuple[int, str, Any]]) -> list[tuple[int, Any]]: ...
+
+    def close(self) -> None: ...
+
+
+def _serve(connection: Connection, make_slots: Callable[[], Slots]) -> None:
+    slots = make_slots()
     try:
         while (commands := connection.recv()) is not None:
             try:
@@ -38,18 +45,19 @@ def _serve(connection: Connection) -> None:
 
 
 class WorkerPool:
-    """``workers`` processes running :class:`Slots`; :meth:`handle` as ``Slots.handle``."""
+    """``workers`` processes each running ``make_slots()``; :meth:`handle` as ``Slots.handle``."""
 
-    def __init__(self, workers: int) -> None:
+    def __init__(self, workers: int, make_slots: Callable[[], Slots]) -> None:
         if workers < 1:
             raise ValueError(f"a worker pool needs at least 1 worker, got {workers}")
+        self.make_slots = make_slots
         context = mp.get_context("spawn")
         self._connections: list[Connection] = []
         self._processes = []
         for i in range(workers):
             ours, theirs = context.Pipe()
             process = context.Process(
-                target=_serve, args=(theirs,), name=f"capvector-sim-{i}", daemon=True
+                target=_serve, args=(theirs, make_slots), name=f"capvector-sim-{i}", daemon=True
             )
             process.start()
             theirs.close()
@@ -102,13 +110,13 @@ class WorkerPool:
 _pools: dict[int, WorkerPool] = {}
 
 
-def worker_pool(workers: int) -> WorkerPool:
+def worker_pool(workers: int, make_slots: Callable[[], Slots]) -> WorkerPool:
     """A running pool of ``workers`` processes, reused across evaluations."""
     for pool in _pools.values():
-        if len(pool) == workers:
+        if len(pool) == workers and pool.make_slots is make_slots:
             return pool
     close_pools()
-    pool = WorkerPool(workers)
+    pool = WorkerPool(workers, make_slots)
     _pools[id(pool)] = pool
     return pool
 

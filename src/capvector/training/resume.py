@@ -15,9 +15,8 @@ from pathlib import Path
 import lightning as L
 from lightning.pytorch.callbacks import ModelCheckpoint
 
-from capvector.callbacks.export import ExportOnFitEnd
 from capvector.errors import CapVectorError
-from capvector.fileio import check_writable
+from capvector.io.outputs import check_writable
 
 LAST = "last.ckpt"
 
@@ -88,8 +87,8 @@ def check_fit_outputs(trainer: L.Trainer) -> None:
     for logger in trainer.loggers:
         if getattr(logger, "save_dir", None):
             paths.append((f"the {type(logger).__name__}'s save_dir", logger.save_dir))
-    for callback in trainer.callbacks:
-        if isinstance(callback, ModelCheckpoint | ExportOnFitEnd) and callback.dirpath:
+    for callback in trainer.callbacks:  # ModelCheckpoint, ExportOnFitEnd: the folder they write
+        if getattr(callback, "dirpath", None):
             paths.append((f"{type(callback).__name__}'s dirpath", callback.dirpath))
     for what, path in paths:
         check_writable(path, f"into {what}", inside=True)

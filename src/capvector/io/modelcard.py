@@ -13,7 +13,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from capvector.names import MODEL_CARD
+from capvector.io.names import MODEL_CARD
 
 LIBRARY = "capvector"
 

@@ -1,4 +1,4 @@
-"""Per-device training memory and training FLOPs, from a meta-device build (nothing allocated).
+"""Per-device training memory, from a meta-device build (nothing allocated).
 
 Parameters, gradients and AdamW state follow from what trains and the dtype each parameter is
 stored in, as ``VLAModule`` sets them up: LoRA (``inject_lora``) or full fine-tuning, unused and
@@ -29,7 +29,7 @@ import functools
 import weakref
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -42,12 +42,16 @@ from torch.utils._python_dispatch import TorchDispatchMode, _disable_current_mod
 from capvector.backbones.base import VLABackbone, build_backbone, list_presets, preset_config
 from capvector.data import keys
 from capvector.errors import CapVectorError
-from capvector.lora import FROZEN_DTYPES, LoraSettings, cast_frozen_parameters, set_trainable
+from capvector.training.lora import (
+    FROZEN_DTYPES,
+    LoraSettings,
+    cast_frozen_parameters,
+    set_trainable,
+)
 
 STRATEGIES = ("ddp", "fsdp2", "deepspeed_zero2", "deepspeed_zero3")
 PRECISIONS = ("32-true", "bf16-mixed", "bf16-true")
 ATTENTION_PATHS = ("math", "efficient")
-OBJECTIVES = ("spatial", "reasoning")
 GIB = 1024**3
 
 
@@ -488,7 +492,8 @@ def _check(strategy: str, precision: str, frozen_dtype: str, attention: str) -> 
     return FROZEN_DTYPES[frozen_dtype]
 
 
-def _meta_backbone(preset: str, lora_rank: int | None, **overrides: Any) -> VLABackbone:
+def meta_backbone(preset: str, lora_rank: int | None, **overrides: Any) -> VLABackbone:
+    """``preset`` with its weights on the meta device, trainable as LoRA of ``lora_rank`` or fully."""
     with torch.device("meta"):
         backbone = build_backbone(preset, **_tiny_tokenizer(preset), **overrides)
         set_trainable(backbone, lora_settings(lora_rank))
@@ -523,7 +528,7 @@ def estimate_memory(
     shard_grads = strategy != "ddp" and devices > 1
     traces = []
     for checkpointed in (False, True):
-        backbone = _meta_backbone(preset, lora_rank)
+        backbone = meta_backbone(preset, lora_rank)
         set_storage_dtypes(backbone, precision, dtype)
         batch = synthetic_batch(backbone, batch_size, "cpu")
         try:
@@ -577,128 +582,10 @@ def describe(estimate: MemoryEstimate, **settings: Any) -> str:
     return f"per-device memory estimate ({header}):\n{estimate.table()}"
 
 
-# -- FLOPs -------------------------------------------------------------------------------------
-
-
-@dataclass
-class FlopsEstimate:
-    """Model FLOPs of one training step per sample, by auxiliary objective attached.
-
-    Forward and backward are counted separately (``torch.utils.flop_counter``: matmuls,
-    convolutions and attention; elementwise work is not counted). The backward is traced, not
-    assumed 2x: frozen weights need no weight gradients, so a LoRA step costs about 2x the
-    forward, full fine-tuning about 3x. Activation checkpointing recomputes the blocks' forward
-    on top (hardware FLOPs), which model FLOPs utilisation by convention does not count.
-    """
-
-    forward: dict[str, float] = field(default_factory=dict)
-    backward: dict[str, float] = field(default_factory=dict)
-
-    def training(self, objective: str = "action") -> float:
-        return self.forward[objective] + self.backward[objective]
-
-    def gpu_hours(
-        self,
-        objective: str,
-        steps: int,
-        batch_size: int,
-        devices: int,
-        mfu: float,
-        gpu_tflops: float,
-    ) -> float:
-        """GPU-hours of ``steps`` optimizer steps at ``batch_size`` per device on ``devices``."""
-        samples = steps * batch_size * devices
-        return samples * self.training(objective) / (mfu * gpu_tflops * 1e12) / 3600
-
-    def table(
-        self, steps: int, batch_size: int, devices: int, mfu: float, gpu_tflops: float
-    ) -> str:
-        names = {"action": "action loss only", "spatial": "+ spatial alignment",
-                 "reasoning": "+ reasoning co-training"}  # fmt: skip
-        lines = [
-            f"training FLOPs per sample (model FLOPs) and GPU-hours for {steps:,} steps x batch "
-            f"{batch_size} x {devices} device(s) at MFU {mfu:g} of {gpu_tflops:g} TFLOP/s:",
-            f"  {'':<26} {'forward':>10} {'backward':>10} {'train':>10} {'vs SFT':>7} {'GPU-h':>9}",
-        ]
-        for key, label in names.items():
-            if key not in self.forward:
-                continue
-            hours = self.gpu_hours(key, steps, batch_size, devices, mfu, gpu_tflops)
-            lines.append(
-                f"  {label:<26} {self.forward[key] / 1e12:9.3f}T {self.backward[key] / 1e12:9.3f}T "
-                f"{self.training(key) / 1e12:9.3f}T {self.training(key) / self.training():6.2f}x "
-                f"{hours:9.1f}"
-            )
-        lines.append(
-            "  (wall-clock hours = GPU-hours / devices; activation checkpointing adds about one "
-            "forward of the blocks)"
-        )
-        return "\n".join(lines)
-
-
-def make_objective(name: str) -> Any:
-    """The auxiliary objective ``name`` with its defaults (spatial: the geometric teacher)."""
-    from capvector.objectives import ReasoningCoTraining, SpatialAlignment
-
-    if name == "spatial":
-        return SpatialAlignment()
-    if name == "reasoning":
-        return ReasoningCoTraining()
-    raise CapVectorError(f"unknown objective {name!r}; choose from {', '.join(OBJECTIVES)}")
-
-
-def training_step_flops(
-    backbone: VLABackbone, batch: dict[str, Any], objective: Any = None
-) -> tuple[float, float]:
-    """(forward, backward) FLOPs of one training step of ``backbone`` (weights on meta or real)
-    with ``objective`` added to the loss as ``VLAModule.training_step`` does."""
-    from torch.utils.flop_counter import FlopCounterMode
-
-    meta = any(p.is_meta for p in backbone.parameters())
-    with FlopCounterMode(display=False) as counter, HostValuesMetaCompute() if meta else _null():
-        request = objective.request if objective is not None else None
-        output = backbone(batch, request)
-        loss = output.loss
-        if objective is not None:
-            loss = loss + objective.weight * objective(batch, output, backbone)
-        forward = counter.get_total_flops()
-        loss.backward()
-    return float(forward), float(counter.get_total_flops() - forward)
-
-
-@contextmanager
-def _null() -> Iterator[None]:
-    yield
-
-
-def estimate_flops(
-    preset: str,
-    batch_size: int = 8,
-    lora_rank: int | None = None,
-    objectives: Sequence[str] = OBJECTIVES,
-) -> FlopsEstimate:
-    """Training FLOPs per sample of ``preset`` (weights on the meta device), plain and with each
-    of ``objectives`` attached. Attention is counted as its matmuls, whichever kernel runs it."""
-    estimate = FlopsEstimate()
-    for name in ("action", *objectives):
-        backbone = _meta_backbone(preset, lora_rank)
-        objective = None
-        if name != "action":
-            objective = make_objective(name)
-            objective.bind(backbone)  # builds projectors, unfreezes the LM head without LoRA
-            objective.to("meta")  # its projector too: gradients must stay on one device
-        batch = synthetic_batch(backbone, batch_size, "cpu", objectives=True)
-        forward, backward = training_step_flops(backbone, batch, objective)
-        estimate.forward[name] = forward / batch_size
-        estimate.backward[name] = backward / batch_size
-    return estimate
-
-
 __all__ = [
-    "FlopsEstimate",
     "MemoryEstimate",
     "describe",
-    "estimate_flops",
     "estimate_memory",
-    "training_step_flops",
+    "meta_backbone",
+    "synthetic_batch",
 ]

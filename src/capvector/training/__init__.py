@@ -1,0 +1,8 @@
+"""The training core beside ``capvector.module`` (``VLAModule``) and ``capvector fit``.
+
+- :mod:`~capvector.training.lora`: LoRA through peft: injection, what trains, frozen dtypes
+- :mod:`~capvector.training.distributed`: FSDP2 sharding, activation checkpointing, sharded state
+- :mod:`~capvector.training.resume`: what ``--ckpt_path last`` resumes; a fit's outputs checked
+  before it starts
+- :mod:`~capvector.training.loggers`: a CSV logger whose history survives a resumed fit
+"""
