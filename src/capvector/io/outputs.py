@@ -4,7 +4,7 @@
   ``--out P --overwrite`` cannot delete the inputs kept in ``P``), must not exist unless
   overwritten, and must be writable.
 - ``atomic_directory`` / ``atomic_write_file``: the result is written into a temporary sibling
-  ``.NAME.tmp-PID-XXXX`` and renamed into place only when complete. A lock (``.NAME.lock``) lets one
+  ``.NAME.tmp-<pid>-<random>`` and renamed into place only when complete. A lock (``.NAME.lock``) lets one
   process at a time write ``NAME``; the next writer of ``NAME`` sweeps the temporaries of writers
   that died without cleaning up (``kill -9``). Other exits (exceptions, Ctrl-C, and SIGTERM, which
   the CLI turns into an exception) remove their temporary on the way out.
