@@ -150,16 +150,6 @@ def test_a_bad_argument_is_one_line_naming_help(
     assert err.rstrip().endswith(f"(see capvector {argv[0]} --help)"), err
 
 
-def test_a_record_in_a_config_file_is_checked(
-    tmp_path: Path, capfd: pytest.CaptureFixture[str]
-) -> None:
-    config = tmp_path / "report.yaml"
-    config.write_text("run_dir: R\narm: [[a, a_s*]]\nout: O\n")
-    assert cli.main(["report", "--config", str(config)]) == 2
-    err = capfd.readouterr().err
-    assert "argument --arm: expected LABEL GLOB START, got ['a', 'a_s*']" in err, err
-
-
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
@@ -178,14 +168,23 @@ def test_what_the_library_checks_is_one_line_before_any_work(
     assert not out.exists()
 
 
-def test_a_config_file_with_an_unknown_key_is_one_line(
-    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+@pytest.mark.parametrize(
+    ("command", "config", "message"),
+    [
+        ("export", "ckpt: C\nout: O\noverwirte: true\n", "overwirte"),
+        ("report", "run_dir: R\narm: [[a, a_s*]]\nout: O\n",
+         "argument --arm: expected LABEL GLOB START, got ['a', 'a_s*']"),
+    ],
+)  # fmt: skip
+def test_a_bad_config_file_is_one_line(
+    command: str, config: str, message: str, tmp_path: Path, capfd: pytest.CaptureFixture[str]
 ) -> None:
-    config = tmp_path / "export.yaml"
-    config.write_text("ckpt: C\nout: O\noverwirte: true\n")
-    assert cli.main(["export", "--config", str(config)]) == 2
+    """An unknown key; a record whose values do not fit it (checked as the command line's)."""
+    path = tmp_path / "options.yaml"
+    path.write_text(config)
+    assert cli.main([command, "--config", str(path)]) == 2
     err = capfd.readouterr().err
-    assert err.count("\n") == 1 and "overwirte" in err, err
+    assert err.count("\n") == 1 and message in err, err
 
 
 RECIPES = [
