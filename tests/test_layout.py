@@ -31,6 +31,7 @@ LAYERS = [
     ["data", "eval"],
     ["sim", "vectors"],
     ["io"],
+    ["tool_cli"],
     ["errors"],
 ]
 """docs/architecture.md's picture: a module imports from its own layer or those below it."""

@@ -7,6 +7,7 @@ importing the simulator and ``capvector fit`` does not pay for the vector tools.
 
 from __future__ import annotations
 
+import argparse
 import errno
 import importlib
 import os
@@ -17,12 +18,15 @@ import threading
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
-from capvector.errors import CapVectorError, ToolParser, config_error
+from capvector.errors import CapVectorError, config_error
 from capvector.io.outputs import check_output
+from capvector.tool_cli import Tool, run_tool
 
 if TYPE_CHECKING:
+    from jsonargparse import ArgumentParser
+
     from capvector.backbones import VLABackbone
 
 LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
@@ -228,53 +232,68 @@ def _check_before_recording(config: object) -> None:
 
 
 def backbone_info_main(argv: list[str]) -> int:
+    return run_tool(backbone_info_cli, argv, "backbone-info")
+
+
+def backbone_info_cli(
+    preset: str | None = None,
+    /,
+    *,
+    list: bool = False,
+    memory: bool = False,
+    flops: bool = False,
+    batch: int = 8,
+    precision: str = "bf16-mixed",
+    strategy: str = "fsdp2",
+    devices: int = 1,
+    lora_rank: int | None = None,
+    frozen_dtype: str = "float32",
+    attention: str = "efficient",
+    activation_checkpointing: bool = False,
+    steps: int = 100_000,
+    mfu: float = 0.4,
+    gpu_tflops: float = 989.0,
+) -> None:
     """Parameter counts per component from a meta-device build (no memory, no download); with
-    --memory the per-device training memory, with --flops the training FLOPs and GPU-hours."""
+    --memory the per-device training memory, with --flops the training FLOPs and GPU-hours.
+
+    Args:
+        preset: a registered preset; omit with --list
+        list: list the registered presets
+        memory: estimate per-device training memory
+        flops: training FLOPs per sample, GPU-hours
+        batch: per-device batch size
+        precision: trainer.precision: 32-true, bf16-mixed or bf16-true
+        strategy: ddp, fsdp2, deepspeed_zero2 or deepspeed_zero3
+        devices: devices the model is sharded over
+        lora_rank: train LoRA of this rank
+        frozen_dtype: storage dtype of the parameters that do not train (model.frozen_dtype)
+        attention: SDPA as a GPU runs it, efficient (efficient/flash kernels: no S x S attention
+            matrix kept), or math (what the meta device and some CPUs take)
+        activation_checkpointing: the total assumes model.activation_checkpointing: true
+        steps: optimizer steps (--flops)
+        mfu: model FLOPs utilisation (--flops)
+        gpu_tflops: peak dense TFLOP/s (H100 bf16: 989)
+    """
     import torch
 
     from capvector.backbones import build_backbone, list_presets
-    from capvector.profiling.memory import ATTENTION_PATHS, FROZEN_DTYPES, PRECISIONS, STRATEGIES
 
-    parser = ToolParser(prog="capvector backbone-info", description=backbone_info_main.__doc__)
-    parser.add_argument("preset", nargs="?", help="a registered preset; omit with --list")
-    parser.add_argument("--list", action="store_true", help="list the registered presets")
-    parser.add_argument("--memory", action="store_true", help="estimate per-device training memory")
-    parser.add_argument("--flops", action="store_true", help="training FLOPs per sample, GPU-hours")
-    parser.add_argument("--batch", type=int, default=8, help="per-device batch size")
-    parser.add_argument("--precision", default="bf16-mixed", choices=PRECISIONS)
-    parser.add_argument("--strategy", default="fsdp2", choices=STRATEGIES)
-    parser.add_argument("--devices", type=int, default=1, help="devices the model is sharded over")
-    parser.add_argument("--lora-rank", type=int, default=None, help="train LoRA of this rank")
-    parser.add_argument(
-        "--frozen-dtype",
-        default="float32",
-        choices=list(FROZEN_DTYPES),
-        help="storage dtype of the parameters that do not train (model.frozen_dtype)",
-    )
-    parser.add_argument(
-        "--attention",
-        default="efficient",
-        choices=ATTENTION_PATHS,
-        help="SDPA as a GPU runs it (efficient/flash kernels: no S x S attention matrix kept) or "
-        "the math path (what the meta device and some CPUs take)",
-    )
-    parser.add_argument(
-        "--activation-checkpointing",
-        action="store_true",
-        help="the total assumes model.activation_checkpointing: true",
-    )
-    parser.add_argument("--steps", type=int, default=100_000, help="optimizer steps (--flops)")
-    parser.add_argument("--mfu", type=float, default=0.4, help="model FLOPs utilisation (--flops)")
-    parser.add_argument(
-        "--gpu-tflops", type=float, default=989.0, help="peak dense TFLOP/s (H100 bf16: 989)"
-    )
-    args = parser.parse_args(argv)
-    if args.list or not args.preset:
+    if list or not preset:
         print("\n".join(list_presets()))
-        return 0
+        return
+    settings = {
+        "batch_size": batch, "precision": precision, "strategy": strategy, "devices": devices,
+        "lora_rank": lora_rank, "frozen_dtype": frozen_dtype, "attention": attention,
+        "activation_checkpointing": activation_checkpointing,
+    }  # fmt: skip
+    if memory:  # first: it checks the settings, so a typo fails before anything is printed
+        from capvector.profiling.memory import describe, estimate_memory
+
+        estimate = describe(estimate_memory(preset, **settings), **settings)
     with torch.device("meta"):
-        model = build_backbone(args.preset)
-    print(f"{args.preset} ({type(model).__name__})")
+        model = build_backbone(preset)
+    print(f"{preset} ({type(model).__name__})")
     rows = [
         (name, sum(p.numel() for p in child.parameters())) for name, child in model.named_children()
     ]
@@ -286,112 +305,115 @@ def backbone_info_main(argv: list[str]) -> int:
         print(f"  {name:<{width}}  {count:>15,}")
     print(f"  {'total':<{width}}  {total:>15,}")
     print(f"  {'capability':<{width}}  {in_vector:>15,}  (parameters a capability vector covers)")
-    if args.memory:
-        from capvector.profiling.memory import describe, estimate_memory
-
-        settings = {
-            "batch_size": args.batch, "precision": args.precision, "strategy": args.strategy,
-            "devices": args.devices, "lora_rank": args.lora_rank,
-            "frozen_dtype": args.frozen_dtype, "attention": args.attention,
-            "activation_checkpointing": args.activation_checkpointing,
-        }  # fmt: skip
-        print(describe(estimate_memory(args.preset, **settings), **settings))
-    if args.flops:
+    if memory:
+        print(estimate)
+    if flops:
         from capvector.profiling.flops import estimate_flops
 
-        flops = estimate_flops(args.preset, batch_size=args.batch, lora_rank=args.lora_rank)
+        counted = estimate_flops(preset, batch_size=batch, lora_rank=lora_rank)
         print(
-            flops.table(
-                steps=args.steps, batch_size=args.batch, devices=args.devices, mfu=args.mfu,
-                gpu_tflops=args.gpu_tflops,
+            counted.table(
+                steps=steps, batch_size=batch, devices=devices, mfu=mfu, gpu_tflops=gpu_tflops
             )
-        )  # fmt: skip
-    return 0
+        )
 
 
 def export_main(argv: list[str]) -> int:
-    """Export a Lightning checkpoint to a folder that `extract`, `merge` and `evaluate` read."""
+    return run_tool(export_cli, argv, "export")
+
+
+def export_cli(ckpt: str, out: str, overwrite: bool = False) -> None:
+    """Export a Lightning checkpoint to a folder that `extract`, `merge` and `evaluate` read.
+
+    Args:
+        ckpt: Lightning checkpoint (.ckpt)
+        out: output folder (written atomically)
+        overwrite: replace an existing --out
+    """
     from capvector.module import load_module
 
-    parser = ToolParser(prog="capvector export", description=export_main.__doc__)
-    parser.add_argument("--ckpt", required=True, help="Lightning checkpoint (.ckpt)")
-    parser.add_argument("--out", required=True, help="output folder (written atomically)")
-    parser.add_argument("--overwrite", action="store_true")
-    args = parser.parse_args(argv)
-    check_output(args.out, args.overwrite, [args.ckpt])  # before loading the checkpoint
-    folder = load_module(args.ckpt).export(args.out, overwrite=args.overwrite)
-    print(f"exported {args.ckpt} to {folder}")
-    return 0
+    check_output(out, overwrite, [ckpt])  # before loading the checkpoint
+    folder = load_module(ckpt).export(out, overwrite=overwrite)
+    print(f"exported {ckpt} to {folder}")
 
 
 def import_original_main(argv: list[str]) -> int:
-    """Convert an original project's checkpoint (OpenVLA-OFT run folder, LeRobot pi05 policy folder,
-    StarVLA checkpoint + Qwen folder) into an export folder usable as ``--model.pretrained`` (θ_pre).
-    The architecture comes from the checkpoint's own config files; statistics are always written.
-    Each family adds its own options (below, by family; ``--preset P --help`` shows P's)."""
-    import json
-
+    """``capvector import-original``: ``import_original_cli``'s options and the family's own
+    (``VLABackbone.import_options``), of the family of the preset ``argv`` names, or of every
+    registered family when it names none (for ``--help``)."""
     from capvector.backbones import backbone_class, preset_config
     from capvector.backbones.base import registered_families
 
-    parser = ToolParser(prog="capvector import-original", description=import_original_main.__doc__)
-    parser.add_argument(
-        "--preset", required=True, help="the architecture, e.g. openvla-oft-7b, pi05-3b"
-    )
-    parser.add_argument(
-        "--folder", required=True, help="original checkpoint folder (or StarVLA checkpoint file)"
-    )
-    parser.add_argument("--out", required=True, help="export folder to write (atomically)")
-    parser.add_argument(
-        "--override",
-        default="{}",
-        help='JSON of config fields to change, e.g. \'{"featurizer": {"depth": 2}}\' (a nested '
-        "object changes only the fields it names)",
-    )
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
-    # The family's own options (VLABackbone.import_options): the preset's family only, or every
-    # registered family's when no preset is given (for --help).
-    peek = ToolParser(prog=parser.prog, add_help=False)
+    peek = argparse.ArgumentParser(add_help=False)
     peek.add_argument("--preset")
     preset = peek.parse_known_args(argv)[0].preset
-    family = None if preset is None else preset_config(preset).family
-    families = registered_families() if family is None else {family: backbone_class(family)}
-    _add_import_options(parser, families)
-    args = parser.parse_args(argv)
-    try:
-        overrides = json.loads(args.override)
-    except json.JSONDecodeError as exc:
-        raise CapVectorError(f"--override is not JSON ({exc}): {args.override!r}") from exc
-    if not isinstance(overrides, dict):
-        raise CapVectorError(f"--override must be a JSON object, got {args.override!r}")
-    cls = families[family]
-    options = {o.name: getattr(args, o.name) for o in cls.import_options if o.name in args}
-    # The family's Path options name files the import reads: the output must stay clear of them.
-    inputs = [args.folder, *(options.get(o.name) for o in cls.import_options if o.type is Path)]
-    check_output(args.out, args.overwrite, inputs)  # before reading the checkpoint
-    imported = cls.from_original(args.folder, preset=args.preset, overrides=overrides, **options)
-    imported.model.save_pretrained(
-        args.out,
-        extra_json={"dataset_statistics.json": imported.statistics},
-        overwrite=args.overwrite,
-        card_facts={
-            "imported from": str(Path(args.folder).resolve()),
-            "command": shlex.join(["capvector", "import-original", *argv]),
-        },
-        base_model=str(args.folder),
-        inputs=inputs,
-    )
-    n_params = sum(p.numel() for p in imported.model.parameters())
-    print(f"wrote {args.out} ({family}, {n_params:,} parameters)")
+    families = registered_families()
+    if preset is not None:
+        families = {(family := preset_config(preset).family): backbone_class(family)}
+    command = shlex.join(["capvector", "import-original", *argv])
+    tool = Tool(import_original_cli, "import-original", skip=["command"])
+    _add_import_options(tool.parser, families)
+    tool.call(tool.parse(argv), command=command)
     return 0
 
 
-def _add_import_options(parser: ToolParser, families: Mapping[str, type[VLABackbone]]) -> None:
+def import_original_cli(
+    preset: str,
+    folder: str,
+    out: str,
+    override: str = "{}",
+    overwrite: bool = False,
+    *,
+    command: str,
+    **options: Any,
+) -> None:
+    """Convert an original project's checkpoint (OpenVLA-OFT run folder, LeRobot pi05 policy folder,
+    StarVLA checkpoint + Qwen folder) into an export folder usable as ``--model.pretrained`` (θ_pre).
+    The architecture comes from the checkpoint's own config files; statistics are always written.
+    Each family adds its own options (below, by family; ``--preset P --help`` shows P's).
+
+    Args:
+        preset: the architecture, e.g. openvla-oft-7b, pi05-3b
+        folder: original checkpoint folder (or StarVLA checkpoint file)
+        out: export folder to write (atomically)
+        override: JSON of config fields to change, e.g. '{"featurizer": {"depth": 2}}' (a nested
+            object changes only the fields it names)
+        overwrite: replace an existing --out
+        command: the command line, for the model card
+        options: the family's ``import_options``
+    """
+    import json
+
+    from capvector.backbones import backbone_class, preset_config
+
+    try:
+        overrides = json.loads(override)
+    except json.JSONDecodeError as exc:
+        raise CapVectorError(f"--override is not JSON ({exc}): {override!r}") from exc
+    if not isinstance(overrides, dict):
+        raise CapVectorError(f"--override must be a JSON object, got {override!r}")
+    family = preset_config(preset).family
+    cls = backbone_class(family)
+    # The family's Path options name files the import reads: the output must stay clear of them.
+    inputs = [folder, *(options.get(o.name) for o in cls.import_options if o.type is Path)]
+    check_output(out, overwrite, inputs)  # before reading the checkpoint
+    imported = cls.from_original(folder, preset=preset, overrides=overrides, **options)
+    imported.model.save_pretrained(
+        out,
+        extra_json={"dataset_statistics.json": imported.statistics},
+        overwrite=overwrite,
+        card_facts={"imported from": str(Path(folder).resolve()), "command": command},
+        base_model=str(folder),
+        inputs=inputs,
+    )
+    n_params = sum(p.numel() for p in imported.model.parameters())
+    print(f"wrote {out} ({family}, {n_params:,} parameters)")
+
+
+def _add_import_options(parser: ArgumentParser, families: Mapping[str, type[VLABackbone]]) -> None:
     """One argument group per family with its ``import_options``; an option two families declare
     is one flag whose help names both. Absent options are left out of the parsed namespace, so
     the loader's own defaults apply."""
-    import argparse
-
     from capvector.backbones import BackboneError
 
     added: dict[str, argparse.Action] = {}

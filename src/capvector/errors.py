@@ -1,12 +1,9 @@
-"""The project's error type, and the argument parser every tool uses: bad input is one line that
-says what to do, exit code 2."""
+"""The project's error type: bad input is one line that says what to do, exit code 2."""
 
 from __future__ import annotations
 
-import argparse
 import difflib
 from collections.abc import Iterable
-from typing import NoReturn
 
 
 class CapVectorError(ValueError):
@@ -40,11 +37,3 @@ def config_error(where: str, err: Exception) -> CapVectorError:
     message = str(getattr(err, "msg", None) or err).strip().splitlines()[0]
     key = getattr(err, "full_key", None)
     return CapVectorError(f"{where}: {message}" + (f" (at {key})" if key else ""))
-
-
-class ToolParser(argparse.ArgumentParser):
-    """argparse that reports a bad argument as one line, ``prog: error: ... (see prog --help)``,
-    with exit code 2, instead of the usage block followed by the error."""
-
-    def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")

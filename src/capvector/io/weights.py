@@ -15,12 +15,13 @@ import hashlib
 import json
 import math
 import os
+import re
 import struct
 from abc import ABC, abstractmethod
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import torch
 from torch import Tensor
@@ -46,6 +47,8 @@ from capvector.io.names import (  # noqa: F401 (re-exported: the vector modules'
 
 DEFAULT_MAX_SHARD_SIZE = 2 * 10**9
 """2 GB, counted like transformers' ``max_shard_size="2GB"``."""
+StorageDtype = Literal["float32", "bfloat16", "float16"]
+"""What a vector or merged model may be stored in, by name (``parse_dtype`` reads these)."""
 CHUNK_BYTES = 32 * 1024**2
 """Row chunks are sized so that one chunk in float32 takes about this many bytes: a handful of
 chunk-sized temporaries stay well under the 1 GB budget next to torch's own ~0.5 GB."""
@@ -82,6 +85,16 @@ _SAFETENSORS_CODES = {dtype: code for code, dtype in _SAFETENSORS_DTYPES.items()
 def dtype_name(dtype: torch.dtype) -> str:
     """``torch.bfloat16`` -> ``"bfloat16"`` (the spelling used in JSON metadata and on the CLI)."""
     return str(dtype).removeprefix("torch.")
+
+
+def parse_size(size: int | str) -> int:
+    """Bytes from ``2GB`` (10^9 bytes, as in transformers), ``2GiB`` (2^30), ``500MB`` or a number."""
+    match = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*(?:([KMGT])(i?)B)?\s*", str(size), re.IGNORECASE)
+    if not match:
+        raise CapVectorError(f"not a size: {size!r} (try 2GB or 500MB)")
+    number, unit, binary = match.groups()
+    power = "KMGT".index(unit.upper()) + 1 if unit else 0
+    return int(float(number) * (1024 if binary else 1000) ** power)
 
 
 def parse_dtype(name: str) -> torch.dtype:

@@ -32,7 +32,6 @@ starts its default evaluation seeds at ``EVAL_SEED_START`` (1,000,000).
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import os
@@ -46,18 +45,18 @@ import h5py
 import numpy as np
 from tqdm import tqdm
 
-from capvector.errors import CapVectorError, ToolParser
+from capvector.errors import CapVectorError
 from capvector.io.outputs import atomic_write_file, check_output
 from capvector.sim.annotations import Annotator
 from capvector.sim.envs import (
     DEFAULT_CAMERAS,
     DEFAULT_IMAGE_SIZE,
     PROPRIO_KEYS,
-    TASKS,
     SimEnv,
     SimulationFault,
 )
 from capvector.sim.experts import ScriptedExpert, make_expert
+from capvector.tool_cli import run_tool
 
 log = logging.getLogger(__name__)
 
@@ -317,72 +316,57 @@ def _parse_fovy(items: Sequence[str]) -> dict[str, float]:
     return fovy
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = ToolParser(
-        prog="capvector demos",
-        description="Record scripted-expert demonstrations (robosuite 1.5) to robomimic-layout HDF5.",
-    )
-    p.add_argument("--task", required=True, choices=sorted(TASKS))
-    p.add_argument("--episodes", type=int, required=True, help="successful demos to save")
-    p.add_argument("--out", required=True, help="HDF5 file to write (atomically)")
-    p.add_argument(
-        "--robot", default="Panda", help="robosuite arm: Panda, IIWA, UR5e, Kinova3, ..."
-    )
-    p.add_argument(
-        "--gripper",
-        default=None,
-        help="gripper override, e.g. PandaGripper (arms whose default gripper has 6 joints need one)",
-    )
-    p.add_argument("--image-size", type=int, default=DEFAULT_IMAGE_SIZE)
-    p.add_argument(
-        "--cameras",
-        nargs="*",
-        default=list(DEFAULT_CAMERAS),
-        help="cameras to render; none (a bare --cameras) records low-dim demos only, fast",
-    )
-    p.add_argument("--depth", action="store_true", help="also store <camera>_depth in metres")
-    p.add_argument("--seed", type=int, default=0, help="first seed; attempts use seed, seed+1, ...")
-    p.add_argument("--noise", type=float, default=DEFAULT_NOISE, help="DART noise std on xyz")
-    p.add_argument("--extra-steps", type=int, default=DEFAULT_EXTRA_STEPS)
-    p.add_argument("--max-attempts", type=int, default=None)
-    p.add_argument(
-        "--fovy",
-        nargs="*",
-        default=[],
-        metavar="CAMERA=DEG",
-        help="override a camera's vertical field of view (task defaults: Lift/Stack agentview=35)",
-    )
-    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
-    return p
-
-
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``capvector demos``; returns the process exit code."""
-    args = build_parser().parse_args(argv)
+    return run_tool(demos_cli, argv, "demos")
+
+
+def demos_cli(
+    task: str,
+    episodes: int,
+    out: str,
+    robot: str = "Panda",
+    gripper: str | None = None,
+    image_size: int = DEFAULT_IMAGE_SIZE,
+    cameras: Sequence[str] = DEFAULT_CAMERAS,
+    depth: bool = False,
+    seed: int = 0,
+    noise: float = DEFAULT_NOISE,
+    extra_steps: int = DEFAULT_EXTRA_STEPS,
+    max_attempts: int | None = None,
+    fovy: Sequence[str] = (),
+    progress: bool = True,
+) -> None:
+    """Record scripted-expert demonstrations (robosuite 1.5) to robomimic-layout HDF5.
+
+    Args:
+        task: Lift, Stack, PickPlaceCan, ... (capvector.sim.tasks)
+        episodes: successful demos to save
+        out: HDF5 file to write (atomically)
+        robot: robosuite arm: Panda, IIWA, UR5e, Kinova3, ...
+        gripper: gripper override, e.g. PandaGripper (arms whose default gripper has 6 joints
+            need one)
+        cameras: cameras to render; none (a bare --cameras) records low-dim demos only, fast
+        depth: also store <camera>_depth in metres
+        seed: first seed; attempts use seed, seed+1, ...
+        noise: DART noise std on xyz
+        max_attempts: attempts before giving up (default: max(2 x episodes, episodes + 20))
+        fovy: CAMERA=DEG: override a camera's vertical field of view (task defaults: Lift/Stack
+            agentview=35)
+        progress: show the progress bar
+    """
     summary = record_demos(
-        args.task,
-        args.episodes,
-        args.out,
-        robot=args.robot,
-        gripper=args.gripper,
-        cameras=args.cameras,
-        image_size=args.image_size,
-        depth=args.depth,
-        seed=args.seed,
-        noise=args.noise,
-        extra_steps=args.extra_steps,
-        max_attempts=args.max_attempts,
-        camera_fovy=_parse_fovy(args.fovy),
-        progress=not args.no_progress,
-    )
+        task, episodes, out, robot=robot, gripper=gripper, cameras=cameras, image_size=image_size,
+        depth=depth, seed=seed, noise=noise, extra_steps=extra_steps, max_attempts=max_attempts,
+        camera_fovy=_parse_fovy(fovy), progress=progress,
+    )  # fmt: skip
     lengths = np.asarray(summary.lengths)
     print(
-        f"wrote {summary.demos} {args.task} demos ({args.robot}, {summary.samples} samples) to "
+        f"wrote {summary.demos} {task} demos ({robot}, {summary.samples} samples) to "
         f"{summary.path}: expert success {summary.demos}/{summary.attempts} attempts "
         f"({summary.success_rate:.1%}), steps to success mean {lengths.mean():.1f} "
         f"max {lengths.max()}, {summary.seconds / summary.demos:.2f} s/demo"
     )
-    return 0
 
 
 if __name__ == "__main__":  # one error path: bad input is one line, as from `capvector demos`

@@ -26,10 +26,12 @@ from capvector.io.outputs import atomic_directory, check_output
 from capvector.io.weights import (
     DEFAULT_MAX_SHARD_SIZE,
     CapVectorError,
+    StorageDtype,
     TensorInfo,
     dtype_summary,
     examples,
     parse_dtype,
+    parse_size,
     row_chunks,
 )
 from capvector.vectors.vector import VectorFolder, VectorFolderWriter
@@ -46,8 +48,8 @@ def compose(
     weights: Sequence[float] | None = None,
     density: float = 0.2,
     consensus: str = "sum",
-    dtype: torch.dtype | str | None = None,
-    max_shard_size: int = DEFAULT_MAX_SHARD_SIZE,
+    dtype: StorageDtype | None = None,
+    max_shard_size: int | str = DEFAULT_MAX_SHARD_SIZE,
     overwrite: bool = False,
     progress: bool = False,
     command: str | None = None,
@@ -55,15 +57,20 @@ def compose(
     """Write the composition of ``vectors`` (full, low-rank or PEFT folders) as a full vector folder.
 
     Args:
+        vectors: the vector folders.
+        out: the vector folder to create (atomically; an existing one needs ``overwrite``).
         method: ``"sum"`` (Σ w_i c_i) or ``"ties"`` (see the module docstring).
         weights: one per vector (default 1.0 each).
         density: TIES trim, the fraction of entries kept per vector and tensor.
         consensus: TIES sign election, ``"sum"`` (the paper's, mass-weighted) or ``"count"``.
         dtype: storage dtype (default: the inputs' common dtype).
+        max_shard_size: bytes per ``capability_vector`` shard, or a size such as ``2GB``.
+        overwrite: replace an existing ``out``.
 
     Returns:
         The metadata written to ``capability_vector.json``.
     """
+    max_shard_size = parse_size(max_shard_size)
     if method not in METHODS:
         raise CapVectorError(f"unknown --method {method!r}; choose from {', '.join(METHODS)}")
     if consensus not in CONSENSUS:

@@ -21,6 +21,7 @@ from capvector.io.weights import (
     DEFAULT_MAX_SHARD_SIZE,
     CapVectorError,
     Scratch,
+    StorageDtype,
     TensorInfo,
     WeightSource,
     compute_dtype,
@@ -29,6 +30,7 @@ from capvector.io.weights import (
     examples,
     open_weights,
     parse_dtype,
+    parse_size,
     row_chunks,
     select_keys,
 )
@@ -61,8 +63,8 @@ def extract(
     objectives: Sequence[str] | None = None,
     *,
     full_rank: Sequence[str] = (),
-    dtype: torch.dtype | str | None = None,
-    max_shard_size: int = DEFAULT_MAX_SHARD_SIZE,
+    dtype: StorageDtype | None = None,
+    max_shard_size: int | str = DEFAULT_MAX_SHARD_SIZE,
     overwrite: bool = False,
     progress: bool = False,
     command: str | None = None,
@@ -81,7 +83,8 @@ def extract(
         objectives: names of the auxiliary objectives behind θ_aux (default: what aux records).
         full_rank: globs of 2-D weights kept in full even in low-rank mode (e.g. embeddings).
         dtype: storage dtype (default: the inputs'). Differences are computed in float32.
-        max_shard_size: bytes per ``capability_vector`` shard.
+        max_shard_size: bytes per ``capability_vector`` shard, or a size such as ``2GB``.
+        overwrite: replace an existing ``out``.
         progress: show a tqdm bar.
         command: the command line that asked for it, recorded in the metadata and model card.
 
@@ -92,6 +95,7 @@ def extract(
         CapVectorError: for bad input, including aux and sft being the same folder (before any
             work) or holding identical values (after streaming them; nothing is written).
     """
+    max_shard_size = parse_size(max_shard_size)
     if rank is not None and energy is not None:
         raise CapVectorError("pass either --rank or --energy, not both")
     if rank is not None and rank < 1:

@@ -110,6 +110,7 @@ def group_of(key: str) -> tuple[str, str | None, int | None]:
 
 def inspect_vector(
     path: str | Path,
+    /,
     against: str | Path | None = None,
     plot: str | Path | None = None,
     progress: bool = False,
@@ -117,7 +118,13 @@ def inspect_vector(
     """Per-layer norms of the vector at ``path``; with ``against``, per-layer and overall cosines.
 
     Norms and inner products are computed from the stored tensors (low-rank ones through their
-    factors' rows), chunk by chunk. ``plot`` writes a PNG of norms (and cosines) by layer.
+    factors' rows), chunk by chunk.
+
+    Args:
+        path: a vector folder.
+        against: a second vector folder to compare with.
+        plot: a PNG to write, of norms (and cosines) by layer.
+        progress: show a tqdm bar.
     """
     if plot is not None:
         check_output(plot, overwrite=True, inputs=[path, against], what="--plot")

@@ -2,15 +2,16 @@
 
 from __future__ import annotations
 
-import json
+from collections.abc import Sequence
+from json import dumps
 from pathlib import Path
 
 from capvector.data.episodes import EvalTask
-from capvector.errors import ToolParser
 from capvector.eval.policy import VLAPolicy
 from capvector.eval.results import SuccessRow, format_success_table, success_rows
 from capvector.io.outputs import atomic_write_bytes, check_output
 from capvector.module import load_module
+from capvector.tool_cli import run_tool
 
 
 def evaluate(
@@ -42,51 +43,49 @@ def evaluate(
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = ToolParser(prog="capvector evaluate", description="MuJoCo rollouts of a checkpoint.")
-    parser.add_argument("--ckpt", required=True, help="Lightning checkpoint or export folder")
-    parser.add_argument("--task", nargs="+", default=["Lift"], help="robosuite task(s)")
-    parser.add_argument("--robot", default="Panda")
-    parser.add_argument(
-        "--gripper", default=None, help="e.g. PandaGripper for IIWA/UR5e/Kinova3/Jaco"
-    )
-    parser.add_argument("--episodes", type=int, default=20)
-    parser.add_argument(
-        "--variant", nargs="+", default=[None], metavar="NAME",
-        help="zero-shot scene variants (camera, camera-strong, lighting, color, all, sawyer, ur5e);"
-        " each task is evaluated in each",
-    )  # fmt: skip
-    parser.add_argument(
-        "--start-seed", type=int, default=EvalTask.start_seed, help="first evaluation seed"
-    )
-    parser.add_argument(
-        "--video", default=None, help="folder for mp4s of the first --videos episodes"
-    )
-    parser.add_argument("--videos", type=int, default=2)
-    parser.add_argument("--execute-steps", type=int, default=None)
-    parser.add_argument(
-        "--batch-size", type=int, default=8,
-        help="episodes in flight at once, one batched policy forward for all (1: one at a time)",
-    )  # fmt: skip
-    parser.add_argument(
-        "--workers", type=int, default=None,
-        help="processes stepping the simulators (0: this one; default: one per core)",
-    )  # fmt: skip
-    parser.add_argument("--json", default=None, help="also write the rows as JSON")
-    args = parser.parse_args(argv)
-    for what, out in (("--json", args.json), ("--video", args.video)):
-        if out is not None:  # before minutes of rollouts
-            check_output(out, overwrite=True, inputs=[args.ckpt], what=what)
+    return run_tool(evaluate_cli, argv, "evaluate")
+
+
+def evaluate_cli(
+    ckpt: str,
+    task: Sequence[str] = ("Lift",),
+    robot: str = "Panda",
+    gripper: str | None = None,
+    episodes: int = 20,
+    variant: Sequence[str | None] = (None,),
+    start_seed: int = EvalTask.start_seed,
+    video: str | None = None,
+    videos: int = 2,
+    execute_steps: int | None = None,
+    batch_size: int = 8,
+    workers: int | None = None,
+    json: str | None = None,
+) -> None:
+    """MuJoCo rollouts of a checkpoint.
+
+    Args:
+        ckpt: Lightning checkpoint or export folder
+        task: robosuite task(s)
+        gripper: e.g. PandaGripper for IIWA/UR5e/Kinova3/Jaco
+        variant: zero-shot scene variants (camera, camera-strong, lighting, color, all, sawyer,
+            ur5e); each task is evaluated in each
+        start_seed: first evaluation seed
+        video: folder for mp4s of the first --videos episodes
+        batch_size: episodes in flight at once, one batched policy forward for all (1: one at a
+            time)
+        workers: processes stepping the simulators (0: this one; default: one per core)
+        json: also write the rows as JSON
+    """
+    for what, path in (("--json", json), ("--video", video)):
+        if path is not None:  # before minutes of rollouts
+            check_output(path, overwrite=True, inputs=[ckpt], what=what)
     tasks = [
-        EvalTask(t, args.episodes, args.robot, args.start_seed, gripper=args.gripper, variant=v)
-        for t in args.task
-        for v in args.variant
+        EvalTask(t, episodes, robot, start_seed, gripper=gripper, variant=v)
+        for t in task
+        for v in variant
     ]
-    rows = evaluate(
-        args.ckpt, tasks, args.video, args.videos, args.execute_steps, args.batch_size,
-        args.workers,
-    )  # fmt: skip
+    rows = evaluate(ckpt, tasks, video, videos, execute_steps, batch_size, workers)
     print(format_success_table(rows))
-    if args.json:
+    if json:
         payload = [r.to_dict() for r in rows]
-        atomic_write_bytes(args.json, json.dumps(payload, indent=2).encode())
-    return 0
+        atomic_write_bytes(json, dumps(payload, indent=2).encode())

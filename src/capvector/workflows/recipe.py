@@ -41,15 +41,16 @@ import re
 import subprocess
 import sys
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from capvector.errors import CapVectorError, ToolParser, config_error, did_you_mean
+from capvector.errors import CapVectorError, config_error, did_you_mean
 from capvector.eval.results import SuccessRow, format_success_table
 from capvector.io.names import STAGE_CORES
 from capvector.io.outputs import atomic_write_bytes
+from capvector.tool_cli import run_tool
 
 DONE = ".done"
 OUT_REFERENCE = re.compile(r"\$\{out\.([A-Za-z0-9_]+)\.([A-Za-z0-9_]*)")
@@ -412,25 +413,31 @@ def collect_results(stages: list[Stage]) -> list[SuccessRow]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = ToolParser(prog="capvector recipe", description=__doc__.splitlines()[0])
-    parser.add_argument("--config", required=True, help="recipe YAML (configs/recipes/*.yaml)")
-    parser.add_argument("--dry-run", action="store_true", help="print the stage commands only")
-    parser.add_argument(
-        "--jobs", type=int, default=None,
-        help="stages run at once when their `after` stages are done (default: the recipe's `jobs`, 1)",
-    )  # fmt: skip
-    parser.add_argument(
-        "--threads", type=int, default=None,
-        help=f"torch threads of every stage (default: the recipe's `threads`, {DEFAULT_THREADS}); "
-        "results depend on it, not on --jobs",
-    )  # fmt: skip
-    parser.add_argument(
-        "--only", nargs="+", metavar="STAGE",
-        help="run only these stages and the stages they wait for",
-    )  # fmt: skip
-    parser.add_argument("overrides", nargs="*", help="dotlist overrides, e.g. run_dir=runs/x")
-    args = parser.parse_args(argv)
-    rows = run(args.config, args.overrides, args.dry_run, args.jobs, args.only, args.threads)
+    return run_tool(recipe_cli, argv, "recipe")
+
+
+def recipe_cli(
+    overrides: Sequence[str] = (),
+    /,
+    *,
+    config: str,
+    dry_run: bool = False,
+    jobs: int | None = None,
+    threads: int | None = None,
+    only: list[str] | None = None,
+) -> None:
+    """Run the whole recipe, or the stages some need, as resumable stages.
+
+    Args:
+        overrides: dotlist overrides, e.g. run_dir=runs/x
+        config: recipe YAML (configs/recipes/*.yaml)
+        dry_run: print the stage commands only
+        jobs: stages run at once when their `after` stages are done (default: the recipe's
+            `jobs`, 1)
+        threads: torch threads of every stage (default: the recipe's `threads`, 1); results
+            depend on it, not on --jobs
+        only: run only these stages and the stages they wait for
+    """
+    rows = run(config, list(overrides), dry_run, jobs, only, threads)
     if rows:
         print("\nResults\n" + format_success_table(rows))
-    return 0

@@ -16,9 +16,9 @@ import json
 import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
-from capvector.errors import CapVectorError, ToolParser
+from capvector.errors import CapVectorError
 from capvector.eval.comparison import (
     ArmOutcomes,
     area_under_curve,
@@ -28,6 +28,7 @@ from capvector.eval.comparison import (
 )
 from capvector.eval.results import metric_key
 from capvector.io.outputs import atomic_write_bytes, check_output
+from capvector.tool_cli import run_tool
 
 SUCCESS = "val/success_rate"
 EPISODES = "val/episodes"
@@ -354,36 +355,58 @@ def _comparison_json(arms: list[ArmOutcomes], differences: list[dict], resamples
     }
 
 
+class Arm(NamedTuple):
+    """A training arm on the command line: ``--arm LABEL GLOB START``."""
+
+    label: str
+    glob: str
+    start: str
+
+
+class Reference(NamedTuple):
+    """An evaluate-only arm: ``--reference LABEL STAGE``."""
+
+    label: str
+    stage: str
+
+
+class ZeroShotArm(NamedTuple):
+    """An arm's zero-shot evaluate stages: ``--zero-shot LABEL GLOB``."""
+
+    label: str
+    glob: str
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = ToolParser(prog="capvector report", description=__doc__.splitlines()[0])
-    parser.add_argument("--run-dir", required=True, type=Path, help="the recipe's run folder")
-    parser.add_argument(
-        "--arm", nargs=3, action="append", required=True, metavar=("LABEL", "GLOB", "START"),
-        help="an arm: its label, a glob of its fit stages (one per seed) and the evaluate stage "
-        "of its starting weights (its step 0)",
-    )  # fmt: skip
-    parser.add_argument(
-        "--reference", nargs=2, action="append", default=[], metavar=("LABEL", "STAGE"),
-        help="an evaluate-only arm (no training), drawn as a horizontal line",
-    )  # fmt: skip
-    parser.add_argument("--threshold", type=float, default=0.5, help="success rate to reach")
-    parser.add_argument("--out", required=True, type=Path, help="folder for the results")
-    parser.add_argument(
-        "--compare-to", nargs="+", default=None, metavar="LABEL",
-        help="arms to compare every other arm with: differences in success per step and in the "
-        "area under the curve, paired bootstrap 95%% intervals from the per-episode outcomes",
-    )  # fmt: skip
-    parser.add_argument(
-        "--zero-shot", nargs=2, action="append", default=[], metavar=("LABEL", "GLOB"),
-        help="an arm's evaluate stages (one per seed, run with --variant ...): success per "
-        "scene variant, compared like --compare-to",
-    )  # fmt: skip
-    parser.add_argument("--resamples", type=int, default=10_000, help="bootstrap resamples")
-    args = parser.parse_args(argv)
-    table = report(
-        args.run_dir, args.arm, args.reference, args.out, args.threshold, args.compare_to,
-        args.zero_shot, args.resamples,
-    )  # fmt: skip
+    return run_tool(report_cli, argv, "report")
+
+
+def report_cli(
+    run_dir: Path,
+    arm: list[Arm],
+    out: Path,
+    reference: list[Reference] | None = None,
+    threshold: float = 0.5,
+    compare_to: list[str] | None = None,
+    zero_shot: list[ZeroShotArm] | None = None,
+    resamples: int = 10_000,
+) -> None:
+    """The downstream comparison of a recipe run as a table and a plot.
+
+    Args:
+        run_dir: the recipe's run folder
+        arm: an arm: its label, a glob of its fit stages (one per seed) and the evaluate stage of
+            its starting weights (its step 0); repeatable
+        out: folder for the results
+        reference: an evaluate-only arm (no training), drawn as a horizontal line; repeatable
+        threshold: success rate to reach
+        compare_to: arms to compare every other arm with: differences in success per step and
+            in the area under the curve, paired bootstrap 95% intervals from the per-episode
+            outcomes
+        zero_shot: an arm's evaluate stages (one per seed, run with --variant ...): success per
+            scene variant, compared like --compare-to; repeatable
+        resamples: bootstrap resamples
+    """
+    table = report(run_dir, arm, reference or [], out, threshold, compare_to, zero_shot, resamples)
     print(table)
-    print(f"\nplot: {args.out / 'success_vs_steps.png'}")
-    return 0
+    print(f"\nplot: {out / 'success_vs_steps.png'}")

@@ -9,7 +9,6 @@ Results go to ``<out>/sweep.json`` after every λ, so an interrupted sweep resum
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 from typing import Any
@@ -18,11 +17,12 @@ import torch
 from tqdm import tqdm
 
 from capvector.data.episodes import EvalTask
-from capvector.errors import CapVectorError, ToolParser
+from capvector.errors import CapVectorError
 from capvector.eval.episodes import VALIDATION_SEED_START
 from capvector.eval.results import success_cell, wilson_interval
 from capvector.io.outputs import atomic_write_bytes, atomic_write_file, check_output
 from capvector.module import held_out_action_l1, load_module
+from capvector.tool_cli import run_tool
 
 
 def held_out_l1(module: Any, demos: str, batch_size: int = 16) -> float:
@@ -174,41 +174,45 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
     plt.close(fig)
 
 
-def _scales(text: str) -> list[float]:
-    try:
-        return [float(s) for s in text.split(",")]
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"--scales takes numbers like 0,0.5,1, got {text!r}"
-        ) from None
-
-
 def main(argv: list[str] | None = None) -> int:
-    parser = ToolParser(prog="capvector sweep-scale", description=__doc__.splitlines()[0])
-    parser.add_argument("--base", required=True, help="θ_pre: export folder or checkpoint")
-    parser.add_argument("--vector", required=True, help="capability vector folder")
-    parser.add_argument(
-        "--scales",
-        type=_scales,
-        default="0,0.25,0.5,0.75,1,1.25,1.5",
-        help="λ values, e.g. 0,0.5,1",
-    )
-    parser.add_argument("--task", default=None, help="robosuite task for validation rollouts")
-    parser.add_argument("--robot", default="Panda")
-    parser.add_argument("--episodes", type=int, default=0, help="validation episodes per λ")
-    parser.add_argument("--demos", default=None, help="held-out demos (HDF5) for the action L1")
-    parser.add_argument("--finetune-steps", type=int, default=0, help="downstream SFT steps per λ")
-    parser.add_argument("--orth-weight", type=float, default=1.0)
-    parser.add_argument(
-        "--allow-large-scale", action="store_true", help="accept |λ| > 100 in --scales"
-    )
-    parser.add_argument("--out", required=True, help="folder for sweep.json and sweep.png")
-    args = parser.parse_args(argv)
-    if not (args.task and args.episodes) and not args.demos:
+    return run_tool(sweep_cli, argv, "sweep-scale")
+
+
+def sweep_cli(
+    base: str,
+    vector: str,
+    out: str,
+    scales: str = "0,0.25,0.5,0.75,1,1.25,1.5",
+    task: str | None = None,
+    robot: str = "Panda",
+    episodes: int = 0,
+    demos: str | None = None,
+    finetune_steps: int = 0,
+    orth_weight: float = 1.0,
+    allow_large_scale: bool = False,
+) -> None:
+    """Choose the merge scale λ by MuJoCo rollouts on validation seeds and the held-out L1.
+
+    Args:
+        base: θ_pre: export folder or checkpoint
+        vector: capability vector folder
+        out: folder for sweep.json and sweep.png
+        scales: λ values, e.g. 0,0.5,1
+        task: robosuite task for validation rollouts
+        episodes: validation episodes per λ
+        demos: held-out demos (HDF5) for the action L1
+        finetune_steps: downstream SFT steps per λ
+        orth_weight: weight of the orthogonal regularization while fine-tuning
+        allow_large_scale: accept |λ| > 100 in --scales
+    """
+    try:
+        values = [float(s) for s in scales.split(",")]
+    except ValueError:
+        raise CapVectorError(f"--scales takes numbers like 0,0.5,1, got {scales!r}") from None
+    if not (task and episodes) and not demos:
         raise CapVectorError("give --task/--episodes (rollouts) and/or --demos (held-out L1)")
-    rows = sweep(args.base, args.vector, args.scales, args.out, args.task, args.episodes, args.robot,
-                 args.demos, args.finetune_steps, args.orth_weight, args.allow_large_scale)  # fmt: skip
-    plot(rows, Path(args.out) / "sweep.png")
+    rows = sweep(base, vector, values, out, task, episodes, robot, demos, finetune_steps,
+                 orth_weight, allow_large_scale)  # fmt: skip
+    plot(rows, Path(out) / "sweep.png")
     print(format_table(rows))
-    print(f"\nbest λ = {best_scale(rows):g}  (plot: {Path(args.out) / 'sweep.png'})")
-    return 0
+    print(f"\nbest λ = {best_scale(rows):g}  (plot: {Path(out) / 'sweep.png'})")
