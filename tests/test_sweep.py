@@ -93,7 +93,7 @@ data:
 """)
     (row,) = sweep(
         str(tmp_path / "pre"), str(tmp_path / "vector"), [1.0], str(tmp_path / "sweep"),
-        demos=str(data), configs=[str(config)],
+        demos=str(data), fit_configs=[str(config)],
     )  # fmt: skip
     with (tmp_path / "sweep" / "scale_1" / "version_0" / "episodes.csv").open() as f:
         assert [r["seed"] for r in csv.DictReader(f)] == ["2000000", "2000001"]
@@ -107,7 +107,8 @@ data:
             f"--data.val_files=[{data}]", "--trainer.logger=false",
             f"--trainer.default_root_dir={tmp_path / 'validate'}", *args,
         ])  # fmt: skip
-        return {k: float(v) for k, v in cli.trainer.callback_metrics.items()}  # type: ignore[attr-defined]
+        metrics = cli.trainer.callback_metrics  # type: ignore[attr-defined]
+        return {k: float(v) for k, v in metrics.items()}
 
     logged = validate(
         "--data.eval_tasks=[{task: Lift, episodes: 2, max_steps: 8, start_seed: 2000000}]"

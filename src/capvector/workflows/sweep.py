@@ -5,9 +5,9 @@ fine-tuned for a few steps with the orthogonal regularization, then scored by th
 validation loop (``trainer.validate``): the action L1 on held-out demos and rollouts on validation
 seeds, which are disjoint from the evaluation seeds used for reporting (as the task-vector
 literature picks λ on held-out validation data). The model, data module and trainer are those of
-``capvector fit --config ... --model.pretrained θ_pre``; without a config, quiet defaults built from
-θ_pre's data spec and the options. Results go to ``<out>/sweep.json`` after every λ, so an
-interrupted sweep resumes where it stopped; each λ's logs to ``<out>/scale_<λ>/``.
+``capvector fit --config FIT --model.pretrained θ_pre`` (``--fit-config FIT``); without one, quiet
+defaults from θ_pre's data spec and the options. Results go to ``<out>/sweep.json`` after every λ,
+so an interrupted sweep resumes where it stopped; each λ's logs to ``<out>/scale_<λ>/``.
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ from capvector.io.outputs import atomic_write_bytes, atomic_write_file, check_ou
 
 def fit_settings(
     base: str,
-    configs: Sequence[str] = (),
+    fit_configs: Sequence[str] = (),
     task: str | None = None,
     episodes: int = 0,
     robot: str = "Panda",
@@ -43,11 +43,11 @@ def fit_settings(
 ) -> Any:
     """The sweep's model, data and trainer settings, parsed by ``capvector fit``'s LightningCLI
     (``trainer:``, ``data:`` and ``model:`` mean what they mean there), with θ_pre as
-    ``model.pretrained``. Without ``configs``: a quiet trainer (accelerator auto, one device) and a
-    data module of ``demos`` (training and held-out) shaped as θ_pre's data. ``task``/``episodes``
-    replace ``data.eval_tasks``, ``demos`` sets ``data.val_files``; every rollout task starts at
-    ``VALIDATION_SEED_START`` or above, never on evaluation seeds. Returns the CLI (``parser``,
-    ``config``) without building anything."""
+    ``model.pretrained``. Without ``fit_configs``: a quiet trainer (accelerator auto, one device)
+    and a data module of ``demos`` (training and held-out) shaped as θ_pre's data.
+    ``task``/``episodes`` replace ``data.eval_tasks``, ``demos`` sets ``data.val_files``; every
+    rollout task starts at ``VALIDATION_SEED_START`` or above, never on evaluation seeds. Returns
+    the CLI (``parser``, ``config``) without building anything."""
     from jsonargparse import Namespace
 
     from capvector.backbones.base import load_export_config
@@ -55,7 +55,7 @@ def fit_settings(
 
     with warnings.catch_warnings():  # the args are ours, never sys.argv: nothing is shadowed
         warnings.filterwarnings("ignore", "LightningCLI's args parameter")
-        cli = run_lightning_cli([a for c in configs for a in ("--config", c)], run=False)
+        cli = run_lightning_cli([a for c in fit_configs for a in ("--config", c)], run=False)
     config = cli.config
     if task and episodes:
         tasks = [EvalTask(task, episodes, robot)]
@@ -65,22 +65,22 @@ def fit_settings(
     data = config.data
     if not (data.eval_tasks or data.val_files or data.val_episodes):
         raise CapVectorError(
-            "give --task/--episodes (rollouts) and/or --demos (held-out L1), or a --config whose "
-            "data has eval_tasks or val_files"
+            "give --task/--episodes (rollouts) and/or --demos (held-out L1), or a --fit-config "
+            "whose data has eval_tasks or val_files"
         )
     for t in data.eval_tasks or []:  # validation seeds, never the evaluation ones
         t.start_seed = max(t.start_seed, VALIDATION_SEED_START)
     EpisodeDataset([EvalTask(**vars(t)) for t in data.eval_tasks or []])  # unknown task: fails
     load_export_config(base)  # an export folder, before any work
     config["model.pretrained"] = base
-    if not configs:
+    if not fit_configs:
         for key, value in quiet_defaults(base_data_spec(base), demos).items():
             config[key] = value
     return cli
 
 
 def quiet_defaults(spec: DataSpec, demos: str | None) -> dict[str, Any]:
-    """The settings of a sweep without ``--config``: one device of any accelerator, no progress
+    """The settings of a sweep without ``--fit-config``: one device of any accelerator, no progress
     bars, checkpoints or videos, and ``demos`` (if any) as training data shaped as θ_pre's."""
     return {
         "seed_everything": 0,
@@ -101,12 +101,12 @@ def quiet_defaults(spec: DataSpec, demos: str | None) -> dict[str, Any]:
 
 
 def base_data_spec(base: str) -> DataSpec:
-    """θ_pre's data spec, which shapes the data module of a sweep without ``--config``."""
+    """θ_pre's data spec, which shapes the data module of a sweep without ``--fit-config``."""
     path = Path(base) / DATA_SPEC_FILE
     if not path.is_file():
         raise CapVectorError(
             f"--base {base} has no {DATA_SPEC_FILE} (an import, or not a capvector export): "
-            "give a --config whose data section describes the data"
+            "give a --fit-config whose data section describes the data"
         )
     return DataSpec(**read_json(path))
 
@@ -208,22 +208,22 @@ def sweep(
     finetune_steps: int = 0,
     orth_weight: float = 1.0,
     allow_large_scale: bool = False,
-    configs: Sequence[str] = (),
+    fit_configs: Sequence[str] = (),
 ) -> list[dict[str, Any]]:
     from capvector.vectors import load_vector
     from capvector.vectors.merge import check_scale
 
     for scale in scales:  # all of them before the first (minutes-long) λ
         check_scale(scale, vector, allow_large_scale)
-    cli = fit_settings(base, configs, task, episodes, robot, demos)
+    cli = fit_settings(base, fit_configs, task, episodes, robot, demos)
     data = cli.config.data
     if finetune_steps and not (data.train_files or data.lerobot_root):
         raise CapVectorError(
             "--finetune-steps needs training data: --demos (the downstream training demos), or "
-            "data.train_files in --config"
+            "data.train_files in --fit-config"
         )
     c = load_vector(vector)  # a bad task or vector fails before the output folder is made
-    out_dir = check_output(out, overwrite=True, inputs=[base, vector, demos, *configs])
+    out_dir = check_output(out, overwrite=True, inputs=[base, vector, demos, *fit_configs])
     out_dir.mkdir(parents=True, exist_ok=True)  # resumed when there
     results_path = out_dir / "sweep.json"
     rows: list[dict[str, Any]] = (
@@ -320,13 +320,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--out", required=True, help="folder for sweep.json and sweep.png")
     parser.add_argument(
-        "--config", action="append", default=[],
+        "--fit-config", action="append", default=[],
         help="a `capvector fit` config (repeatable): its trainer, data and model settings",
     )  # fmt: skip
     args = parser.parse_args(argv)
     rows = sweep(args.base, args.vector, args.scales, args.out, args.task, args.episodes, args.robot,
                  args.demos, args.finetune_steps, args.orth_weight, args.allow_large_scale,
-                 args.config)  # fmt: skip
+                 args.fit_config)  # fmt: skip
     plot(rows, Path(args.out) / "sweep.png")
     print(format_table(rows))
     print(f"\nbest λ = {best_scale(rows):g}  (plot: {Path(args.out) / 'sweep.png'})")
