@@ -102,6 +102,7 @@ def test_pretrained_start_and_data_mismatch(demo_file: Path, tmp_path: Path) -> 
     module = VLAModule(backbone="openvla-oft-tiny", data_spec=dm.spec)
     folder = module.export(tmp_path / "pre")
     started = VLAModule(pretrained=str(folder), data_spec=dm.spec)
+    assert VLAModule(pretrained=str(folder)).data_spec == dm.spec  # unset: the export's own
     for (name, a), b in zip(
         module.backbone.state_dict().items(), started.backbone.state_dict().values(), strict=False
     ):

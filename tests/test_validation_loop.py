@@ -11,7 +11,9 @@ from pathlib import Path
 import pytest
 
 from capvector.cli import main
+from capvector.data.datamodule import RobotDataModule
 from capvector.data.episodes import EpisodeDataset, EpisodeSampler, EvalTask
+from capvector.data.hdf5 import DatasetError
 from capvector.eval.results import wilson_interval
 
 REPO = Path(__file__).resolve().parents[1]
@@ -27,6 +29,20 @@ def test_episode_sampler_evens_out_ranks_without_counting_twice() -> None:
     assert counted == sorted((s.task, s.seed) for s in dataset.specs)  # each episode exactly once
     assert sum(not item.counted for item in items) == 1
     assert all(s.seed >= 1_000_000 for s in dataset.specs)  # disjoint from demo seeds
+
+
+def test_a_data_module_of_rollouts_alone_validates_without_training_data(demo_file: Path) -> None:
+    """What `capvector validate --model.pretrained P --data.eval_tasks ...` and a sweep by rollouts
+    use: no training data, so no data spec (the model keeps the export's) and no training."""
+    dm = RobotDataModule(eval_tasks=[EvalTask("Lift", episodes=2)])
+    assert dm.spec is None
+    (batch,) = list(dm.val_dataloader())
+    assert [item.spec.seed for item in batch] == [1_000_000, 1_000_001]
+    with pytest.raises(DatasetError, match="training needs data.train_files"):
+        dm.train_dataloader()
+    for held_out in ({}, {"val_files": [str(demo_file)]}):  # held-out L1 needs training statistics
+        with pytest.raises(DatasetError, match="only rollouts .*validate without training data"):
+            RobotDataModule(**held_out)
 
 
 def test_wilson_interval() -> None:

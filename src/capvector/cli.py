@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import errno
 import importlib
-import os
 import shlex
 import signal
 import sys
@@ -20,9 +19,10 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from capvector.errors import CapVectorError, config_error
+from capvector.errors import CapVectorError
 from capvector.io.outputs import check_output
 from capvector.tool_cli import Tool, run_tool
+from capvector.workflows.fit import run_lightning_cli
 
 if TYPE_CHECKING:
     from jsonargparse import ArgumentParser
@@ -125,110 +125,6 @@ def _usage() -> str:
     lines += [f"  {name:<16} {help_}" for name, (_, help_) in TOOLS.items()]
     lines += ["", "Run `capvector COMMAND --help` for a command's options."]
     return "\n".join(lines)
-
-
-def run_lightning_cli(args: list[str] | None) -> object:
-    from argparse import ArgumentError
-
-    from jsonargparse import Namespace
-    from lightning.pytorch.cli import LightningCLI, SaveConfigCallback
-    from omegaconf.errors import OmegaConfBaseException
-
-    from capvector.data.datamodule import RobotDataModule
-    from capvector.module import VLAModule
-
-    class CapVectorCLI(LightningCLI):
-        def parse_arguments(self, parser, args) -> None:  # noqa: ANN001 (Lightning's)
-            from capvector.training.resume import check_ckpt_path
-
-            super().parse_arguments(parser, args)
-            # LightningCLI reads a given checkpoint's hyperparameters right after parsing.
-            check_ckpt_path(self.config[self.config["subcommand"]].get("ckpt_path"))
-
-        def add_arguments_to_parser(self, parser) -> None:  # noqa: ANN001 (jsonargparse parser)
-            # Shapes, camera order and statistics come from the data, never typed twice.
-            parser.link_arguments(
-                "data", "model.data_spec", apply_on="instantiate", compute_fn=lambda dm: dm.spec
-            )
-
-        def before_instantiate_classes(self) -> None:
-            # Lightning's default logger makes its version folder when the trainer sets up, so a
-            # fit refused in setup left an empty run folder; ours (same layout) waits for a write.
-            config = self.config[self.subcommand] if self.subcommand else self.config
-            trainer = config.trainer
-            if trainer.logger in (None, True):
-                trainer.logger = Namespace(
-                    class_path="capvector.training.loggers.CSVLogger",
-                    init_args=Namespace(
-                        save_dir=trainer.default_root_dir or os.getcwd(), name="lightning_logs"
-                    ),
-                )
-            if config.data.get("generate"):
-                _check_before_recording(config)
-
-        def before_fit(self) -> None:
-            from capvector.training.resume import (
-                check_ckpt_path,
-                check_fit_outputs,
-                resume_latest_run,
-            )
-
-            check_fit_outputs(self.trainer)
-            settings = self.config_init[self.subcommand]
-            if settings.get("ckpt_path") == "last":
-                settings["ckpt_path"] = str(resume_latest_run(self.trainer))
-                print(f"capvector fit: resuming {settings['ckpt_path']}")
-                check_ckpt_path(settings["ckpt_path"])
-
-    class SaveConfigAtFitStart(SaveConfigCallback):
-        """Lightning writes ``config.yaml`` into the run folder in ``setup``, before the module's
-        ``setup`` and ``configure_model`` (e.g. ``model.frozen_dtype`` without autocast) and the
-        callbacks' checks have run: a fit refused there left a run folder holding only the
-        config. A fit saves it at ``on_fit_start``, once every check has passed."""
-
-        def setup(self, trainer, pl_module, stage: str) -> None:  # noqa: ANN001 (Lightning's)
-            if stage != "fit":
-                super().setup(trainer, pl_module, stage)
-
-        def on_fit_start(self, trainer, pl_module) -> None:  # noqa: ANN001 (Lightning's)
-            super().setup(trainer, pl_module, "fit")
-
-    subcommand = (args or sys.argv[1:])[0]
-    try:
-        return CapVectorCLI(
-            VLAModule,
-            RobotDataModule,
-            args=args,
-            # jsonargparse's own handler prints the whole usage block (~75 lines) before a typo'd
-            # key; without exit_on_error it raises, and the error is the one line `main` prints.
-            parser_kwargs={"parser_mode": "omegaconf", "exit_on_error": False},
-            save_config_callback=SaveConfigAtFitStart,
-            save_config_kwargs={"overwrite": True},
-        )
-    except ArgumentError as err:  # the command line, a config file, a checkpoint's hparams
-        raise CapVectorError(f"{err} (see capvector {subcommand} --help)") from err
-    except OmegaConfBaseException as err:  # an interpolation in a config file
-        raise config_error(f"a {subcommand} config", err) from err
-
-
-def _check_before_recording(config: object) -> None:
-    """``data.generate`` records demos (minutes) when the CLI builds the data module: before the
-    model, the trainer and ``before_fit``'s output checks. What the config alone can tell is
-    checked first, so a typo does not cost a recording."""
-    from capvector.backbones import preset_config
-    from capvector.io.outputs import check_writable
-
-    model, trainer = config.model, config.trainer  # type: ignore[attr-defined]
-    if not model.get("pretrained"):
-        preset_config(model.backbone)  # an unknown preset, with close names
-    loggers = trainer.logger if isinstance(trainer.logger, list) else [trainer.logger]
-    paths = [("trainer.default_root_dir", trainer.default_root_dir or os.getcwd())]
-    for logger in loggers:
-        save_dir = (logger.get("init_args") or {}).get("save_dir") if logger else None
-        if save_dir:
-            paths.append((f"the logger's save_dir ({logger.class_path})", save_dir))
-    for what, path in paths:
-        check_writable(path, f"into {what}", inside=True)
 
 
 def backbone_info_main(argv: list[str]) -> int:

@@ -111,6 +111,7 @@ class VLAModule(L.LightningModule):
             pretrained: an export folder (θ_pre) to start from instead of random weights; its
                 architecture is the model's.
             data_spec: cameras, shapes and statistics; the CLI links it from the datamodule.
+                Unset (a data module without training data), ``pretrained``'s own.
             lora: fine-tune with LoRA (only LoRA and the heads train) instead of all weights.
             optimizer: AdamW and learning-rate schedule.
             activation_checkpointing: recompute the backbone's blocks (``shard_units``) in the
@@ -126,6 +127,8 @@ class VLAModule(L.LightningModule):
         self.save_hyperparameters()
         # Settings arrive as dataclasses (CLI, Python) or plain dicts (YAML, checkpoints); the
         # checkpoint keeps plain dicts so it loads with torch.load(weights_only=True).
+        if data_spec is None and pretrained is not None:
+            data_spec = _export_data_spec(pretrained)
         data_spec = _as(DataSpec, data_spec)
         lora = _as(LoraSettings, lora)
         optimizer = _as(OptimizerSettings, optimizer)
@@ -440,6 +443,12 @@ def held_out_action_l1(backbone: VLABackbone, batch: Mapping[str, Any]) -> Tenso
     return torch.nn.functional.l1_loss(
         output.actions.float(), target.to(output.actions.device).float()
     )
+
+
+def _export_data_spec(folder: str) -> dict[str, Any] | None:
+    """The data spec an export was trained with (None for one without, e.g. an import)."""
+    path = Path(folder) / DATA_SPEC_FILE
+    return read_json(path) if path.is_file() else None
 
 
 def _as(cls: type[T], value: T | Mapping[str, Any] | None) -> T | None:

@@ -41,7 +41,8 @@ class DemoGeneration:
 
 class RobotDataModule(L.LightningDataModule):
     """Training samples from HDF5 demos or a LeRobot v3 folder; optional held-out demos (files, or
-    episodes of the folder) for an action-L1 validation."""
+    episodes of the folder) for an action-L1 validation. With ``eval_tasks`` alone it only
+    validates, by rollouts (no training data, no ``spec``: the model keeps its own)."""
 
     def __init__(
         self,
@@ -107,10 +108,16 @@ class RobotDataModule(L.LightningDataModule):
         self.hparams["generate"] = dataclasses.asdict(self.generate) if self.generate else None
         self.train_dataset: HDF5RobotDataset | LeRobotV3Dataset | None = None
         self.val_dataset: HDF5RobotDataset | LeRobotV3Dataset | None = None
-        if (lerobot_root is None) == (not train_files):
+        if lerobot_root is not None and train_files:
             raise DatasetError(
-                "set exactly one of data.train_files (HDF5 files) and data.lerobot_root "
-                "(a LeRobot v3 folder)"
+                "set one of data.train_files (HDF5 files) and data.lerobot_root (a LeRobot v3 "
+                "folder), not both"
+            )
+        if not self.has_training_data and (val_files or not eval_tasks):
+            raise DatasetError(
+                "set data.train_files (HDF5 files) or data.lerobot_root (a LeRobot v3 folder); "
+                "only rollouts (data.eval_tasks) validate without training data, whose "
+                "statistics held-out files would need"
             )
         if lerobot_root is not None:
             if (
@@ -138,6 +145,10 @@ class RobotDataModule(L.LightningDataModule):
             )
         if not missing:
             self._load_datasets()
+
+    @property
+    def has_training_data(self) -> bool:
+        return bool(self.hparams.train_files) or self.hparams.lerobot_root is not None
 
     def _missing_files(self) -> list[str]:
         files = [*(self.hparams.train_files or []), *(self.hparams.val_files or [])]
@@ -167,7 +178,7 @@ class RobotDataModule(L.LightningDataModule):
         self._load_datasets()
 
     def _load_datasets(self) -> None:
-        if self.train_dataset is not None:
+        if self.train_dataset is not None or not self.has_training_data:
             return
         if self._missing_files():  # first needed before the trainer ran prepare_data (CLI links)
             self.prepare_data()
@@ -212,10 +223,12 @@ class RobotDataModule(L.LightningDataModule):
         )
 
     @property
-    def spec(self) -> DataSpec:
+    def spec(self) -> DataSpec | None:
+        """What the model needs to know about this data; None without training data."""
         self._load_datasets()
         ds = self.train_dataset
-        assert ds is not None
+        if ds is None:
+            return None
         return DataSpec(
             cameras=list(self.hparams.cameras),
             proprio_keys=list(self.hparams.proprio_keys),
@@ -233,7 +246,8 @@ class RobotDataModule(L.LightningDataModule):
         hp = self.hparams
         self._load_datasets()
         dataset = self.train_dataset
-        assert dataset is not None
+        if dataset is None:
+            raise DatasetError("training needs data.train_files or data.lerobot_root")
         drop_last = len(dataset) >= hp.batch_size
         trainer = self.trainer
         if trainer is not None and trainer.world_size > 1:

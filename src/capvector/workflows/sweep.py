@@ -1,67 +1,199 @@
 """``capvector sweep-scale``: choose the merge scale λ by MuJoCo rollouts on validation seeds.
 
 For each λ the vector is merged in memory (θ_pre + λ·c, never written unless asked), optionally
-fine-tuned for a few steps with the orthogonal regularization, then scored by the action-prediction
-L1 on held-out demos and by rollouts on validation seeds, which are disjoint from the evaluation
-seeds used for reporting (as the task-vector literature picks λ on held-out validation data).
-Results go to ``<out>/sweep.json`` after every λ, so an interrupted sweep resumes where it stopped.
+fine-tuned for a few steps with the orthogonal regularization, then scored by the module's own
+validation loop (``trainer.validate``): the action L1 on held-out demos and rollouts on validation
+seeds, which are disjoint from the evaluation seeds used for reporting (as the task-vector
+literature picks λ on held-out validation data). The model, data module and trainer are those of
+``capvector fit --config FIT --model.pretrained θ_pre`` (``--fit-config FIT``); without one, quiet
+defaults from θ_pre's data spec and the options. Results go to ``<out>/sweep.json`` after every λ,
+so an interrupted sweep resumes where it stopped; each λ's logs to ``<out>/scale_<λ>/``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import warnings
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import torch
 from tqdm import tqdm
 
-from capvector.data.episodes import EvalTask
+from capvector.data.episodes import EpisodeDataset, EvalTask
+from capvector.data.spec import DataSpec
+from capvector.data.statistics import BOUNDS_Q99
 from capvector.errors import CapVectorError
 from capvector.eval.episodes import VALIDATION_SEED_START
 from capvector.eval.results import success_cell, wilson_interval
+from capvector.io.loading import read_json
+from capvector.io.names import DATA_SPEC_FILE
 from capvector.io.outputs import atomic_write_bytes, atomic_write_file, check_output
-from capvector.module import held_out_action_l1, load_module
 from capvector.tool_cli import run_tool
 
 
-def held_out_l1(module: Any, demos: str, batch_size: int = 16) -> float:
-    """Mean action L1 of the module on every chunk of ``demos`` (normalised action space)."""
-    from capvector.data.hdf5 import HDF5RobotDataset
-    from capvector.data.transforms import ImageTransform
+def fit_settings(
+    base: str,
+    fit_configs: Sequence[str] = (),
+    task: str | None = None,
+    episodes: int = 0,
+    robot: str = "Panda",
+    demos: str | None = None,
+) -> Any:
+    """The sweep's model, data and trainer settings, parsed by ``capvector fit``'s LightningCLI
+    (``trainer:``, ``data:`` and ``model:`` mean what they mean there), with θ_pre as
+    ``model.pretrained``. Without ``fit_configs``: a quiet trainer (accelerator auto, one device)
+    and a data module of ``demos`` (training and held-out) shaped as θ_pre's data.
+    ``task``/``episodes`` replace ``data.eval_tasks``, ``demos`` sets ``data.val_files``; every
+    rollout task starts at ``VALIDATION_SEED_START`` or above, never on evaluation seeds. Returns
+    the CLI (``parser``, ``config``) without building anything."""
+    from jsonargparse import Namespace
 
-    spec = module.data_spec
-    dataset = HDF5RobotDataset(
-        [demos], cameras=spec.cameras, proprio_keys=spec.proprio_keys, chunk_size=spec.chunk_size,
-        statistics=spec.stats_entry, transform=ImageTransform(augment=False, center_crop=spec.center_crop),
-    )  # fmt: skip
-    total, count = 0.0, 0
-    with torch.no_grad():
-        for batch in torch.utils.data.DataLoader(dataset, batch_size=batch_size):
-            n = len(batch["instruction"])
-            total += float(held_out_action_l1(module.backbone, batch)) * n
-            count += n
-    return total / count
+    from capvector.backbones.base import load_export_config
+    from capvector.workflows.fit import run_lightning_cli
+
+    with warnings.catch_warnings():  # the args are ours, never sys.argv: nothing is shadowed
+        warnings.filterwarnings("ignore", "LightningCLI's args parameter")
+        cli = run_lightning_cli([a for c in fit_configs for a in ("--config", c)], run=False)
+    config = cli.config
+    if task and episodes:
+        tasks = [EvalTask(task, episodes, robot)]
+        config["data.eval_tasks"] = [Namespace(**dataclasses.asdict(t)) for t in tasks]
+    if demos:
+        config["data.val_files"] = [demos]
+    data = config.data
+    if not (data.eval_tasks or data.val_files or data.val_episodes):
+        raise CapVectorError(
+            "give --task/--episodes (rollouts) and/or --demos (held-out L1), or a --fit-config "
+            "whose data has eval_tasks or val_files"
+        )
+    for t in data.eval_tasks or []:  # validation seeds, never the evaluation ones
+        t.start_seed = max(t.start_seed, VALIDATION_SEED_START)
+    EpisodeDataset([EvalTask(**vars(t)) for t in data.eval_tasks or []])  # unknown task: fails
+    load_export_config(base)  # an export folder, before any work
+    config["model.pretrained"] = base
+    if not fit_configs:
+        for key, value in quiet_defaults(base_data_spec(base), demos).items():
+            config[key] = value
+    return cli
 
 
-def finetune(module: Any, vector: str, demos: str, steps: int, orth_weight: float) -> None:
+def quiet_defaults(spec: DataSpec, demos: str | None) -> dict[str, Any]:
+    """The settings of a sweep without ``--fit-config``: one device of any accelerator, no progress
+    bars, checkpoints or videos, and ``demos`` (if any) as training data shaped as θ_pre's."""
+    return {
+        "seed_everything": 0,
+        "trainer.accelerator": "auto",
+        "trainer.devices": 1,
+        "trainer.enable_progress_bar": False,
+        "trainer.enable_model_summary": False,
+        "trainer.enable_checkpointing": False,
+        "model.rollout": {"videos": 0},
+        "data.train_files": [demos] if demos else None,
+        "data.cameras": list(spec.cameras),
+        "data.proprio_keys": list(spec.proprio_keys),
+        "data.chunk_size": spec.chunk_size,
+        "data.dataset_name": spec.dataset_name,
+        "data.augment": spec.center_crop,  # evaluated with the crop θ_pre was trained with
+        "data.normalization": spec.stats_entry.get("normalization", BOUNDS_Q99),
+    }
+
+
+def base_data_spec(base: str) -> DataSpec:
+    """θ_pre's data spec, which shapes the data module of a sweep without ``--fit-config``."""
+    path = Path(base) / DATA_SPEC_FILE
+    if not path.is_file():
+        raise CapVectorError(
+            f"--base {base} has no {DATA_SPEC_FILE} (an import, or not a capvector export): "
+            "give a --fit-config whose data section describes the data"
+        )
+    return DataSpec(**read_json(path))
+
+
+def score_scale(
+    cli: Any,
+    vector: str,
+    loaded: Any,
+    scale: float,
+    log_dir: Path,
+    finetune_steps: int = 0,
+    orth_weight: float = 1.0,
+    allow_large_scale: bool = False,
+) -> dict[str, Any]:
+    """θ_pre + scale·c (``loaded``: the ``vector`` folder's) merged in memory, fine-tuned
+    ``finetune_steps`` steps, then validated by ``trainer.validate`` on the configured trainer and
+    data module; the row of what the loop logged. Logs go to ``log_dir``."""
+    import lightning as L
+    from jsonargparse import Namespace
+
+    from capvector.vectors import apply_vector_
+    from capvector.vectors.precision import MergePrecision
+
+    config = cli.config.clone()
+    config["trainer.default_root_dir"] = str(log_dir)
+    config["trainer.logger"] = Namespace(
+        class_path="capvector.training.loggers.CSVLogger",
+        init_args=Namespace(save_dir=str(log_dir.parent), name=log_dir.name),
+    )
+    if config.seed_everything is not False:  # an int once parsed: each λ as in a fresh sweep
+        L.seed_everything(config.seed_everything, workers=True)
+    built = cli.parser.instantiate_classes(config)
+    module, datamodule = built.model, built.data
+    precision = MergePrecision()
+    apply_vector_(module.backbone, loaded, scale, precision, allow_large_scale)
+    # Before configure_model casts frozen weights (model.frozen_dtype): λc stays float32.
+    module.float32_parameters.update(loaded.keys())
+    trainer_settings = {**built.trainer}
+    if finetune_steps:
+        finetune(module, datamodule, trainer_settings, vector, finetune_steps, orth_weight)
+    trainer = L.Trainer(**trainer_settings)
+    trainer.validate(module, datamodule, verbose=False)
+    return {
+        "scale": scale,
+        "merge_relative_error": precision.relative_error(),
+        **validation_row(trainer.callback_metrics),
+    }
+
+
+def finetune(
+    module: Any,
+    datamodule: Any,
+    trainer_settings: Mapping[str, Any],
+    vector: str,
+    steps: int,
+    orth_weight: float,
+) -> None:
+    """``steps`` steps of the configured training, without validation, plus the orthogonal
+    regularization along the vector (``orth_weight`` 0: none)."""
     import lightning as L
 
     from capvector.callbacks import OrthogonalRegularization
-    from capvector.data.datamodule import RobotDataModule
 
-    spec = module.data_spec
-    dm = RobotDataModule(train_files=[demos], cameras=spec.cameras, proprio_keys=spec.proprio_keys,
-                         chunk_size=spec.chunk_size, batch_size=8)  # fmt: skip
-    callbacks = [OrthogonalRegularization(vector, weight=orth_weight)] if orth_weight else []
-    trainer = L.Trainer(
-        max_steps=steps, accelerator="cpu", logger=False, enable_progress_bar=False,
-        enable_model_summary=False, enable_checkpointing=False, limit_val_batches=0,
-        callbacks=callbacks,
-    )  # fmt: skip
-    trainer.fit(module, dm)
-    for name in list(module.objectives):
+    callbacks = trainer_settings.get("callbacks") or []
+    callbacks = list(callbacks) if isinstance(callbacks, list) else [callbacks]
+    if orth_weight:
+        callbacks.append(OrthogonalRegularization(vector, weight=orth_weight))
+    trainer = L.Trainer(**{
+        **trainer_settings, "max_steps": steps, "max_epochs": None, "limit_val_batches": 0,
+        "num_sanity_val_steps": 0, "callbacks": callbacks,
+    })  # fmt: skip
+    trainer.fit(module, datamodule)
+    for name in list(module.objectives):  # training-only loss terms
         module.remove_objective(name)
+
+
+def validation_row(metrics: Mapping[str, Any]) -> dict[str, Any]:
+    """Held-out L1 and rollout success as the validation loop logged them (``val/...``)."""
+    row: dict[str, Any] = {}
+    if "val/action_l1" in metrics:
+        row["held_out_l1"] = float(metrics["val/action_l1"])
+    if "val/episodes" in metrics:
+        episodes = round(float(metrics["val/episodes"]))
+        successes = round(float(metrics["val/success_rate"]) * episodes)
+        row.update(episodes=episodes, successes=successes, success_rate=successes / episodes,
+                   ci95=list(wilson_interval(successes, episodes)))  # fmt: skip
+    return row
 
 
 def sweep(
@@ -76,26 +208,23 @@ def sweep(
     finetune_steps: int = 0,
     orth_weight: float = 1.0,
     allow_large_scale: bool = False,
+    fit_configs: Sequence[str] = (),
 ) -> list[dict[str, Any]]:
-    from capvector.data.episodes import EpisodeDataset
-    from capvector.eval.policy import VLAPolicy
-    from capvector.eval.rollout import RolloutEvaluator
-    from capvector.vectors import apply_vector_, load_vector
+    from capvector.vectors import load_vector
     from capvector.vectors.merge import check_scale
-    from capvector.vectors.precision import MergePrecision
 
-    if finetune_steps and demos is None:
-        raise CapVectorError("--finetune-steps needs --demos (the downstream training demos)")
     for scale in scales:  # all of them before the first (minutes-long) λ
         check_scale(scale, vector, allow_large_scale)
-    specs = (
-        EpisodeDataset([EvalTask(task, episodes, robot, VALIDATION_SEED_START)]).specs
-        if task and episodes
-        else []
-    )
+    cli = fit_settings(base, fit_configs, task, episodes, robot, demos)
+    data = cli.config.data
+    if finetune_steps and not (data.train_files or data.lerobot_root):
+        raise CapVectorError(
+            "--finetune-steps needs training data: --demos (the downstream training demos), or "
+            "data.train_files in --fit-config"
+        )
     c = load_vector(vector)  # a bad task or vector fails before the output folder is made
-    out_dir = check_output(out, overwrite=True, inputs=[base, vector, demos])  # resumed when there
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = check_output(out, overwrite=True, inputs=[base, vector, demos, *fit_configs])
+    out_dir.mkdir(parents=True, exist_ok=True)  # resumed when there
     results_path = out_dir / "sweep.json"
     rows: list[dict[str, Any]] = (
         json.loads(results_path.read_text()) if results_path.is_file() else []
@@ -104,23 +233,10 @@ def sweep(
     for scale in tqdm(scales, desc="λ", unit="scale"):
         if scale in done:
             continue
-        module = load_module(base)  # float32 weights: the merge keeps all of λc (recorded)
-        precision = MergePrecision()
-        apply_vector_(module.backbone, c, scale, precision, allow_large_scale)
-        if finetune_steps:
-            finetune(module, vector, demos, finetune_steps, orth_weight)
-        module.eval()
-        row: dict[str, Any] = {"scale": scale, "merge_relative_error": precision.relative_error()}
-        if demos:
-            row["held_out_l1"] = held_out_l1(module, demos)
-        if specs:
-            spec = module.data_spec
-            evaluator = RolloutEvaluator(spec.cameras, spec.image_size, spec.camera_fovy)
-            results = evaluator.run(VLAPolicy(module.backbone, spec), specs)
-            successes = sum(r.success for r in results)
-            row.update(episodes=len(specs), successes=successes, success_rate=successes / len(specs),
-                       ci95=list(wilson_interval(successes, len(specs))))  # fmt: skip
-        rows.append(row)
+        log_dir = out_dir / f"scale_{scale:g}"
+        rows.append(score_scale(
+            cli, vector, c, scale, log_dir, finetune_steps, orth_weight, allow_large_scale
+        ))  # fmt: skip
         rows.sort(key=lambda r: r["scale"])
         atomic_write_bytes(results_path, json.dumps(rows, indent=2).encode())  # resumable
     return [r for r in rows if r["scale"] in scales]
@@ -190,11 +306,13 @@ def sweep_cli(
     finetune_steps: int = 0,
     orth_weight: float = 1.0,
     allow_large_scale: bool = False,
+    fit_config: list[str] | None = None,
 ) -> None:
-    """Choose the merge scale λ by MuJoCo rollouts on validation seeds and the held-out L1.
+    """Choose the merge scale λ by the validation loop: rollouts on validation seeds and the
+    held-out L1.
 
     Args:
-        base: θ_pre: export folder or checkpoint
+        base: θ_pre: export folder (capvector export)
         vector: capability vector folder
         out: folder for sweep.json and sweep.png
         scales: λ values, e.g. 0,0.5,1
@@ -204,15 +322,14 @@ def sweep_cli(
         finetune_steps: downstream SFT steps per λ
         orth_weight: weight of the orthogonal regularization while fine-tuning
         allow_large_scale: accept |λ| > 100 in --scales
+        fit_config: `capvector fit` configs: their trainer, data and model settings
     """
     try:
         values = [float(s) for s in scales.split(",")]
     except ValueError:
         raise CapVectorError(f"--scales takes numbers like 0,0.5,1, got {scales!r}") from None
-    if not (task and episodes) and not demos:
-        raise CapVectorError("give --task/--episodes (rollouts) and/or --demos (held-out L1)")
     rows = sweep(base, vector, values, out, task, episodes, robot, demos, finetune_steps,
-                 orth_weight, allow_large_scale)  # fmt: skip
+                 orth_weight, allow_large_scale, fit_config or [])  # fmt: skip
     plot(rows, Path(out) / "sweep.png")
     print(format_table(rows))
     print(f"\nbest λ = {best_scale(rows):g}  (plot: {Path(out) / 'sweep.png'})")
