@@ -13,10 +13,11 @@ The protocol is openpi's ``src/openpi/serving/websocket_policy_server.py`` (the 
 4. ``GET /healthz`` answers ``OK`` (openpi's ``_health_check``).
 
 openpi's handler calls the policy inline, on the event loop, so one forward holds up every
-connection and none is batched. Here requests from all connections go into one queue; a batcher takes what has arrived, waits up to ``batch_window`` for more (at most ``max_batch``),
-and runs one forward in a worker thread, so the event loop keeps receiving and sending while the
-model computes and the next batch collects meanwhile. Each connection awaits only its own
-answer: a client that is slow to read blocks its own send, and the request of one that goes
+connection and none is batched. Here requests from all connections go into one queue; a batcher
+takes what has arrived, waits up to ``batch_window`` for more (at most ``max_batch``), and runs
+one forward in a worker thread, so the event loop keeps receiving and sending while the model
+computes and the next batch collects meanwhile. Each connection awaits only its own answer: a
+client that is slow to read blocks its own send, and the request of one that goes
 away while it waits is cancelled before the forward.
 """
 
