@@ -6,10 +6,10 @@ in-process forward of the same policy, and throughput with 1, 4 and 16 concurren
 The policy is the untrained tiny OpenVLA-OFT preset (deterministic, so every answer can be
 checked) in an export folder; the server is the real ``capvector serve`` in its own process on
 loopback, the clients are openpi-client's ``WebsocketClientPolicy`` in threads of this one,
-sending what openpi's LIBERO example sends (two 224 px uint8 images, an 8-d state, a prompt). Baseline, in this run: ``VLAPolicy.act_batch`` on
-one observation at a time in this process, the mean of a run before and one after the served
-ones. Every served answer is checked against it. The machine is shared: the 1-minute load average
-is printed with the tables.
+sending what openpi's LIBERO example sends (two 224 px uint8 images, an 8-d state, a prompt).
+Baseline, in this run: ``VLAPolicy.act_batch`` on one observation at a time in this process, the
+mean of a run before and one after the served ones. Every served answer is checked against it.
+The machine is shared: the 1-minute load average is printed with the tables.
 """
 
 from __future__ import annotations
