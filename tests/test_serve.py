@@ -87,13 +87,13 @@ class Server:
         return code, self.stderr.read_text()
 
 
-def start_server(export: Path, folder: Path, *args: str) -> Server:
+def start_server(export: Path, folder: Path) -> Server:
     """``capvector serve`` on a free loopback port; returns once it listens."""
     out, err = folder / "stdout.txt", folder / "stderr.txt"
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     command = [sys.executable, "-m", "capvector.cli", "serve", "--ckpt", str(export), "--port", "0"]
     with out.open("w") as stdout, err.open("w") as stderr:
-        process = subprocess.Popen([*command, *args], stdout=stdout, stderr=stderr, env=env)
+        process = subprocess.Popen(command, stdout=stdout, stderr=stderr, env=env)
     deadline = time.monotonic() + START_TIMEOUT
     while (found := LISTENING.search(out.read_text())) is None:
         if process.poll() is not None or time.monotonic() > deadline:
@@ -134,8 +134,21 @@ def observation(seed: int, spelling: str = "openpi") -> dict[str, Any]:
 
 
 def in_process(reference: VLAPolicy, observations: list[dict[str, Any]]) -> list[np.ndarray]:
-    schema = ObservationSchema(tuple(CAMERAS), 8)
-    return reference.act_batch([schema.parse(o) for o in observations])
+    """The reference's chunks, openpi's keys mapped here by hand as docs/serving.md says."""
+    ours = [
+        {
+            "images": {
+                CAMERAS[0]: o["observation/image"],
+                CAMERAS[1]: o["observation/wrist_image"],
+            },
+            "proprio": o["observation/state"],
+            "instruction": o["prompt"],
+        }
+        if "prompt" in o
+        else o
+        for o in observations
+    ]
+    return reference.act_batch(ours)
 
 
 def test_wire_format_is_openpis() -> None:
@@ -399,8 +412,7 @@ def test_max_batch_window_and_default_prompt_have_their_effect(
     requests = [[observation(10 * c + i) for i in range(5)] for c in range(4)]
     for request in (r for per_client in requests for r in per_client):
         del request["prompt"]
-    schema = ObservationSchema(tuple(CAMERAS), 8, default_prompt="stack")
-    expected = [reference.act_batch([schema.parse(r) for r in rs]) for rs in requests]
+    expected = [in_process(reference, [{**r, "prompt": "stack"} for r in rs]) for rs in requests]
     with server_in_thread(policy, max_batch=1, default_prompt="stack") as address:
         assert set(_drive_clients(address, requests, expected)) == {1}
     with server_in_thread(policy, batch_window=0.5) as address:
