@@ -20,6 +20,8 @@ TRAINING_MODULES = [
     "capvector.eval.policy",
     "capvector.eval.results",
     "capvector.training.resume",
+    "capvector.serve.cli",
+    "capvector.serve.server",
 ]
 
 

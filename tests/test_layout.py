@@ -23,7 +23,7 @@ PACKAGE = Path(capvector.__file__).parent
 
 LAYERS = [
     ["cli"],
-    ["workflows", "profiling"],
+    ["workflows", "profiling", "serve"],
     ["module"],
     ["training", "callbacks"],
     ["objectives"],

@@ -62,6 +62,8 @@ CASES: list[tuple[str, list[str], dict[str, Any]]] = [
                      "--finetune-steps", "2", "--allow-large-scale"],
      {"scales": "0,0.5,1", "finetune_steps": 2, "allow_large_scale": True}),
     ("export", ["--ckpt", "C", "--out", "O", "--overwrite"], {"overwrite": True}),
+    ("serve", ["--ckpt", "C", "--port", "0", "--precision", "bf16-mixed", "--max-batch", "4"],
+     {"port": 0, "precision": "bf16-mixed", "max_batch": 4, "device": None}),
     ("import-original", ["--preset", "openvla-oft-tiny", "--folder", "F", "--out", "O",
                          "--apply-lora-adapter"], {"apply_lora_adapter": True, "override": "{}"}),
 ]  # fmt: skip

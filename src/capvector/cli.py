@@ -44,6 +44,7 @@ TOOLS: dict[str, tuple[str, str]] = {  # name: ("module:function", help), import
     "compose": ("capvector.vectors.cli:compose_main", "combine vectors (sum, TIES)"),
     "inspect": ("capvector.vectors.cli:inspect_main", "norms, cosines and plots of vectors"),
     "report": ("capvector.workflows.report:main", "success vs steps of a recipe's arms"),
+    "serve": ("capvector.serve.cli:main", "answer observations over openpi's websocket protocol"),
 }
 
 

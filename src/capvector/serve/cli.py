@@ -1,0 +1,216 @@
+"""``capvector serve``: load a policy once and answer observations over openpi's websocket protocol
+until SIGINT or SIGTERM."""
+
+from __future__ import annotations
+
+import asyncio
+import errno
+import logging
+import signal
+import socket
+import sys
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import AbstractContextManager, contextmanager, nullcontext
+from typing import Any, Literal, get_args
+
+import numpy as np
+import torch
+
+from capvector.errors import CapVectorError
+from capvector.eval.policy import VLAPolicy
+from capvector.module import load_module
+from capvector.serve.schema import (
+    IMAGES,
+    INSTRUCTION,
+    PROPRIO,
+    Observation,
+    ObservationSchema,
+)
+from capvector.serve.server import PolicyServer
+from capvector.tool_cli import run_tool
+
+Precision = Literal["32-true", "bf16-mixed", "16-mixed"]
+"""Lightning's spellings: float32, or the weights in float32 under autocast to bf16 / fp16."""
+PRECISIONS: tuple[str, ...] = get_args(Precision)
+_AUTOCAST = {"bf16-mixed": torch.bfloat16, "16-mixed": torch.float16}
+
+
+def resolve_device(device: str | None) -> torch.device:
+    """``device``, or CUDA when there is one and the CPU otherwise; refused when unusable."""
+    if device is None:
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        resolved = torch.device(device)
+        torch.empty(0, device=resolved)
+    except (RuntimeError, AssertionError) as err:
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise CapVectorError(f"--device {device} is not usable here ({first}); e.g. cpu") from err
+    return resolved
+
+
+def precision_context(device: torch.device, precision: str) -> Callable[[], AbstractContextManager]:
+    """What each forward runs under: nothing for ``32-true``, else ``torch.autocast``."""
+    if precision not in PRECISIONS:
+        raise CapVectorError(f"--precision {precision!r} is none of {', '.join(PRECISIONS)}")
+    if precision == "16-mixed" and device.type == "cpu":  # Lightning refuses it on CPU too
+        raise CapVectorError(
+            "--precision 16-mixed needs a GPU (no fp16 autocast on CPU); use bf16-mixed"
+        )
+    dtype = _AUTOCAST.get(precision)
+    if dtype is None:
+        return nullcontext
+    return lambda: torch.autocast(device.type, dtype=dtype)
+
+
+class ServedPolicy:
+    """A checkpoint or export loaded once as ``capvector evaluate`` loads it (``load_module`` +
+    ``VLAPolicy``: statistics, cameras, crop and tokenizer from the export), on ``device``, each
+    forward under ``precision``."""
+
+    def __init__(self, ckpt: str, device: torch.device, precision: str) -> None:
+        self.precision = precision
+        self._context = precision_context(device, precision)
+        module = load_module(ckpt).eval().to(device)
+        self.spec = module.data_spec
+        self.policy = VLAPolicy(module.backbone, self.spec)
+        self.device = device
+        self.describe = {
+            "family": module.backbone.config_class.family,
+            "preset": module.backbone.config.preset,
+        }
+
+    def act_batch(self, observations: Sequence[Observation]) -> list[np.ndarray]:
+        with self._context():  # autocast is per thread: entered in the thread that runs it
+            return self.policy.act_batch(observations)
+
+    def warm_up(self) -> None:
+        """One forward before the first client: a device or dtype problem shows at start."""
+        size = self.spec.image_size
+        image = np.zeros((size, size, 3), np.uint8)
+        self.act_batch([{
+            IMAGES: {camera: image for camera in self.spec.cameras},
+            PROPRIO: np.zeros(self.spec.proprio_dim, np.float32),
+            INSTRUCTION: "",
+        }])  # fmt: skip
+
+    def metadata(self, schema: ObservationSchema, max_batch: int) -> dict[str, Any]:
+        """What each client receives on connect (openpi's ``policy.metadata``)."""
+        from importlib.metadata import version
+
+        spec = self.spec
+        return {
+            "server": "capvector",
+            "capvector_version": version("capvector"),
+            **self.describe,
+            "cameras": list(spec.cameras),
+            "image_size": spec.image_size,
+            "proprio_dim": spec.proprio_dim,
+            "action_dim": spec.action_dim,
+            "action_horizon": spec.chunk_size,
+            "openpi_keys": schema.key_map(),
+            "device": str(self.device),
+            "precision": self.precision,
+            "max_batch": max_batch,
+        }
+
+
+def serve(
+    ckpt: str,
+    *,
+    device: str | None = None,
+    precision: Precision = "32-true",
+    host: str = "127.0.0.1",
+    port: int = 8000,
+    max_batch: int = 16,
+    batch_window_ms: float = 2.0,
+    default_prompt: str | None = None,
+) -> int:
+    """Answer observations with action chunks over openpi's websocket protocol.
+
+    ``openpi_client.WebsocketClientPolicy`` talks to it. SIGINT or SIGTERM closes every
+    connection, releases the port and returns 0.
+
+    Args:
+        ckpt: Lightning checkpoint or export folder.
+        device: where the model runs, e.g. cpu, cuda, cuda:1 (default: cuda when there is one).
+        precision: 32-true, or bf16-mixed / 16-mixed (autocast; 16-mixed needs a GPU).
+        host: address to listen on (0.0.0.0: every interface).
+        port: port to listen on (0: one the system picks, printed at start).
+        max_batch: most observations in one forward.
+        batch_window_ms: how long a request waits for others to share its forward.
+        default_prompt: the instruction of requests that send none.
+    """
+    if max_batch < 1 or batch_window_ms < 0:
+        raise CapVectorError(
+            f"--max-batch must be >= 1 and --batch-window-ms >= 0, got {max_batch} and "
+            f"{batch_window_ms}"
+        )
+    torch_device = resolve_device(device)
+    precision_context(torch_device, precision)  # refused before the load
+    with _bound(host, port) as sock:  # a taken port fails before minutes of loading
+        policy = ServedPolicy(ckpt, torch_device, precision)
+        policy.warm_up()
+        schema = ObservationSchema.of(policy.spec, default_prompt)
+        metadata = policy.metadata(schema, max_batch)
+        server = PolicyServer(
+            policy.act_batch, schema, metadata, max_batch=max_batch,
+            batch_window=batch_window_ms / 1000,
+        )  # fmt: skip
+        address = sock.getsockname()
+        print(
+            f"capvector serve: {metadata['preset']} from {ckpt} on {torch_device} ({precision}), "
+            f"cameras {', '.join(policy.spec.cameras)}, chunks of {policy.spec.chunk_size}; "
+            f"listening on ws://{address[0]}:{address[1]}",
+            flush=True,
+        )
+        received = asyncio.run(_serve_until_signal(server, sock))
+    print(f"capvector serve: stopped ({received})", file=sys.stderr, flush=True)
+    return 0
+
+
+@contextmanager
+def _bound(host: str, port: int) -> Iterator[socket.socket]:
+    if not 0 <= port <= 65535:
+        raise CapVectorError(f"--port {port} is not a port (0-65535)")
+    try:
+        family = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0][0]
+        sock = socket.create_server((host, port), family=family)
+    except socket.gaierror as err:
+        raise CapVectorError(f"--host {host}: {err.strerror}") from err
+    except OSError as err:
+        if err.errno == errno.EADDRINUSE:
+            raise CapVectorError(
+                f"port {port} on {host} is in use (another server?); pass another --port"
+            ) from err
+        raise
+    with sock:
+        yield sock
+
+
+async def _serve_until_signal(server: PolicyServer, sock: socket.socket) -> str:
+    """Serve until SIGINT or SIGTERM, whose name is returned: a long-running server stops
+    cleanly on either instead of dying mid-send (the CLI's own SIGTERM handler would raise
+    wherever the event loop happens to be)."""
+    loop = asyncio.get_running_loop()
+    stop = asyncio.Event()
+    received: list[str] = []
+    handled = (signal.SIGINT, signal.SIGTERM)
+
+    def on_signal(signum: signal.Signals) -> None:
+        received.append(signum.name)
+        stop.set()
+
+    for signum in handled:
+        loop.add_signal_handler(signum, on_signal, signum)
+    try:
+        await server.run(sock, stop)
+    finally:
+        for signum in handled:
+            loop.remove_signal_handler(signum)
+    return received[0]
+
+
+def main(argv: list[str] | None = None) -> int:
+    logging.basicConfig(level=logging.INFO, format="capvector serve: %(message)s")
+    logging.getLogger("websockets").setLevel(logging.WARNING)
+    return run_tool(serve, argv, "serve")

@@ -1,0 +1,422 @@
+"""``capvector serve`` driven by openpi's own client (``openpi-client``, a test dependency): the
+actions equal the in-process policy's, malformed observations get an error naming the problem and
+the server goes on, 16 clients x 50 requests get their own answers, and signals stop it cleanly.
+
+The server is the real command in a subprocess on loopback (port 0: the system picks one)."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import urllib.request
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor, wait
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+import websockets.sync.client
+from openpi_client import msgpack_numpy
+from openpi_client.action_chunk_broker import ActionChunkBroker
+from openpi_client.websocket_client_policy import WebsocketClientPolicy
+
+from capvector.cli import main
+from capvector.data.spec import DataSpec
+from capvector.data.statistics import compute_statistics
+from capvector.eval.policy import VLAPolicy
+from capvector.module import VLAModule, load_module
+from capvector.serve.cli import ServedPolicy
+from capvector.serve.schema import ObservationError, ObservationSchema
+from capvector.serve.server import PolicyServer
+from capvector.serve.wire import WireError, packb, unpackb
+
+CAMERAS = ["agentview", "robot0_eye_in_hand"]
+SIZE = 64
+START_TIMEOUT = 180  # seconds: importing torch and loading on a busy 2-core machine
+LISTENING = re.compile(r"listening on ws://([\d.]+):(\d+)")
+
+# openpi-client 0.1.2 connects without a context manager, which websockets 14+ deprecates.
+pytestmark = pytest.mark.filterwarnings(
+    "ignore:connect\\(\\) must be used as a context manager:DeprecationWarning"
+)
+
+
+@pytest.fixture(scope="module")
+def export(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A tiny OpenVLA-OFT export with its own statistics (q01/q99 of random data)."""
+    rng = np.random.default_rng(0)
+    stats = compute_statistics(rng.normal(size=(200, 7)), rng.normal(size=(200, 8)), 4)
+    spec = DataSpec(cameras=CAMERAS, image_size=SIZE, statistics={"capvector": stats})
+    torch.manual_seed(0)
+    return VLAModule(backbone="openvla-oft-tiny", data_spec=spec).export(
+        tmp_path_factory.mktemp("serve") / "export"
+    )
+
+
+@pytest.fixture(scope="module")
+def reference(export: Path) -> VLAPolicy:
+    """The policy as ``capvector evaluate`` loads it, in this process."""
+    module = load_module(export).eval()
+    return VLAPolicy(module.backbone, module.data_spec)
+
+
+@dataclass
+class Server:
+    process: subprocess.Popen
+    host: str
+    port: int
+    stderr: Path
+
+    def client(self) -> WebsocketClientPolicy:
+        return WebsocketClientPolicy(self.host, self.port)
+
+    def stop(self, signum: int = signal.SIGTERM) -> tuple[int, str]:
+        self.process.send_signal(signum)
+        code = self.process.wait(timeout=60)
+        return code, self.stderr.read_text()
+
+
+def start_server(export: Path, folder: Path) -> Server:
+    """``capvector serve`` on a free loopback port; returns once it listens."""
+    out, err = folder / "stdout.txt", folder / "stderr.txt"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    command = [sys.executable, "-m", "capvector.cli", "serve", "--ckpt", str(export), "--port", "0"]
+    with out.open("w") as stdout, err.open("w") as stderr:
+        process = subprocess.Popen(command, stdout=stdout, stderr=stderr, env=env)
+    deadline = time.monotonic() + START_TIMEOUT
+    while (found := LISTENING.search(out.read_text())) is None:
+        if process.poll() is not None or time.monotonic() > deadline:
+            process.kill()
+            pytest.fail(f"capvector serve did not start: {err.read_text()[-3000:]}")
+        time.sleep(0.1)
+    return Server(process, found.group(1), int(found.group(2)), err)
+
+
+@pytest.fixture(scope="module")
+def server(export: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+    running = start_server(export, tmp_path_factory.mktemp("server"))
+    try:
+        yield running
+    finally:
+        if running.process.poll() is None:
+            code, stderr = running.stop()
+            assert code == 0 and "Traceback" not in stderr, stderr[-3000:]
+
+
+def observation(seed: int, spelling: str = "openpi") -> dict[str, Any]:
+    rng = np.random.default_rng(seed)
+    images = [rng.integers(0, 256, (SIZE, SIZE, 3), dtype=np.uint8) for _ in CAMERAS]
+    state = rng.normal(size=8)
+    prompt = f"lift the cube {seed}"
+    if spelling == "openpi":  # what openpi's examples/libero/main.py sends
+        return {
+            "observation/image": images[0],
+            "observation/wrist_image": images[1],
+            "observation/state": state,
+            "prompt": prompt,
+        }
+    return {
+        "images": dict(zip(CAMERAS, images, strict=True)),
+        "proprio": state,
+        "instruction": prompt,
+    }
+
+
+def in_process(reference: VLAPolicy, observations: list[dict[str, Any]]) -> list[np.ndarray]:
+    """The reference's chunks, openpi's keys mapped here by hand as docs/serving.md says."""
+    ours = [
+        {
+            "images": {
+                CAMERAS[0]: o["observation/image"],
+                CAMERAS[1]: o["observation/wrist_image"],
+            },
+            "proprio": o["observation/state"],
+            "instruction": o["prompt"],
+        }
+        if "prompt" in o
+        else o
+        for o in observations
+    ]
+    return reference.act_batch(ours)
+
+
+def test_wire_format_is_openpis() -> None:
+    """Our msgpack-numpy against openpi-client's own module, both ways."""
+    value = {
+        "image": np.arange(24, dtype=np.uint8).reshape(2, 4, 3),
+        "state": np.linspace(-1, 1, 8),
+        "half": np.ones((2, 3), np.float16),
+        "scalar": np.float32(1.5),
+        "nested": {"prompt": "pick", "list": [1, 2.5, None, True]},
+    }
+    for decoded in (unpackb(msgpack_numpy.packb(value)), msgpack_numpy.unpackb(packb(value))):
+        assert decoded.keys() == value.keys() and decoded["nested"] == value["nested"]
+        for key in ("image", "state", "half", "scalar"):
+            assert decoded[key].dtype == value[key].dtype, key
+            np.testing.assert_array_equal(decoded[key], value[key])
+    with pytest.raises(WireError, match="dtype object"):
+        packb({"x": np.array([None], dtype=object)})
+    forged = msgpack_numpy.packb({"x": np.zeros(2)}).replace(b"<f8", b"|O8")
+    with pytest.raises(WireError, match="not accepted"):
+        unpackb(forged)
+    with pytest.raises(WireError, match="not an openpi msgpack-numpy message"):
+        unpackb(b"\xc1 not msgpack")
+
+
+def test_schema_reads_both_spellings_and_names_what_is_wrong() -> None:
+    schema = ObservationSchema(tuple(CAMERAS), 8)
+    ours, openpi = schema.parse(observation(1, "ours")), schema.parse(observation(1, "openpi"))
+    assert ours["instruction"] == openpi["instruction"] == "lift the cube 1"
+    np.testing.assert_array_equal(ours["proprio"], openpi["proprio"])
+    for camera in CAMERAS:
+        np.testing.assert_array_equal(ours["images"][camera], openpi["images"][camera])
+    both = {**observation(1), "proprio": np.zeros(8)}
+    with pytest.raises(ObservationError, match="both 'proprio' and 'observation/state' given"):
+        schema.parse(both)
+    no_prompt = {k: v for k, v in observation(1).items() if k != "prompt"}
+    with pytest.raises(ObservationError, match="missing 'instruction' or 'prompt'"):
+        schema.parse(no_prompt)
+    assert ObservationSchema(tuple(CAMERAS), 8, "stack").parse(no_prompt)["instruction"] == "stack"
+
+
+def test_openpi_client_gets_the_in_process_actions(server: Server, reference: VLAPolicy) -> None:
+    client = server.client()
+    meta = client.get_server_metadata()
+    assert meta["cameras"] == CAMERAS and meta["action_horizon"] == 8 and meta["action_dim"] == 7
+    assert meta["openpi_keys"]["observation/wrist_image"] == "images/robot0_eye_in_hand"
+    requests = [observation(seed, spelling) for seed in range(4) for spelling in ("openpi", "ours")]
+    expected = [in_process(reference, [o])[0] for o in requests]
+    for request, actions in zip(requests, expected, strict=True):
+        answer = client.infer(request)
+        assert answer["actions"].shape == (8, 7) and answer["actions"].dtype == np.float32
+        np.testing.assert_array_equal(answer["actions"], actions)
+        assert answer["policy_timing"]["batch_size"] == 1
+    assert not np.allclose(expected[0], expected[2])  # different observations, different actions
+    broker = ActionChunkBroker(client, action_horizon=meta["action_horizon"])  # the robot loop's
+    steps = [broker.infer(requests[step // 8 * 2])["actions"] for step in range(16)]
+    np.testing.assert_array_equal(np.stack(steps), np.concatenate([expected[0], expected[2]]))
+    health = f"http://{server.host}:{server.port}/healthz"
+    with urllib.request.urlopen(health, timeout=10) as response:  # openpi's health check
+        assert response.read() == b"OK\n"
+
+
+def _without(key: str) -> dict[str, Any]:
+    return {k: v for k, v in observation(0).items() if k != key}
+
+
+MALFORMED: dict[str, tuple[dict[str, Any], str]] = {
+    "missing image": (
+        _without("observation/wrist_image"),
+        "missing 'images/robot0_eye_in_hand' or 'observation/wrist_image'",
+    ),
+    "missing state": (_without("observation/state"), "missing 'proprio' or 'observation/state'"),
+    "channels first": (
+        {**observation(0), "observation/image": np.zeros((3, SIZE, SIZE), np.uint8)},
+        r"'observation/image' has shape \(3, 64, 64\); send one RGB image \(H, W, 3\)",
+    ),
+    "grey image": (
+        {**observation(0), "observation/wrist_image": np.zeros((SIZE, SIZE), np.uint8)},
+        r"'observation/wrist_image' has shape \(64, 64\)",
+    ),
+    "float image": (
+        {**observation(0), "observation/image": np.zeros((SIZE, SIZE, 3), np.float32)},
+        "'observation/image' has dtype float32; send uint8",
+    ),
+    "cameras of two sizes": (
+        {**observation(0), "observation/image": np.zeros((32, 32, 3), np.uint8)},
+        "the cameras' images differ in size",
+    ),
+    "nan in the state": (
+        {**observation(0), "observation/state": np.array([0, 0, np.nan, 0, 0, 0, 0, 0])},
+        r"'observation/state' has non-finite values at \[2\]: \[nan\]",
+    ),
+    "inf in the state": (
+        {**observation(0), "observation/state": np.full(8, np.inf)},
+        r"'observation/state' has non-finite values at \[0, 1, 2",
+    ),
+    "short state": (
+        {**observation(0), "observation/state": np.zeros(7)},
+        r"'observation/state' has shape \(7,\); this policy takes \(8,\)",
+    ),
+    "prompt not a string": ({**observation(0), "prompt": 3}, "'prompt' is a string, got a int"),
+}
+
+
+@pytest.mark.parametrize("case", list(MALFORMED))
+def test_malformed_observation_gets_an_error_naming_it_and_the_server_goes_on(
+    case: str, server: Server, reference: VLAPolicy
+) -> None:
+    request, message = MALFORMED[case]
+    client = server.client()
+    with pytest.raises(RuntimeError, match=message):
+        client.infer(request)
+    good = observation(5)
+    expected = in_process(reference, [good])[0]
+    np.testing.assert_array_equal(client.infer(good)["actions"], expected)  # same connection
+    np.testing.assert_array_equal(server.client().infer(good)["actions"], expected)
+
+
+def test_a_message_that_is_not_msgpack_gets_an_error(server: Server) -> None:
+    with websockets.sync.client.connect(f"ws://{server.host}:{server.port}") as ws:
+        ws.recv()  # the metadata
+        ws.send(b"\xc1 not msgpack")
+        assert "not an openpi msgpack-numpy message" in ws.recv()
+        ws.send("a text frame")
+        assert "binary msgpack" in ws.recv()
+
+
+CLIENTS, REQUESTS = 16, 50
+LOAD_TIMEOUT = 600  # seconds; about 40 on a busy 2-core machine
+
+
+def test_16_clients_x_50_requests_each_get_their_own_answers(
+    server: Server, reference: VLAPolicy
+) -> None:
+    """Every client sends its own observations and checks each answer against the in-process
+    policy; meanwhile one client stalls in the handshake, one vanishes with a request in flight
+    and one never reads its answers: nobody waits for them."""
+    requests = [[observation(1000 * c + i) for i in range(REQUESTS)] for c in range(CLIENTS)]
+    flat = [o for per_client in requests for o in per_client]
+    answers = [a for i in range(0, len(flat), 16) for a in in_process(reference, flat[i : i + 16])]
+    expected = [answers[c * REQUESTS : (c + 1) * REQUESTS] for c in range(CLIENTS)]
+
+    url = f"ws://{server.host}:{server.port}"
+    with socket.create_connection((server.host, server.port)) as stalled:
+        stalled.sendall(b"GET / HTTP/1.1\r\nHost: x\r\n")  # and never the rest
+        with websockets.sync.client.connect(url, max_size=None) as vanished:
+            vanished.recv()
+            vanished.send(msgpack_numpy.packb(observation(7)))
+        with websockets.sync.client.connect(url, max_size=None) as deaf:
+            for seed in range(3):
+                deaf.send(msgpack_numpy.packb(observation(seed)))
+            sizes = _drive_clients((server.host, server.port), requests, expected)
+    assert len(sizes) == CLIENTS * REQUESTS
+    assert 1 < max(sizes) <= 16, "requests that arrived together were batched"
+
+
+def _drive_clients(
+    address: tuple[str, int], requests: list[list[dict]], expected: list[list[np.ndarray]]
+) -> list[int]:
+    """One thread and connection per client, all starting together; the batch size of every
+    answer, each answer checked against ``expected``."""
+    start = threading.Barrier(len(requests))
+
+    def run(index: int) -> list[int]:
+        client = WebsocketClientPolicy(*address)
+        start.wait(timeout=120)
+        sizes = []
+        for request, actions in zip(requests[index], expected[index], strict=True):
+            answer = client.infer(request)
+            np.testing.assert_allclose(answer["actions"], actions, rtol=1e-5, atol=1e-5)
+            sizes.append(answer["policy_timing"]["batch_size"])
+        return sizes
+
+    pool = ThreadPoolExecutor(len(requests))
+    try:
+        futures = [pool.submit(run, index) for index in range(len(requests))]
+        _, late = wait(futures, timeout=LOAD_TIMEOUT)
+        assert not late, f"{len(late)} clients still waiting after {LOAD_TIMEOUT} s"
+        return [size for future in futures for size in future.result()]
+    finally:  # a client stuck in recv ends when the fixture stops the server
+        pool.shutdown(wait=False, cancel_futures=True)
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_a_signal_stops_the_server_cleanly(
+    signum: signal.Signals, export: Path, tmp_path: Path
+) -> None:
+    server = start_server(export, tmp_path)
+    client = server.client()
+    client.infer(observation(0))
+    code, stderr = server.stop(signum)
+    assert code == 0 and f"stopped ({signum.name})" in stderr and "Traceback" not in stderr
+    with pytest.raises(websockets.ConnectionClosed) as closed:
+        client.infer(observation(0))
+    assert closed.value.rcvd is not None and closed.value.rcvd.code == 1001  # going away
+    with socket.create_server((server.host, server.port)):  # the port is free again
+        pass
+
+
+def test_bf16_autocast_on_cpu_changes_the_actions_a_little(
+    export: Path, reference: VLAPolicy
+) -> None:
+    request = ObservationSchema(tuple(CAMERAS), 8).parse(observation(3))
+    full = reference.act_batch([request])[0]
+    served = ServedPolicy(str(export), torch.device("cpu"), "32-true").act_batch([request])[0]
+    mixed = ServedPolicy(str(export), torch.device("cpu"), "bf16-mixed").act_batch([request])[0]
+    np.testing.assert_array_equal(served, full)
+    assert not np.array_equal(mixed, full) and np.allclose(mixed, full, atol=0.1, rtol=0.1)
+
+
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (["--device", "cuda"], "--device cuda is not usable here"),
+        (["--device", "tpu9"], "--device tpu9 is not usable here"),
+        (["--precision", "16-mixed", "--device", "cpu"], "16-mixed needs a GPU"),
+        (["--max-batch", "0"], "--max-batch must be >= 1"),
+        (["--port", "70000"], "--port 70000 is not a port"),
+    ],
+)
+def test_bad_arguments_are_one_line(
+    args: list[str], message: str, export: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["serve", "--ckpt", str(export), *args]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_a_taken_port_is_refused_before_loading(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with socket.create_server(("127.0.0.1", 0)) as taken:
+        port = taken.getsockname()[1]
+        # The checkpoint does not exist: the port is checked first, as loading can take minutes.
+        assert main(["serve", "--ckpt", str(tmp_path / "none"), "--port", str(port)]) == 2
+    assert f"port {port} on 127.0.0.1 is in use" in capsys.readouterr().err
+
+
+@contextmanager
+def server_in_thread(policy: ServedPolicy, **settings: Any) -> Iterator[tuple[str, int]]:
+    """``PolicyServer`` on its own event loop in a thread of this process (no signals)."""
+    schema = ObservationSchema.of(policy.spec, settings.pop("default_prompt", None))
+    server = PolicyServer(policy.act_batch, schema, {}, **settings)
+    loop = asyncio.new_event_loop()
+    stop = asyncio.Event()
+    sock = socket.create_server(("127.0.0.1", 0))
+    thread = threading.Thread(target=loop.run_until_complete, args=(server.run(sock, stop),))
+    thread.start()
+    try:
+        yield sock.getsockname()
+    finally:
+        loop.call_soon_threadsafe(stop.set)
+        thread.join(timeout=60)
+        loop.close()
+
+
+def test_max_batch_window_and_default_prompt_have_their_effect(
+    export: Path, reference: VLAPolicy
+) -> None:
+    policy = ServedPolicy(str(export), torch.device("cpu"), "32-true")
+    requests = [[observation(10 * c + i) for i in range(5)] for c in range(4)]
+    for request in (r for per_client in requests for r in per_client):
+        del request["prompt"]
+    expected = [in_process(reference, [{**r, "prompt": "stack"} for r in rs]) for rs in requests]
+    with server_in_thread(policy, max_batch=1, default_prompt="stack") as address:
+        assert set(_drive_clients(address, requests, expected)) == {1}
+    with server_in_thread(policy, batch_window=0.5) as address:
+        client = WebsocketClientPolicy(*address)
+        start = time.monotonic()
+        client.infer(observation(0))  # alone: it waits out the window for company
+        assert time.monotonic() - start >= 0.5
