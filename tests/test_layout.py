@@ -31,7 +31,7 @@ LAYERS = [
     ["data", "eval"],
     ["sim", "vectors"],
     ["io"],
-    ["errors"],
+    ["errors", "registry"],
 ]
 """docs/architecture.md's picture: a module imports from its own layer or those below it."""
 UPWARD = {("capvector.eval.policy", "capvector.backbones.base")}

@@ -33,6 +33,7 @@ from torch import Tensor, nn
 
 from capvector.backbones.base import BackboneError, draw_flow_noise
 from capvector.backbones.common import MLPResNet
+from capvector.registry import Registry
 
 # -- the interface -------------------------------------------------------------------------------
 
@@ -128,7 +129,7 @@ class ActionHead(nn.Module, ABC):
         noise_seeds: Tensor | None = None,
     ) -> Tensor:
         """Scalar training loss for target ``actions`` (B, T, A). Heads that draw noise draw
-        sample b's from ``noise_seeds[b]`` (``keys.NOISE_SEED``), else from the global RNG."""
+        sample b's from ``noise_seeds[b]`` (``batch["noise_seed"]``), else from the global RNG."""
 
     @abstractmethod
     def sample(self, cond: HeadInput, state: Tensor | None = None) -> Tensor:
@@ -153,7 +154,9 @@ class ActionHead(nn.Module, ABC):
 
 # -- registry ------------------------------------------------------------------------------------
 
-_HEADS: dict[str, type[ActionHead]] = {}
+ACTION_HEADS: Registry[type[ActionHead]] = Registry("action head", base=ActionHead, error=BackboneError)
+"""The heads a config's ``head`` names: a registered name, or ``module:Class`` for a head defined
+in another package."""
 H = TypeVar("H", bound=type[ActionHead])
 
 
@@ -161,23 +164,18 @@ def register_head(name: str) -> Callable[[H], H]:
     """Class decorator: makes a head buildable by name from a backbone config's ``head`` field."""
 
     def decorate(cls: H) -> H:
-        if name in _HEADS:
-            raise ValueError(f"action head {name!r} is registered twice")
         cls.name = name
-        _HEADS[name] = cls
-        return cls
+        return ACTION_HEADS.register(name)(cls)
 
     return decorate
 
 
 def head_names() -> list[str]:
-    return sorted(_HEADS)
+    return ACTION_HEADS.names()
 
 
 def head_class(name: str) -> type[ActionHead]:
-    if name not in _HEADS:
-        raise BackboneError(f"unknown action head {name!r}; registered heads: {head_names()}")
-    return _HEADS[name]
+    return ACTION_HEADS.get(name)
 
 
 def build_head(name: str, args: Mapping[str, Any], dims: HeadDims) -> ActionHead:
@@ -791,6 +789,7 @@ __all__ = [
     "FlowMatchingHead",
     "GR00THead",
     "GR00THeadConfig",
+    "ACTION_HEADS",
     "HeadDims",
     "HeadInput",
     "LayerwiseHead",

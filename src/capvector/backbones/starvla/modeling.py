@@ -60,7 +60,7 @@ from capvector.backbones.starvla.configuration import (
     StarVLAConfig,
 )
 from capvector.backbones.starvla.heads import HeadDims, HeadInput, build_head, head_class
-from capvector.data import keys
+from capvector.data.batch import Batch
 from capvector.io.loading import load_safetensors
 
 # Qwen-VL's chat-format special tokens (the same strings in Qwen2-VL, Qwen2.5-VL and Qwen3-VL).
@@ -264,7 +264,7 @@ class StarVLA(VLABackbone):
         rows, cols = self.visual_grid
         return self.config.num_images * rows * cols
 
-    def forward(self, batch: Mapping[str, Any], request: OutputRequest | None = None) -> VLAOutput:
+    def forward(self, batch: Batch, request: OutputRequest | None = None) -> VLAOutput:
         request = request or OutputRequest()
         head = self.action_head
         encoding = self.encode(batch, request.hidden_layers, all_layers=head.uses_all_layers)
@@ -274,9 +274,9 @@ class StarVLA(VLABackbone):
         cond = encoding.head_input.to(head_dtype)
         state = None if state is None else state.to(head_dtype)
         with torch.autocast(device_type=cond.mask.device.type, enabled=False):
-            if keys.ACTIONS in batch:
-                target = batch[keys.ACTIONS].to(head_dtype)
-                seeds = batch.get(keys.NOISE_SEED)  # per-sample flow noise, see draw_flow_noise
+            if "actions" in batch:
+                target = batch["actions"].to(head_dtype)
+                seeds = batch.get("noise_seed")  # per-sample flow noise, see draw_flow_noise
                 if request.actions or head.loss_predicts_actions:
                     loss, actions = head.loss_and_actions(cond, target, state, seeds)
                 else:  # training: a flow head would run every denoising step for nothing
@@ -297,7 +297,7 @@ class StarVLA(VLABackbone):
     # -- Qwen-VL encoding ---------------------------------------------------------------------
 
     def encode(
-        self, batch: Mapping[str, Any], hidden_layers: Sequence[int] = (), all_layers: bool = False
+        self, batch: Batch, hidden_layers: Sequence[int] = (), all_layers: bool = False
     ) -> VLMEncoding:
         """Run the Qwen-VL on a batch: the head's conditioning and the requested hidden states.
 
@@ -305,10 +305,10 @@ class StarVLA(VLABackbone):
         final norm). ``all_layers`` also returns every layer for the head, as StarVLA's heads read
         HF's ``hidden_states[1:]`` (see ``QwenVersion.head_reads_final_norm``).
         """
-        images: Tensor = batch[keys.IMAGES]
+        images: Tensor = batch["images"]
         n_cam = images.shape[1]
         check_cameras(images, self.config.num_images)
-        instructions: list[str] = list(batch[keys.INSTRUCTION])
+        instructions: list[str] = list(batch["instruction"])
         state = _state(batch) if self.config.state_mode == "prompt" else None
         texts = [
             self.prompt_text(text, None if state is None else state[i])
@@ -421,7 +421,7 @@ class StarVLA(VLABackbone):
         return tok
 
     def language_model_logits(
-        self, batch: Mapping[str, Any], prompts: list[str], answers: list[str]
+        self, batch: Batch, prompts: list[str], answers: list[str]
     ) -> tuple[Tensor, Tensor]:
         """Qwen's own LM head over a user turn (cameras + prompt) and an assistant turn (answer),
         as StarVLA's VLM co-training (``build_qwenvl_inputs(..., solutions=...)``).
@@ -431,7 +431,7 @@ class StarVLA(VLABackbone):
         is the VLM's plain next-token objective.
         """
         tok = self._require_tokenizer()
-        images: Tensor = batch[keys.IMAGES]
+        images: Tensor = batch["images"]
         n_cam = images.shape[1]
         rows, label_rows = [], []
         for prompt, answer in zip(prompts, answers, strict=True):
@@ -697,13 +697,13 @@ class VLMEncoding:
 # -- helpers -------------------------------------------------------------------------------------
 
 
-def _state(batch: Mapping[str, Any]) -> Tensor:
-    if keys.PROPRIO not in batch:
+def _state(batch: Batch) -> Tensor:
+    if "proprio" not in batch:
         raise BackboneError(
-            f"state_mode needs `{keys.PROPRIO}` in the batch; set state_mode='none' for data "
+            "state_mode needs `proprio` in the batch; set state_mode='none' for data "
             "without proprioception"
         )
-    return batch[keys.PROPRIO]
+    return batch["proprio"]
 
 
 def _qwen_version(name: str) -> QwenVersion:
