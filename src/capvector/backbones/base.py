@@ -210,11 +210,22 @@ class VLABackbone(nn.Module, ABC):
         raise BackboneError(f"{type(self).__name__} has no language-model head for text objectives")
 
     _tokenizer: Any = None
+    missing_tokenizer_hint: ClassVar[str] = (
+        "load a checkpoint folder that contains one (from_pretrained / from_original) or set "
+        "tokenizer to a tokenizer folder"
+    )
+    """What to do when the backbone has no tokenizer, for the error ``require_tokenizer`` raises."""
 
     @property
     def tokenizer(self) -> Any:
         """The tokenizer that turns instructions into ids, when the family has one."""
         return self._tokenizer
+
+    def require_tokenizer(self) -> Any:
+        """The tokenizer, for a family that cannot run without one."""
+        if self.tokenizer is None:
+            raise BackboneError(f"this backbone has no tokenizer: {self.missing_tokenizer_hint}")
+        return self.tokenizer
 
     def make_tokenizer(self, folder: str) -> Any:
         """Build the family's tokenizer from saved files (families with a tokenizer override this)."""

@@ -428,7 +428,7 @@ class OpenVLAOFT(VLABackbone):
         Causal, unlike the action pass: this is the VLM's own next-token objective (StarVLA's VLM
         co-training), run separately so the action pathway's bidirectional attention is untouched.
         """
-        tok = self._require_tokenizer()
+        tok = self.require_tokenizer()
         device = batch["images"].device
         rows, label_rows = [], []
         for prompt, answer in zip(prompts, answers, strict=True):
@@ -466,19 +466,11 @@ class OpenVLAOFT(VLABackbone):
         )
         return self.language_model.lm_head(hidden.last_hidden_state), labels
 
-    def _require_tokenizer(self) -> Any:
-        if self.tokenizer is None:
-            raise BackboneError(
-                "this backbone has no tokenizer: load a checkpoint folder that contains one "
-                "(from_pretrained / from_original) or set tokenizer to a tokenizer folder"
-            )
-        return self.tokenizer
-
     def _tokenize(
         self, instructions: list[str], device: torch.device
     ) -> tuple[Tensor, Tensor, Tensor]:
         """Right-padded ``[BOS] prompt [T*A slots] [</s>]`` ids, valid mask, slot positions."""
-        tok = self._require_tokenizer()
+        tok = self.require_tokenizer()
         n_slots = self.config.chunk_size * self.config.action_dim
         rows = []
         for instruction in instructions:
@@ -512,13 +504,11 @@ def _splice_after_bos(text: Tensor, text_valid: Tensor, prefix: Tensor) -> tuple
 
 
 def _make_tokenizer(spec: str) -> Any:
+    from capvector.backbones.tokenizers import byte_level_tokenizer, saved_tokenizer
+
     if spec == "byte":
-        from capvector.backbones.tokenizers import byte_level_tokenizer
-
         return byte_level_tokenizer()
-    from transformers import AutoTokenizer
-
-    tok = AutoTokenizer.from_pretrained(spec)
+    tok = saved_tokenizer(spec, "point `tokenizer` at an OpenVLA-OFT checkpoint folder")
     if tok.pad_token is None:  # Prismatic adds <PAD> = 32000 to Llama-2's tokenizer
         tok.add_special_tokens({"pad_token": "<PAD>"})
     return tok

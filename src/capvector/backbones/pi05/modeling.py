@@ -69,6 +69,10 @@ class Pi05Batch(Batch, total=False):
 IMAGE_MASK = "image_mask"
 """``Pi05Batch``'s key, as a constant for the tests and scripts written against it."""
 
+PALIGEMMA_TOKENIZER = (
+    "download PaliGemma's tokenizer (google/paligemma-3b-pt-224) where the network allows and pass "
+    "its folder"
+)
 MASK_VALUE = -2.3819763e38
 """The finite large negative openpi/LeRobot put into masked attention logits (no NaN rows)."""
 
@@ -451,6 +455,10 @@ class Pi05(VLABackbone):
             "tokenizer", "a PaliGemma tokenizer folder (pi05 folders carry none)", type=Path
         ),
     )
+    missing_tokenizer_hint = (
+        f"set tokenizer to PaliGemma's tokenizer folder (from_original(..., tokenizer=...)) or "
+        f"load a capvector export that contains one; {PALIGEMMA_TOKENIZER}"
+    )
 
     # peft full-match regex: the linear layers of both Gemma streams (attention and MLP), as openpi's
     # LoRA variants (``gemma_2b_lora`` + ``gemma_300m_lora``). SigLIP and the adaRMS condition
@@ -820,7 +828,7 @@ class Pi05(VLABackbone):
         add tokens; LeRobot fixed exactly that). openpi pads every prompt to ``max_token_len``; we
         pad to the batch's longest, which changes no output (padding is never attended).
         """
-        tok = self._require_tokenizer()
+        tok = self.require_tokenizer()
         bins = None
         if self.config.proprio_dim:
             if proprio is None:
@@ -854,14 +862,6 @@ class Pi05(VLABackbone):
         pad_id = tok.pad_token_id if tok.pad_token_id is not None else 0
         return right_pad(rows, pad_id, device)
 
-    def _require_tokenizer(self) -> Any:
-        if self.tokenizer is None:
-            raise BackboneError(
-                "this backbone has no tokenizer: set tokenizer to PaliGemma's tokenizer folder "
-                "(from_original(..., tokenizer=...)) or load a capvector export that contains one"
-            )
-        return self.tokenizer
-
     # -- text objectives -------------------------------------------------------------------------
 
     @property
@@ -879,7 +879,7 @@ class Pi05(VLABackbone):
         (``tokenizer.py`` ``FASTTokenizer``). Logits use the tied embedding; labels are the answer
         ids at their own positions and IGNORE_INDEX elsewhere.
         """
-        tok = self._require_tokenizer()
+        tok = self.require_tokenizer()
         visual, visual_valid = self.embed_images(batch)
         rows, ar_rows, label_rows = [], [], []
         for prompt, answer in zip(prompts, answers, strict=True):
@@ -937,19 +937,11 @@ class Pi05(VLABackbone):
 
 
 def _load_tokenizer(spec: str) -> Any:
+    from capvector.backbones.tokenizers import byte_level_tokenizer, saved_tokenizer
+
     if spec == "byte":
-        from capvector.backbones.tokenizers import byte_level_tokenizer
-
         return byte_level_tokenizer()
-    from transformers import AutoTokenizer
-
-    path = Path(spec)
-    if not path.is_dir():
-        raise BackboneError(
-            f"tokenizer {spec!r} is neither 'byte' nor a local folder; download PaliGemma's tokenizer "
-            "(google/paligemma-3b-pt-224) where the network allows and pass its folder"
-        )
-    return AutoTokenizer.from_pretrained(str(path))
+    return saved_tokenizer(spec, PALIGEMMA_TOKENIZER)
 
 
 __all__ = [

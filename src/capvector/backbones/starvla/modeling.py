@@ -111,16 +111,15 @@ def tiny_qwen_tokenizer() -> Any:
 
 
 def _load_tokenizer(spec: str) -> Any:
+    from capvector.backbones.tokenizers import saved_tokenizer
+
     if spec == "tiny":
         return tiny_qwen_tokenizer()
-    if not Path(spec, "tokenizer_config.json").is_file():
-        raise BackboneError(
-            f"tokenizer folder {spec} has no tokenizer_config.json; point `tokenizer` at the Qwen "
-            "checkpoint folder or load the model with from_pretrained / from_qwen"
-        )
-    from transformers import AutoTokenizer
-
-    return AutoTokenizer.from_pretrained(spec)
+    return saved_tokenizer(
+        spec,
+        "point `tokenizer` at the Qwen checkpoint folder or load the model with "
+        "from_pretrained / from_qwen",
+    )
 
 
 @dataclass(frozen=True)
@@ -142,6 +141,10 @@ class StarVLA(VLABackbone):
 
     config_class = StarVLAConfig
     original_loader = "capvector.backbones.starvla.convert"
+    missing_tokenizer_hint = (
+        "load a checkpoint folder that has one (StarVLA.from_qwen / from_pretrained) or set "
+        "tokenizer to a Qwen tokenizer folder"
+    )
     import_options = (
         ImportOption(
             "qwen_folder",
@@ -388,7 +391,7 @@ class StarVLA(VLABackbone):
     ) -> tuple[Tensor, Tensor]:
         """Left-padded ids (B, S) and valid mask (B, S) of one user turn per text, ending with the
         generation prompt (StarVLA's ``build_qwenvl_inputs``)."""
-        tok = self._require_tokenizer()
+        tok = self.require_tokenizer()
         rendered = [self.render_chat(text, n_images) for text in texts]
         encoded = tok(rendered, padding=True, add_special_tokens=False, return_tensors="pt")
         return encoded["input_ids"].to(device), encoded["attention_mask"].to(device).bool()
@@ -400,7 +403,7 @@ class StarVLA(VLABackbone):
         once per visual token of that image.
         """
         content = [{"type": "image"}] * n_images + [{"type": "text", "text": text}]
-        chat = self._require_tokenizer().apply_chat_template(
+        chat = self.require_tokenizer().apply_chat_template(
             [{"role": "user", "content": content}], tokenize=False, add_generation_prompt=True
         )
         if chat.count(IMAGE_PAD) != n_images:
@@ -410,15 +413,6 @@ class StarVLA(VLABackbone):
             )
         rows, cols = self.visual_grid
         return chat.replace(IMAGE_PAD, IMAGE_PAD * (rows * cols))
-
-    def _require_tokenizer(self) -> Any:
-        tok = self.tokenizer
-        if tok is None:
-            raise BackboneError(
-                "this backbone has no tokenizer: load a checkpoint folder that has one "
-                "(StarVLA.from_qwen / from_pretrained) or set tokenizer to a Qwen tokenizer folder"
-            )
-        return tok
 
     def language_model_logits(
         self, batch: Batch, prompts: list[str], answers: list[str]
@@ -430,7 +424,7 @@ class StarVLA(VLABackbone):
         are left padded like the action pass. The prompt carries no action queries or state: this
         is the VLM's plain next-token objective.
         """
-        tok = self._require_tokenizer()
+        tok = self.require_tokenizer()
         images: Tensor = batch["images"]
         n_cam = images.shape[1]
         rows, label_rows = [], []
@@ -538,7 +532,7 @@ class StarVLA(VLABackbone):
 
     @property
     def _token_ids(self) -> TokenIds:
-        self._require_tokenizer()  # installs a configured tokenizer on first use
+        self.require_tokenizer()  # installs a configured tokenizer on first use
         assert self._ids is not None  # resolved with every tokenizer
         return self._ids
 
@@ -582,7 +576,7 @@ class StarVLA(VLABackbone):
         """Add ``tokens`` as special tokens (where missing) and return their id range, resolved
         from the tokenizer (StarVLA hard-codes 151665-153712 for its ``<robot_action_k>``). Grows
         the embeddings when the vocabulary is full; call it before training or loading weights."""
-        tok = self._require_tokenizer()
+        tok = self.require_tokenizer()
         ids = self._add_special_tokens(tok, tokens)
         self._fit_embeddings(tok, allow_resize=True)
         if ids != list(range(ids[0], ids[0] + len(ids))):
