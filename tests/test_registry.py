@@ -81,6 +81,8 @@ def test_the_names_reach_what_uses_them() -> None:
     )
     assert isinstance(SpatialAlignment(teacher="geometric").teacher, GeometricTeacher)
     assert isinstance(SpatialAlignment().teacher, GeometricTeacher)
+    with pytest.raises(CapVectorError, match="teacher 'timm' needs model_name, weights: give it"):
+        SpatialAlignment(teacher="timm")
     model = build_backbone("starvla-tiny-gr00t", head="capvector.backbones.starvla.heads:GR00THead")
     assert isinstance(model.action_head, GR00THead)
     with pytest.raises(BackboneError, match=r"unknown action head 'gr00tt' \(did you mean gr00t"):

@@ -15,6 +15,7 @@ own is named ``module:Class``.
 
 from __future__ import annotations
 
+import inspect
 import math
 from abc import ABC, abstractmethod
 from pathlib import Path
@@ -46,7 +47,18 @@ def build_teacher(teacher: Teacher | str | None) -> Teacher:
     None: the geometric teacher (no download)."""
     if isinstance(teacher, Teacher):
         return teacher
-    return TEACHERS.get(teacher or "geometric")()
+    cls = TEACHERS.get(teacher or "geometric")
+    required = [
+        p.name
+        for p in inspect.signature(cls).parameters.values()
+        if p.default is p.empty and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+    ]
+    if required:
+        raise CapVectorError(
+            f"teacher {teacher!r} needs {', '.join(required)}: give it as a class_path with "
+            "init_args instead of by name"
+        )
+    return cls()
 
 
 def sine_position_embedding(rows: int, cols: int, dim: int, omega0: float = 100.0) -> Tensor:
