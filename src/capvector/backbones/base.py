@@ -1,8 +1,8 @@
 """The backbone contract every VLA family implements, and the preset registry.
 
-A backbone is an ``nn.Module`` that turns a batch (``capvector.data.batch.Batch``) into an action loss
-and whatever auxiliary objectives need: hidden states of requested layers, a mask of the visual-token
-positions and, when asked, language-model logits. Objectives only use this contract, never a
+A backbone is an ``nn.Module`` that turns a batch (``capvector.data.batch.Batch``) into an action
+loss and whatever auxiliary objectives need: hidden states of requested layers, a mask of the
+visual-token positions and, when asked, language-model logits. Objectives only use this contract, never a
 family's internals, so every objective works with every backbone.
 
 A VLA family is a config dataclass (subclass of ``BackboneConfig``) with preset functions decorated

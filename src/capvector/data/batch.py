@@ -1,4 +1,5 @@
-"""The training batch and a dataset sample: the one place their keys, shapes and dtypes are declared.
+"""The training batch and a dataset sample: the one place their keys, shapes and dtypes are
+declared.
 
 Every dataset yields a ``Sample``, the default collate stacks samples into a ``Batch``, and every
 backbone, objective and teacher reads a ``Batch``, so a backbone never depends on where the data
@@ -32,7 +33,8 @@ class Batch(_Observation, total=False):
     optional keys when the data config loads them."""
 
     actions: Tensor
-    """(B, T, A) float32: the action chunk, normalised as ``proprio`` (OFT leaves the gripper raw)."""
+    """(B, T, A) float32: the action chunk, normalised as ``proprio`` (OFT leaves the gripper
+    raw)."""
     index: Tensor
     """(B,) int64: each sample's position in its dataset (``dataset[i]``)."""
     noise_seed: Tensor
@@ -42,7 +44,8 @@ class Batch(_Observation, total=False):
     depth: Tensor
     """(B, N_cam, H, W) float32 depth in metres (``data.load_depth``, for geometric teachers)."""
     intrinsics: Tensor
-    """(B, N_cam, 3, 3) float32 pinhole intrinsics in pixels of the stored image (with ``depth``)."""
+    """(B, N_cam, 3, 3) float32 pinhole intrinsics in pixels of the stored image (with
+    ``depth``)."""
     annotation: list[str]
     """B text answers about the scene at this step (``data.load_annotations``, for reasoning)."""
 

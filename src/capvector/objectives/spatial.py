@@ -53,8 +53,9 @@ class SpatialAlignment(Objective):
     ) -> None:
         """
         Args:
-            teacher: frozen target features, or a teacher's name (``geometric``, or ``module:Class``)
-                to build with its defaults; default ``GeometricTeacher`` (depth-based, no download).
+            teacher: frozen target features, or a teacher's name (``geometric``, or
+                ``module:Class``) to build with its defaults; default ``GeometricTeacher``
+                (depth-based, no download).
             layer: hidden-state index of the student (default: the backbone's ``alignment_layer``,
                 3/4 of the depth, e.g. 24 of 32 for OpenVLA-OFT).
             weight: α in L = L_action + α·L_align (0.5 in Spatial Forcing).

@@ -62,8 +62,8 @@ class StarVLAConfig(BackboneConfig):
     """The VLM architecture in transformers' vocabulary (``text_config``, ``vision_config``,
     ``tie_word_embeddings``). ``from_qwen`` fills it from the checkpoint's ``config.json``."""
     head: str = "oft"
-    """An action head of ``heads.ACTION_HEADS``: 'oft', 'gr00t', 'layerwise', or ``module:Class`` for a head
-    of another package."""
+    """An action head of ``heads.ACTION_HEADS``: 'oft', 'gr00t', 'layerwise', or ``module:Class``
+    for a head of another package."""
     head_args: dict[str, Any] = field(default_factory=dict)
     """Fields of the head's config dataclass; the built model writes back every resolved field."""
     state_mode: str = "none"

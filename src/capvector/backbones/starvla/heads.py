@@ -799,12 +799,12 @@ class LayerwiseHead(FlowMatchingHead):
 
 
 __all__ = [
+    "ACTION_HEADS",
     "ActionHead",
     "FlowHeadConfig",
     "FlowMatchingHead",
     "GR00THead",
     "GR00THeadConfig",
-    "ACTION_HEADS",
     "HeadDims",
     "HeadInput",
     "LayerwiseHead",
