@@ -3,7 +3,6 @@ distributed fit script, and the ``slow``/``sim`` markers."""
 
 from __future__ import annotations
 
-import copy
 import json
 import subprocess
 import sys
@@ -113,16 +112,8 @@ def cpu_trainer(max_steps: int, root: Path | None = None, **overrides: object) -
 @contextmanager
 def restored_registry() -> Iterator[None]:
     """Backbone families and presets registered inside the block are unregistered after it."""
-    backbone_registry.list_presets()  # import the built-in families first: they stay registered
-    names = ("_PRESETS", "_FAMILIES", "_loaded")  # _loaded: modules imported for the registry
-    saved = {name: copy.copy(getattr(backbone_registry, name)) for name in names}
-    try:
+    with backbone_registry.FAMILIES.scoped(), backbone_registry.PRESETS.scoped():
         yield
-    finally:
-        for name, entries in saved.items():
-            registry = getattr(backbone_registry, name)
-            registry.clear()
-            registry.update(entries)
 
 
 @pytest.fixture

@@ -32,7 +32,7 @@ LAYERS = [
     ["sim", "vectors"],
     ["io"],
     ["tool_cli"],
-    ["errors"],
+    ["errors", "registry"],
 ]
 """docs/architecture.md's picture: a module imports from its own layer or those below it."""
 UPWARD = {("capvector.eval.policy", "capvector.backbones.base")}

@@ -25,7 +25,7 @@ from capvector.backbones.base import (
     from_pretrained,
     load_export_config,
 )
-from capvector.data import keys
+from capvector.data.batch import Batch
 from capvector.data.episodes import EpisodeDataset, EpisodeItem, is_episode_batch
 from capvector.data.spec import DataSpec
 from capvector.errors import CapVectorError
@@ -233,18 +233,18 @@ class VLAModule(L.LightningModule):
 
     # -- steps ---------------------------------------------------------------------------------
 
-    def forward(self, batch: Mapping[str, Any]) -> Tensor:
+    def forward(self, batch: Batch) -> Tensor:
         """(B, T, A) normalised actions."""
         return self.backbone(batch).actions
 
-    def compute_losses(self, batch: Mapping[str, Any]) -> dict[str, Tensor]:
+    def compute_losses(self, batch: Batch) -> dict[str, Tensor]:
         output = self.backbone(batch, self.output_request())
         losses = {"action": output.loss}
         for name, objective in self.objectives.items():
             losses[name] = objective(batch, output, self.backbone)
         return losses
 
-    def training_step(self, batch: Mapping[str, Any], batch_idx: int) -> Tensor:
+    def training_step(self, batch: Batch, batch_idx: int) -> Tensor:
         losses = self.compute_losses(batch)
         total = losses["action"]
         for name, objective in self.objectives.items():
@@ -431,7 +431,7 @@ DEFAULT_PRESET = "openvla-oft-tiny"
 """What ``capvector fit`` trains when neither ``model.backbone`` nor ``model.pretrained`` is set."""
 
 
-def held_out_action_l1(backbone: VLABackbone, batch: Mapping[str, Any]) -> Tensor:
+def held_out_action_l1(backbone: VLABackbone, batch: Batch) -> Tensor:
     """Mean L1 between the predicted and the target actions (normalised space).
 
     For an L1 head this is its loss; for a flow-matching head it is the L1 of the actions its
@@ -439,7 +439,7 @@ def held_out_action_l1(backbone: VLABackbone, batch: Mapping[str, Any]) -> Tenso
     one-step denoised estimate with targets (``Pi05.forward``): a cheap stand-in for sampling.
     """
     output = backbone(batch, OutputRequest(actions=True))
-    target = batch[keys.ACTIONS]
+    target = batch["actions"]
     return torch.nn.functional.l1_loss(
         output.actions.float(), target.to(output.actions.device).float()
     )

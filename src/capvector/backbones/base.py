@@ -1,8 +1,8 @@
 """The backbone contract every VLA family implements, and the preset registry.
 
-A backbone is an ``nn.Module`` that turns a batch (see ``capvector.data.keys``) into an action loss
-and whatever auxiliary objectives need: hidden states of requested layers, a mask of the visual-token
-positions and, when asked, language-model logits. Objectives only use this contract, never a
+A backbone is an ``nn.Module`` that turns a batch (``capvector.data.batch.Batch``) into an action
+loss and whatever auxiliary objectives need: hidden states of requested layers, a mask of the
+visual-token positions and, when asked, language-model logits. Objectives only use this contract, never a
 family's internals, so every objective works with every backbone.
 
 A VLA family is a config dataclass (subclass of ``BackboneConfig``) with preset functions decorated
@@ -28,11 +28,13 @@ from typing import Any, ClassVar, TypeVar
 import torch
 from torch import Tensor, nn
 
-from capvector.errors import CapVectorError, did_you_mean
+from capvector.data.batch import Batch
+from capvector.errors import CapVectorError
 from capvector.io.loading import COPY_AGAIN, load_safetensors, read_json
 from capvector.io.modelcard import render_model_card, write_model_card
 from capvector.io.names import EXPORT_CONFIG, EXPORT_FORMAT, EXPORT_INDEX, EXPORT_WEIGHTS
 from capvector.io.outputs import Inputs, atomic_directory
+from capvector.registry import Registry
 
 EMBEDDING_PARAMETERS = "embedding_parameters"
 
@@ -158,11 +160,11 @@ class VLABackbone(nn.Module, ABC):
         self.config = config
 
     @abstractmethod
-    def forward(self, batch: Mapping[str, Any], request: OutputRequest | None = None) -> VLAOutput:
+    def forward(self, batch: Batch, request: OutputRequest | None = None) -> VLAOutput:
         """Predict the action chunk; compute the action loss when ``batch`` has target actions."""
 
     @torch.no_grad()
-    def predict_action(self, batch: Mapping[str, Any]) -> Tensor:
+    def predict_action(self, batch: Batch) -> Tensor:
         """(B, T, A) actions in normalised space for a batch without targets."""
         return self(batch).actions
 
@@ -197,7 +199,7 @@ class VLABackbone(nn.Module, ABC):
         return round(0.75 * self.num_layers)
 
     def language_model_logits(
-        self, batch: Mapping[str, Any], prompts: list[str], answers: list[str]
+        self, batch: Batch, prompts: list[str], answers: list[str]
     ) -> tuple[Tensor, Tensor]:
         """(B, S, V) logits of a causal pass over the observation, ``prompts`` and ``answers``, and
         (B, S) token ids at their own positions, -100 everywhere but on the answer tokens (the
@@ -208,11 +210,22 @@ class VLABackbone(nn.Module, ABC):
         raise BackboneError(f"{type(self).__name__} has no language-model head for text objectives")
 
     _tokenizer: Any = None
+    missing_tokenizer_hint: ClassVar[str] = (
+        "load a checkpoint folder that contains one (from_pretrained / from_original) or set "
+        "tokenizer to a tokenizer folder"
+    )
+    """What to do when the backbone has no tokenizer, for the error ``require_tokenizer`` raises."""
 
     @property
     def tokenizer(self) -> Any:
         """The tokenizer that turns instructions into ids, when the family has one."""
         return self._tokenizer
+
+    def require_tokenizer(self) -> Any:
+        """The tokenizer, for a family that cannot run without one."""
+        if self.tokenizer is None:
+            raise BackboneError(f"this backbone has no tokenizer: {self.missing_tokenizer_hint}")
+        return self.tokenizer
 
     def make_tokenizer(self, folder: str) -> Any:
         """Build the family's tokenizer from saved files (families with a tokenizer override this)."""
@@ -363,95 +376,40 @@ _BUILTIN_FAMILY_MODULES = (
     "capvector.backbones.starvla",
 )
 ENTRY_POINT_GROUP = "capvector.backbones"
-_FAMILIES: dict[str, type[VLABackbone]] = {}
-_PRESETS: dict[str, Callable[[], BackboneConfig]] = {}
-_loaded: set[str] = set()
+FAMILIES: Registry[type[VLABackbone]] = Registry(
+    "backbone family", modules=_BUILTIN_FAMILY_MODULES, group=ENTRY_POINT_GROUP,
+    base=VLABackbone, error=BackboneError, plugin="backbone",
+)  # fmt: skip
+PRESETS: Registry[Callable[[], BackboneConfig]] = Registry(
+    "backbone preset", modules=_BUILTIN_FAMILY_MODULES, group=ENTRY_POINT_GROUP,
+    error=BackboneError, plugin="backbone",
+)  # fmt: skip
 
 B = TypeVar("B", bound=type[VLABackbone])
 
 
 def register_family(cls: B) -> B:
     """Class decorator: makes a backbone class buildable from its config class."""
-    _FAMILIES[cls.config_class.family] = cls
-    return cls
+    return FAMILIES.register(cls.config_class.family)(cls)
 
 
 def register_preset(name: str) -> Callable[[Callable[[], ConfigT]], Callable[[], ConfigT]]:
     """Decorator for a function returning the config of a named preset (timm style)."""
-
-    def decorate(fn: Callable[[], ConfigT]) -> Callable[[], ConfigT]:
-        if name in _PRESETS:
-            raise ValueError(f"preset {name!r} is registered twice")
-        _PRESETS[name] = fn
-        return fn
-
-    return decorate
-
-
-def _load_families(everything: bool = False) -> None:
-    """Import the built-in family modules; with ``everything`` also the installed entry points
-    (only when a name is not found, so a broken third-party package cannot break the built-ins)."""
-    for module in _BUILTIN_FAMILY_MODULES:
-        _import_family_module(module)
-    if everything and "entry points" not in _loaded:
-        _loaded.add("entry points")
-        from importlib.metadata import entry_points
-
-        for point in entry_points(group=ENTRY_POINT_GROUP):
-            try:
-                point.load()
-            except Exception as err:
-                raise BackboneError(
-                    f"backbone entry point {point.name!r} = {point.value!r} (group "
-                    f"{ENTRY_POINT_GROUP!r}) failed to import: {err}"
-                ) from err
-
-
-def _import_family_module(module: str) -> None:
-    if module in _loaded:
-        return
-    try:
-        importlib.import_module(module)
-    except ImportError as err:
-        raise BackboneError(
-            f"cannot import backbone module {module!r} ({err}); install the package that defines "
-            "it or put it on PYTHONPATH"
-        ) from err
-    _loaded.add(module)
-
-
-def _split_preset(preset: str) -> tuple[str | None, str]:
-    """``pkg.mod:name`` -> (``pkg.mod``, ``name``); a plain name has no module."""
-    module, sep, name = preset.rpartition(":")
-    return (module, name) if sep else (None, preset)
+    return PRESETS.register(name)
 
 
 def list_presets() -> list[str]:
-    _load_families(everything=True)
-    return sorted(_PRESETS)
+    return PRESETS.names()
 
 
 def preset_config(preset: str, /, **overrides: Any) -> BackboneConfig:
     """The config of ``preset`` (a registered name, or ``module:name`` for a backbone defined in
     any importable module) with ``overrides`` applied; unknown names give a clear error."""
-    module, name = _split_preset(preset)
-    _load_families()
-    if module is not None:
-        _import_family_module(module)
-    if name not in _PRESETS:
-        _load_families(everything=True)
-    if name not in _PRESETS:
-        raise BackboneError(
-            f"unknown backbone preset {preset!r}{did_you_mean(name, _PRESETS)}. Known presets: "
-            f"{', '.join(sorted(_PRESETS))}."
-            " A backbone of your own: name it `your.module:preset` or register an entry point "
-            f"in the {ENTRY_POINT_GROUP!r} group."
-        )
-    config = _PRESETS[name]()
+    config = PRESETS.get(preset)()
     known = {f.name for f in dataclasses.fields(config)}
     values = merge_nested(config.to_dict(), overrides)
     # Recorded as given: a module-qualified name lets checkpoints and exports find the module again.
-    values["preset"] = preset if module is not None else values.get("preset") or preset
+    values["preset"] = preset if ":" in preset else values.get("preset") or preset
     return _config_from_dict(type(config), values, known, preset)
 
 
@@ -515,18 +473,8 @@ def nested_config(cls: type[ConfigT]) -> type[ConfigT]:
 def backbone_class(family: str, preset: str | None = None) -> type[VLABackbone]:
     """The class of ``family``; ``preset`` (as a config records it) names the module to import
     when the family is defined outside the package."""
-    _load_families()
-    module, _ = _split_preset(preset or "")
-    if family not in _FAMILIES and module is not None:
-        _import_family_module(module)
-    if family not in _FAMILIES:
-        _load_families(everything=True)
-    if family not in _FAMILIES:
-        raise BackboneError(
-            f"unknown backbone family {family!r}; known: {sorted(_FAMILIES)}. Import the module "
-            f"that defines it, or install its package (entry point group {ENTRY_POINT_GROUP!r})"
-        )
-    return _FAMILIES[family]
+    module, sep, _ = (preset or "").rpartition(":")
+    return FAMILIES.get(f"{module}:{family}" if sep else family)
 
 
 def build_backbone(preset: str, /, **overrides: Any) -> VLABackbone:
@@ -537,8 +485,7 @@ def build_backbone(preset: str, /, **overrides: Any) -> VLABackbone:
 
 def registered_families() -> dict[str, type[VLABackbone]]:
     """Every registered family by name: the built-in ones and those of installed entry points."""
-    _load_families(everything=True)
-    return dict(sorted(_FAMILIES.items()))
+    return FAMILIES.entries()
 
 
 def load_export_config(folder: str | Path) -> dict[str, Any]:
@@ -660,7 +607,7 @@ def draw_flow_noise(
     ``sample_time(n, device)``.
 
     Without ``seeds`` both come from the global RNG, as openpi and StarVLA draw them. With
-    ``seeds`` (B,) (``keys.NOISE_SEED``) sample b's draws come from the CPU generator seeded with
+    ``seeds`` (B,) (``batch["noise_seed"]``) sample b's draws come from the CPU generator seeded with
     ``seeds[b]`` alone; B' must then be k·B laid out as ``x.repeat(k, ...)`` (row c·B + b is copy c
     of sample b), so the k copies of a flow head's repeated batch stay with their sample. We deviate
     from upstream here because the global stream differs per rank: only noise tied to the sample

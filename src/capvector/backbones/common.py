@@ -7,7 +7,7 @@ use ``np.digitize``'s bins) and OpenVLA-OFT's MLP-ResNet (StarVLA's OFT head is 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +32,15 @@ def right_pad(
         out[i, : len(row)] = torch.tensor(row, dtype=torch.long)
         valid[i, : len(row)] = True
     return out.to(device), valid.to(device)
+
+
+def rename_prefix(key: str, prefixes: Iterable[tuple[str, str]]) -> str:
+    """``key`` with its first matching ``old`` prefix replaced by ``new`` (a checkpoint's key map);
+    unchanged when none matches."""
+    for old, new in prefixes:
+        if key.startswith(old):
+            return new + key[len(old) :]
+    return key
 
 
 def read_required_json(path: Path, why: str) -> dict[str, Any]:

@@ -1,8 +1,14 @@
-"""Tokenizers made locally, for the tiny presets (no model hub is reachable at run time)."""
+"""Tokenizers made locally, for the tiny presets (no model hub is reachable at run time), and
+saved ones read from a local folder."""
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Any
+
 from transformers import PreTrainedTokenizerFast
+
+from capvector.backbones.base import BackboneError
 
 SPECIAL_TOKENS = ("<unk>", "<s>", "</s>", "<pad>")
 
@@ -28,3 +34,13 @@ def byte_level_tokenizer(model_max_length: int = 512) -> PreTrainedTokenizerFast
         pad_token="<pad>",
         model_max_length=model_max_length,
     )
+
+
+def saved_tokenizer(folder: str | Path, hint: str) -> Any:
+    """The tokenizer saved in ``folder``, read locally (never a hub name); ``hint`` says where to get
+    one when the folder has none."""
+    if not Path(folder, "tokenizer_config.json").is_file():
+        raise BackboneError(f"tokenizer folder {folder} has no tokenizer_config.json; {hint}")
+    from transformers import AutoTokenizer
+
+    return AutoTokenizer.from_pretrained(str(folder))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import lightning as L
 
+from capvector.data.batch import Batch
 from capvector.objectives.base import Objective
 
 
@@ -32,7 +33,7 @@ class AuxiliaryObjective(L.Callback):
         return self.base_weight * min(1.0, (step - self.start_step + 1) / self.warmup_steps)
 
     def on_train_batch_start(
-        self, trainer: L.Trainer, pl_module: L.LightningModule, batch, batch_idx: int
-    ) -> None:  # noqa: ANN001
+        self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Batch, batch_idx: int
+    ) -> None:
         self.objective.weight = self.weight_at(trainer.global_step)
         pl_module.log(f"aux/{self.objective.name}_weight", self.objective.weight, batch_size=1)

@@ -12,8 +12,14 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, DistributedSampler
 
-from capvector.data import keys
-from capvector.data.episodes import EpisodeDataset, EpisodeSampler, EvalTask, is_episode_batch
+from capvector.data.batch import Batch
+from capvector.data.episodes import (
+    EpisodeDataset,
+    EpisodeItem,
+    EpisodeSampler,
+    EvalTask,
+    is_episode_batch,
+)
 from capvector.data.hdf5 import DatasetError, HDF5RobotDataset
 from capvector.data.lerobot import LeRobotV3Dataset
 from capvector.data.spec import DataSpec
@@ -81,7 +87,7 @@ class RobotDataModule(L.LightningDataModule):
             load_depth: also load ``obs/<camera>_depth`` (geometric teachers need it).
             load_annotations: also load per-step text (the reasoning objective needs it).
             seed: the shuffling seed, also mixed into the flow-matching training noise
-                (``keys.NOISE_SEED``).
+                (``batch["noise_seed"]``).
             shuffle: shuffle training samples (off gives the same global batches on any number of
                 devices, which parity tests use).
             lerobot_root: a LeRobotDataset v3.0 folder, read instead of ``train_files``. Then
@@ -270,13 +276,15 @@ class RobotDataModule(L.LightningDataModule):
             drop_last=drop_last,
         )
 
-    def on_before_batch_transfer(self, batch: Any, dataloader_idx: int) -> Any:
-        """While training, give each sample its noise seed (``keys.NOISE_SEED``)."""
+    def on_before_batch_transfer(
+        self, batch: Batch | list[EpisodeItem], dataloader_idx: int
+    ) -> Batch | list[EpisodeItem]:
+        """While training, give each sample its noise seed (``batch["noise_seed"]``)."""
         trainer = self.trainer
         training = trainer is not None and trainer.training
-        if training and isinstance(batch, dict) and keys.INDEX in batch:
-            batch[keys.NOISE_SEED] = noise_seeds(
-                batch[keys.INDEX], trainer.current_epoch, self.hparams.seed
+        if training and isinstance(batch, dict) and "index" in batch:
+            batch["noise_seed"] = noise_seeds(
+                batch["index"], trainer.current_epoch, self.hparams.seed
             )
         return batch
 

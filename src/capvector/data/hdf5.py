@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from capvector.data import keys
+from capvector.data.batch import Sample
 from capvector.data.statistics import BOUNDS_Q99, Normalizer, compute_statistics
 from capvector.data.transforms import ImageTransform
 from capvector.errors import CapVectorError
@@ -308,7 +308,7 @@ class HDF5RobotDataset(Dataset):
         state["_handles"] = {}
         return state
 
-    def __getitem__(self, i: int) -> dict[str, Any]:
+    def __getitem__(self, i: int) -> Sample:
         ep_index, t = self.index[i]
         episode = self.episodes[ep_index]
         demo = self._file(episode.file)["data"][episode.demo]
@@ -326,19 +326,19 @@ class HDF5RobotDataset(Dataset):
             images.append(image)
             depths.append(depth)
             intrinsics.append(K)
-        sample: dict[str, Any] = {
-            keys.IMAGES: torch.stack(images),
-            keys.PROPRIO: torch.from_numpy(
+        sample: Sample = {
+            "images": torch.stack(images),
+            "proprio": torch.from_numpy(
                 self.normalizer.normalize("proprio", self._read_proprio(demo, t))
             ),
-            keys.ACTIONS: torch.from_numpy(self.normalizer.normalize("action", actions)),
-            keys.INSTRUCTION: episode.instruction,
-            keys.INDEX: i,
+            "actions": torch.from_numpy(self.normalizer.normalize("action", actions)),
+            "instruction": episode.instruction,
+            "index": i,
         }
         if self.load_depth:
-            sample[keys.DEPTH] = torch.stack(depths)
-            sample[keys.INTRINSICS] = torch.stack(intrinsics)
+            sample["depth"] = torch.stack(depths)
+            sample["intrinsics"] = torch.stack(intrinsics)
         if self.load_annotations:
             text = demo["annotations"][t]
-            sample[keys.ANNOTATION] = text.decode() if isinstance(text, bytes) else str(text)
+            sample["annotation"] = text.decode() if isinstance(text, bytes) else str(text)
         return sample

@@ -35,7 +35,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from capvector.data import keys
+from capvector.data.batch import Sample
 from capvector.data.hdf5 import DatasetError
 from capvector.data.statistics import (
     BOUNDS_Q99,
@@ -501,7 +501,7 @@ class LeRobotV3Dataset(Dataset):
             self._videos = _VideoFiles()
         return self._videos
 
-    def __getitem__(self, i: int) -> dict[str, Any]:
+    def __getitem__(self, i: int) -> Sample:
         row = int(self._rows[i])
         episode = self.episodes[int(self._sample_episode[i])]
         videos = self._video_files()
@@ -523,13 +523,11 @@ class LeRobotV3Dataset(Dataset):
             images.append(self.transform(image)[0])
         actions = self._actions[row : row + self.chunk_size]
         return {
-            keys.IMAGES: torch.stack(images),
-            keys.PROPRIO: torch.from_numpy(
-                self.normalizer.normalize("proprio", self._proprio[row])
-            ),
-            keys.ACTIONS: torch.from_numpy(self.normalizer.normalize("action", actions)),
-            keys.INSTRUCTION: self.tasks[int(self._task_index[row])],
-            keys.INDEX: i,
+            "images": torch.stack(images),
+            "proprio": torch.from_numpy(self.normalizer.normalize("proprio", self._proprio[row])),
+            "actions": torch.from_numpy(self.normalizer.normalize("action", actions)),
+            "instruction": self.tasks[int(self._task_index[row])],
+            "index": i,
         }
 
 

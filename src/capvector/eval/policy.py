@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from capvector.backbones.base import VLABackbone
-from capvector.data import keys
+from capvector.data.batch import Batch
 from capvector.data.spec import DataSpec
 from capvector.data.statistics import Normalizer
 from capvector.data.transforms import ImageTransform
@@ -32,7 +32,7 @@ class VLAPolicy:
         self.normalizer = Normalizer(data_spec.stats_entry)
         self.transform = ImageTransform(augment=False, center_crop=data_spec.center_crop)
 
-    def observations_to_batch(self, observations: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    def observations_to_batch(self, observations: Sequence[Mapping[str, Any]]) -> Batch:
         device = next(self.backbone.parameters()).device
         images, proprio = [], []
         for observation in observations:
@@ -44,9 +44,9 @@ class VLAPolicy:
             raw = np.asarray(observation["proprio"], np.float32)
             proprio.append(torch.from_numpy(self.normalizer.normalize("proprio", raw)))
         return {
-            keys.IMAGES: torch.stack(images).to(device),
-            keys.PROPRIO: torch.stack(proprio).to(device),
-            keys.INSTRUCTION: [observation["instruction"] for observation in observations],
+            "images": torch.stack(images).to(device),
+            "proprio": torch.stack(proprio).to(device),
+            "instruction": [observation["instruction"] for observation in observations],
         }
 
     @torch.no_grad()

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Mapping
-from typing import Any
 
 from torch import Tensor, nn
 
 from capvector.backbones.base import OutputRequest, VLABackbone, VLAOutput
+from capvector.data.batch import Batch
+from capvector.errors import CapVectorError
+from capvector.registry import Registry
 
 
 class Objective(nn.Module, ABC):
@@ -31,5 +32,16 @@ class Objective(nn.Module, ABC):
         """Build parameters that depend on the backbone (called once, before optimizers exist)."""
 
     @abstractmethod
-    def forward(self, batch: Mapping[str, Any], output: VLAOutput, backbone: VLABackbone) -> Tensor:
+    def forward(self, batch: Batch, output: VLAOutput, backbone: VLABackbone) -> Tensor:
         """The unweighted scalar loss of this term."""
+
+
+OBJECTIVES: Registry[type[Objective]] = Registry(
+    "objective",
+    modules=("capvector.objectives.spatial", "capvector.objectives.reasoning"),
+    base=Objective,
+    error=CapVectorError,
+)
+"""The auxiliary objectives by name (``spatial``, ``reasoning``, or ``module:Class``), for the
+tools that attach one with its defaults (``backbone-info --flops``); configs name theirs by class
+path (``AuxiliaryObjective``'s ``objective``)."""

@@ -9,20 +9,18 @@ padding positions carry label -100.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from typing import Any
-
 import torch.nn.functional as F
 from torch import Tensor
 
 from capvector.backbones.base import VLABackbone, VLAOutput
-from capvector.data import keys
+from capvector.data.batch import Batch
 from capvector.errors import CapVectorError
-from capvector.objectives.base import Objective
+from capvector.objectives.base import OBJECTIVES, Objective
 
 DEFAULT_QUESTION = "What is the robot doing, and where are the objects?"
 
 
+@OBJECTIVES.register("reasoning")
 class ReasoningCoTraining(Objective):
     def __init__(
         self,
@@ -45,19 +43,17 @@ class ReasoningCoTraining(Objective):
             if name in head:
                 param.requires_grad_(True)
 
-    def forward(self, batch: Mapping[str, Any], output: VLAOutput, backbone: VLABackbone) -> Tensor:
-        if keys.ANNOTATION not in batch:
+    def forward(self, batch: Batch, output: VLAOutput, backbone: VLABackbone) -> Tensor:
+        if "annotation" not in batch:
             raise CapVectorError(
                 "reasoning co-training needs per-step text annotations: set data.load_annotations=true "
                 "(demos from `capvector demos` carry them)"
             )
         prompts = [
             self.prompt_template.format(instruction=instruction, question=self.question)
-            for instruction in batch[keys.INSTRUCTION]
+            for instruction in batch["instruction"]
         ]
-        logits, labels = backbone.language_model_logits(
-            batch, prompts, list(batch[keys.ANNOTATION])
-        )
+        logits, labels = backbone.language_model_logits(batch, prompts, list(batch["annotation"]))
         return F.cross_entropy(
             logits[:, :-1].flatten(0, 1).float(), labels[:, 1:].flatten(), ignore_index=-100
         )

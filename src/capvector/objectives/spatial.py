@@ -10,17 +10,15 @@ the original's one-token shift (``gain_feat_1move``) is available as ``shift_one
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from typing import Any
-
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 from capvector.backbones.base import OutputRequest, VLABackbone, VLAOutput
+from capvector.data.batch import Batch
 from capvector.errors import CapVectorError
-from capvector.objectives.base import Objective
-from capvector.objectives.teachers import GeometricTeacher, Teacher
+from capvector.objectives.base import OBJECTIVES, Objective
+from capvector.objectives.teachers import Teacher, build_teacher
 
 
 class AlignProjector(nn.Module):
@@ -39,12 +37,13 @@ class AlignProjector(nn.Module):
         return self.fc2(F.gelu(self.fc1(self.norm(x))))
 
 
+@OBJECTIVES.register("spatial")
 class SpatialAlignment(Objective):
     """Loss = 1 − mean cosine(projector(h_k at visual tokens), teacher features)."""
 
     def __init__(
         self,
-        teacher: Teacher | None = None,
+        teacher: Teacher | str | None = None,
         layer: int | None = None,
         weight: float = 0.5,
         projector_layernorm: bool = True,
@@ -54,7 +53,9 @@ class SpatialAlignment(Objective):
     ) -> None:
         """
         Args:
-            teacher: frozen target features; default ``GeometricTeacher`` (depth-based, no download).
+            teacher: frozen target features, or a teacher's name (``geometric``, or
+                ``module:Class``) to build with its defaults; default ``GeometricTeacher``
+                (depth-based, no download).
             layer: hidden-state index of the student (default: the backbone's ``alignment_layer``,
                 3/4 of the depth, e.g. 24 of 32 for OpenVLA-OFT).
             weight: α in L = L_action + α·L_align (0.5 in Spatial Forcing).
@@ -65,7 +66,7 @@ class SpatialAlignment(Objective):
         """
         super().__init__(name=name, weight=weight)
         # Kept out of the module tree: not trained, not checkpointed, not wrapped by DDP.
-        object.__setattr__(self, "teacher", teacher if teacher is not None else GeometricTeacher())
+        object.__setattr__(self, "teacher", build_teacher(teacher))
         self.layer = layer
         self.projector_layernorm = projector_layernorm
         self.shift_one_token = shift_one_token
@@ -95,7 +96,7 @@ class SpatialAlignment(Objective):
     def request(self) -> OutputRequest:
         return OutputRequest(hidden_layers=(self.layer,))
 
-    def forward(self, batch: Mapping[str, Any], output: VLAOutput, backbone: VLABackbone) -> Tensor:
+    def forward(self, batch: Batch, output: VLAOutput, backbone: VLABackbone) -> Tensor:
         hidden = output.hidden_states[self.layer]
         mask = output.visual_token_mask
         if self.shift_one_token:

@@ -7,15 +7,17 @@ no trainable parameters, run under ``no_grad`` and live outside the module tree 
 
 - ``GeometricTeacher`` (default): 3-D structure from the demos' depth maps, no download.
 - ``TimmTeacher``: any timm vision model from a local weights file (e.g. DINOv2, SigLIP).
-- ``ExternalTeacher``: any user module by class path (e.g. VGGT, Spatial Forcing's teacher).
+- ``ExternalTeacher``: any user module by import path (e.g. VGGT, Spatial Forcing's teacher).
+
+They are registered in ``TEACHERS`` as ``geometric``, ``timm`` and ``external``; a teacher of your
+own is named ``module:Class``.
 """
 
 from __future__ import annotations
 
-import importlib
+import inspect
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -23,17 +25,40 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from capvector.data import keys
+from capvector.data.batch import Batch
 from capvector.errors import CapVectorError
 from capvector.io.loading import load_safetensors, load_torch
+from capvector.registry import Registry, import_object
 
 
 class Teacher(nn.Module, ABC):
     feature_dim: int
 
     @abstractmethod
-    def forward(self, batch: Mapping[str, Any], grid: tuple[int, int]) -> Tensor:
+    def forward(self, batch: Batch, grid: tuple[int, int]) -> Tensor:
         """Targets (B, N_cam * rows * cols, feature_dim) for a ``grid`` of (rows, cols) per camera."""
+
+
+TEACHERS: Registry[type[Teacher]] = Registry("teacher", base=Teacher, error=CapVectorError)
+
+
+def build_teacher(teacher: Teacher | str | None) -> Teacher:
+    """``teacher`` itself, or the teacher a name or ``module:Class`` names, with its defaults;
+    None: the geometric teacher (no download)."""
+    if isinstance(teacher, Teacher):
+        return teacher
+    cls = TEACHERS.get(teacher or "geometric")
+    required = [
+        p.name
+        for p in inspect.signature(cls).parameters.values()
+        if p.default is p.empty and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+    ]
+    if required:
+        raise CapVectorError(
+            f"teacher {teacher!r} needs {', '.join(required)}: give it as a class_path with "
+            "init_args instead of by name"
+        )
+    return cls()
 
 
 def sine_position_embedding(rows: int, cols: int, dim: int, omega0: float = 100.0) -> Tensor:
@@ -57,6 +82,7 @@ def sine_position_embedding(rows: int, cols: int, dim: int, omega0: float = 100.
     return F.pad(embedding, (0, dim - embedding.shape[-1]))
 
 
+@TEACHERS.register("geometric")
 class GeometricTeacher(Teacher):
     """Per-patch 3-D structure from depth and camera intrinsics, lifted to fixed features.
 
@@ -86,14 +112,14 @@ class GeometricTeacher(Teacher):
         )
 
     @torch.no_grad()
-    def forward(self, batch: Mapping[str, Any], grid: tuple[int, int]) -> Tensor:
-        if keys.DEPTH not in batch or keys.INTRINSICS not in batch:
+    def forward(self, batch: Batch, grid: tuple[int, int]) -> Tensor:
+        if "depth" not in batch or "intrinsics" not in batch:
             raise CapVectorError(
                 "the geometric teacher needs depth maps and camera intrinsics: set data.load_depth=true "
                 "and record demos with depth (`capvector demos --depth`)"
             )
-        depth: Tensor = batch[keys.DEPTH].float()  # (B, N, H, W)
-        intrinsics: Tensor = batch[keys.INTRINSICS].float()  # (B, N, 3, 3)
+        depth: Tensor = batch["depth"].float()  # (B, N, H, W)
+        intrinsics: Tensor = batch["intrinsics"].float()  # (B, N, 3, 3)
         b, n, h, w = depth.shape
         v, u = torch.meshgrid(
             torch.arange(h, device=depth.device, dtype=depth.dtype) + 0.5,
@@ -130,6 +156,7 @@ def _pool_feature_map(features: Tensor, grid: tuple[int, int], batch: int) -> Te
     return pooled.flatten(2).transpose(1, 2).reshape(batch, -1, features.shape[1])
 
 
+@TEACHERS.register("timm")
 class TimmTeacher(Teacher):
     """A timm ViT (any ``forward_intermediates`` model) loaded from a local weights file."""
 
@@ -162,8 +189,8 @@ class TimmTeacher(Teacher):
         self.input_size = self.model.patch_embed.img_size
 
     @torch.no_grad()
-    def forward(self, batch: Mapping[str, Any], grid: tuple[int, int]) -> Tensor:
-        images: Tensor = batch[keys.IMAGES]
+    def forward(self, batch: Batch, grid: tuple[int, int]) -> Tensor:
+        images: Tensor = batch["images"]
         flat = images.flatten(0, 1).float()
         if tuple(flat.shape[-2:]) != tuple(self.input_size):
             flat = F.interpolate(
@@ -179,8 +206,10 @@ class TimmTeacher(Teacher):
         return _pool_feature_map(features, grid, images.shape[0])
 
 
+@TEACHERS.register("external")
 class ExternalTeacher(Teacher):
-    """A user module by class path, e.g. a VGGT aggregator where the user has it.
+    """A user module by import path (``module:Class``, or ``module.Class``), e.g. a VGGT
+    aggregator where the user has it.
 
     The module is called on images (B*N, 3, H, W) in [0, 1] and must return a feature map
     (B*N, D, h, w); ``feature_dim`` is D. Weights load from a local file when given.
@@ -194,20 +223,15 @@ class ExternalTeacher(Teacher):
         weights: str | None = None,
     ) -> None:
         super().__init__()
-        module_name, _, attr = class_path.rpartition(".")
-        try:
-            cls = getattr(importlib.import_module(module_name), attr)
-        except (ImportError, AttributeError, ValueError) as exc:
-            raise CapVectorError(f"teacher class {class_path!r} cannot be imported: {exc}") from exc
-        self.model = cls(**(init_args or {}))
+        self.model = import_object(class_path, "teacher class")(**(init_args or {}))
         if weights:
             _load_weights(self.model, weights)
         self.model.eval().requires_grad_(False)
         self.feature_dim = feature_dim
 
     @torch.no_grad()
-    def forward(self, batch: Mapping[str, Any], grid: tuple[int, int]) -> Tensor:
-        images: Tensor = batch[keys.IMAGES]
+    def forward(self, batch: Batch, grid: tuple[int, int]) -> Tensor:
+        images: Tensor = batch["images"]
         features = self.model(images.flatten(0, 1).float())
         if features.ndim != 4 or features.shape[1] != self.feature_dim:
             raise CapVectorError(

@@ -10,13 +10,13 @@ from __future__ import annotations
 from collections.abc import Sequence
 from contextlib import nullcontext
 from dataclasses import dataclass, field
-from typing import Any
 
 from capvector.backbones.base import VLABackbone
-from capvector.errors import CapVectorError
+from capvector.data.batch import Batch
+from capvector.objectives.base import OBJECTIVES, Objective
 from capvector.profiling.memory import HostValuesMetaCompute, meta_backbone, synthetic_batch
 
-OBJECTIVES = ("spatial", "reasoning")
+BUILTIN_OBJECTIVES = ("spatial", "reasoning")
 
 
 @dataclass
@@ -75,19 +75,14 @@ class FlopsEstimate:
         return "\n".join(lines)
 
 
-def make_objective(name: str) -> Any:
-    """The auxiliary objective ``name`` with its defaults (spatial: the geometric teacher)."""
-    from capvector.objectives import ReasoningCoTraining, SpatialAlignment
-
-    if name == "spatial":
-        return SpatialAlignment()
-    if name == "reasoning":
-        return ReasoningCoTraining()
-    raise CapVectorError(f"unknown objective {name!r}; choose from {', '.join(OBJECTIVES)}")
+def make_objective(name: str) -> Objective:
+    """The auxiliary objective ``name`` (``OBJECTIVES``) with its defaults (spatial: the geometric
+    teacher)."""
+    return OBJECTIVES.get(name)()
 
 
 def training_step_flops(
-    backbone: VLABackbone, batch: dict[str, Any], objective: Any = None
+    backbone: VLABackbone, batch: Batch, objective: Objective | None = None
 ) -> tuple[float, float]:
     """(forward, backward) FLOPs of one training step of ``backbone`` (weights on meta or real)
     with ``objective`` added to the loss as ``VLAModule.training_step`` does."""
@@ -112,7 +107,7 @@ def estimate_flops(
     preset: str,
     batch_size: int = 8,
     lora_rank: int | None = None,
-    objectives: Sequence[str] = OBJECTIVES,
+    objectives: Sequence[str] = BUILTIN_OBJECTIVES,
 ) -> FlopsEstimate:
     """Training FLOPs per sample of ``preset`` (weights on the meta device), plain and with each
     of ``objectives`` attached. Attention is counted as its matmuls, whichever kernel runs it."""

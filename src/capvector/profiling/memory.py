@@ -40,7 +40,7 @@ from torch.utils import _pytree as pytree
 from torch.utils._python_dispatch import TorchDispatchMode, _disable_current_modes
 
 from capvector.backbones.base import VLABackbone, build_backbone, list_presets, preset_config
-from capvector.data import keys
+from capvector.data.batch import Batch
 from capvector.errors import CapVectorError
 from capvector.training.lora import (
     FROZEN_DTYPES,
@@ -310,24 +310,24 @@ def efficient_attention(
 
 def synthetic_batch(
     backbone: VLABackbone, batch_size: int, device: str | torch.device, objectives: bool = False
-) -> dict[str, Any]:
+) -> Batch:
     """A training batch of ``backbone``'s shapes; ``objectives`` adds what the auxiliary objectives
     read (depth and intrinsics for spatial alignment, a text annotation for reasoning)."""
     c = backbone.config
-    batch: dict[str, Any] = {
-        keys.IMAGES: torch.rand(
+    batch: Batch = {
+        "images": torch.rand(
             batch_size, c.num_images, 3, c.image_size, c.image_size, device=device
         ),
-        keys.PROPRIO: torch.zeros(batch_size, c.proprio_dim, device=device),
-        keys.ACTIONS: torch.zeros(batch_size, c.chunk_size, c.action_dim, device=device),
-        keys.INSTRUCTION: ["pick up the red cube and place it on the plate"] * batch_size,
+        "proprio": torch.zeros(batch_size, c.proprio_dim, device=device),
+        "actions": torch.zeros(batch_size, c.chunk_size, c.action_dim, device=device),
+        "instruction": ["pick up the red cube and place it on the plate"] * batch_size,
     }
     if objectives:
         size = (batch_size, c.num_images, c.image_size, c.image_size)
-        batch[keys.DEPTH] = torch.ones(size, device=device)
+        batch["depth"] = torch.ones(size, device=device)
         intrinsics = torch.tensor([[c.image_size, 0, c.image_size / 2], [0, c.image_size, c.image_size / 2], [0, 0, 1.0]])  # fmt: skip
-        batch[keys.INTRINSICS] = intrinsics.expand(batch_size, c.num_images, 3, 3).to(device)
-        batch[keys.ANNOTATION] = ["the gripper moves toward the red cube, left of the plate"] * batch_size  # fmt: skip
+        batch["intrinsics"] = intrinsics.expand(batch_size, c.num_images, 3, 3).to(device)
+        batch["annotation"] = ["the gripper moves toward the red cube, left of the plate"] * batch_size  # fmt: skip
     return batch
 
 
@@ -391,7 +391,7 @@ class LiveBytes(TorchDispatchMode):
 
 def measure_activations(
     backbone: VLABackbone,
-    batch: dict[str, Any],
+    batch: Batch,
     checkpointed: bool,
     precision: str = "32-true",
     attention: str = "math",
@@ -402,7 +402,7 @@ def measure_activations(
 
 def trace_step(
     backbone: VLABackbone,
-    batch: dict[str, Any],
+    batch: Batch,
     checkpointed: bool,
     precision: str,
     attention: str,

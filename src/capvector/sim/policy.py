@@ -17,7 +17,7 @@ ACTION_DIM = 7
 
 
 class Observation(TypedDict, total=False):
-    """What a policy receives; key names match ``capvector.data.keys`` (IMAGES, PROPRIO, ...)."""
+    """What a policy receives; key names match ``capvector.data.batch.Batch``'s."""
 
     images: dict[str, np.ndarray]
     """``{camera: (H, W, 3) uint8}``, upright, in the order the caller asked for cameras."""

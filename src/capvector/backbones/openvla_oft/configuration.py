@@ -72,18 +72,26 @@ class OpenVLAOFTConfig(BackboneConfig):
     embedding of the prompt tokens (BOS, prompt, </s>; not the action slots)."""
 
 
+def _dinov2(**sizes: int) -> ViTConfig:
+    """The DINOv2 half of the fused vision backbone at ``sizes``: 4 register tokens, LayerScale,
+    position embeddings without the class token (timm's ``vit_large_patch14_reg4_dinov2``)."""
+    return ViTConfig(reg_tokens=4, no_embed_class=True, layer_scale_init=1e-5, **sizes)
+
+
+def _siglip(**sizes: float) -> ViTConfig:
+    """The SigLIP half at ``sizes``: no class token, the attention-pool head
+    (timm's ``vit_so400m_patch14_siglip_224``)."""
+    return ViTConfig(class_token=False, global_pool="map", **sizes)
+
+
 @register_preset("openvla-oft-7b")
 def openvla_oft_7b() -> OpenVLAOFTConfig:
     """The published LIBERO configuration: 2 cameras at 224 px, 8-d proprio, chunk 8 x 7."""
     return OpenVLAOFTConfig(
         image_size=224,
-        featurizer=ViTConfig(
-            patch_size=14, embed_dim=1024, depth=24, num_heads=16, reg_tokens=4,
-            no_embed_class=True, layer_scale_init=1e-5,
-        ),
-        fused_featurizer=ViTConfig(
-            patch_size=14, embed_dim=1152, depth=27, num_heads=16, mlp_ratio=3.7362,
-            class_token=False, global_pool="map",
+        featurizer=_dinov2(patch_size=14, embed_dim=1024, depth=24, num_heads=16),
+        fused_featurizer=_siglip(
+            patch_size=14, embed_dim=1152, depth=27, num_heads=16, mlp_ratio=3.7362
         ),
         llm=LlamaSpec(),
         tokenizer="",  # Llama-2's tokenizer comes with the checkpoint folder
@@ -95,14 +103,8 @@ def openvla_oft_tiny() -> OpenVLAOFTConfig:
     """Same architecture at toy width: trains on a 2-core CPU in seconds (64 px, 8x8 patches)."""
     return OpenVLAOFTConfig(
         image_size=64,
-        featurizer=ViTConfig(
-            patch_size=8, embed_dim=48, depth=3, num_heads=4, reg_tokens=4,
-            no_embed_class=True, layer_scale_init=1e-5,
-        ),
-        fused_featurizer=ViTConfig(
-            patch_size=8, embed_dim=48, depth=3, num_heads=4, class_token=False,
-            global_pool="map",
-        ),
+        featurizer=_dinov2(patch_size=8, embed_dim=48, depth=3, num_heads=4),
+        fused_featurizer=_siglip(patch_size=8, embed_dim=48, depth=3, num_heads=4),
         llm=LlamaSpec(
             hidden_size=64, intermediate_size=128, num_layers=4, num_heads=4, num_kv_heads=4,
             vocab_size=320, max_position_embeddings=512,

@@ -16,7 +16,6 @@ Sequence layout (one row, right padded):
 from __future__ import annotations
 
 import functools
-from collections.abc import Mapping
 from typing import Any
 
 import torch
@@ -34,7 +33,7 @@ from capvector.backbones.base import (
 )
 from capvector.backbones.common import IGNORE_INDEX, MLPResNet, check_cameras, right_pad
 from capvector.backbones.openvla_oft.configuration import OpenVLAOFTConfig, ViTConfig
-from capvector.data import keys
+from capvector.data.batch import Batch
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -342,9 +341,9 @@ class OpenVLAOFT(VLABackbone):
     def num_visual_tokens(self) -> int:
         return self.config.num_images * self.vision_backbone.grid**2
 
-    def forward(self, batch: Mapping[str, Any], request: OutputRequest | None = None) -> VLAOutput:
+    def forward(self, batch: Batch, request: OutputRequest | None = None) -> VLAOutput:
         request = request or OutputRequest()
-        images: Tensor = batch[keys.IMAGES]
+        images: Tensor = batch["images"]
         device = images.device
         embeds, valid, slot_pos, n_prefix = self._embed_inputs(batch)
         hidden: dict[int, Tensor] = {}
@@ -369,8 +368,8 @@ class OpenVLAOFT(VLABackbone):
         visual = torch.zeros_like(valid)
         visual[:, 1 : 1 + self.num_visual_tokens] = True
         loss = None
-        if keys.ACTIONS in batch:
-            loss = F.l1_loss(actions, batch[keys.ACTIONS].to(actions.dtype))
+        if "actions" in batch:
+            loss = F.l1_loss(actions, batch["actions"].to(actions.dtype))
         logits = self.language_model.lm_head(last) if request.lm_logits else None
         grid = self.vision_backbone.grid
         return VLAOutput(
@@ -383,12 +382,12 @@ class OpenVLAOFT(VLABackbone):
             lm_logits=logits,
         )
 
-    def _prefix_tokens(self, batch: Mapping[str, Any], language: Tensor | None = None) -> Tensor:
+    def _prefix_tokens(self, batch: Batch, language: Tensor | None = None) -> Tensor:
         """(B, n_visual [+ 1 proprio], H): projected patch tokens of every camera, then proprio.
 
         ``language`` (B, H): the mean language embedding FiLM conditions on (OFT+ only).
         """
-        images: Tensor = batch[keys.IMAGES]
+        images: Tensor = batch["images"]
         b, n_cam = images.shape[:2]
         check_cameras(images, self.config.num_images)
         flat = images.flatten(0, 1)
@@ -404,13 +403,13 @@ class OpenVLAOFT(VLABackbone):
         visual = self.projector(patches.reshape(b, -1, patches.shape[-1]))
         if self.proprio_projector is None:
             return visual
-        proprio = self.proprio_projector(batch[keys.PROPRIO].to(visual.dtype)).unsqueeze(1)
+        proprio = self.proprio_projector(batch["proprio"].to(visual.dtype)).unsqueeze(1)
         return torch.cat([visual, proprio], dim=1)
 
-    def _embed_inputs(self, batch: Mapping[str, Any]) -> tuple[Tensor, Tensor, Tensor, int]:
+    def _embed_inputs(self, batch: Batch) -> tuple[Tensor, Tensor, Tensor, int]:
         """Input embeddings (B, S, H), valid mask (B, S), action-slot positions (B, T*A)."""
-        device = batch[keys.IMAGES].device
-        ids, text_valid, slot_pos = self._tokenize(batch[keys.INSTRUCTION], device)
+        device = batch["images"].device
+        ids, text_valid, slot_pos = self._tokenize(batch["instruction"], device)
         text = self.language_model.get_input_embeddings()(ids)
         slot_mask = torch.zeros_like(ids, dtype=torch.bool).scatter_(1, slot_pos, True)
         language = _mean_embedding(text, text_valid & ~slot_mask) if self.config.film else None
@@ -422,15 +421,15 @@ class OpenVLAOFT(VLABackbone):
         return embeds, valid, slot_pos + n_prefix, n_prefix
 
     def language_model_logits(
-        self, batch: Mapping[str, Any], prompts: list[str], answers: list[str]
+        self, batch: Batch, prompts: list[str], answers: list[str]
     ) -> tuple[Tensor, Tensor]:
         """A causal pass over ``[BOS] [visual] [proprio] prompt answer [</s>]``.
 
         Causal, unlike the action pass: this is the VLM's own next-token objective (StarVLA's VLM
         co-training), run separately so the action pathway's bidirectional attention is untouched.
         """
-        tok = self._require_tokenizer()
-        device = batch[keys.IMAGES].device
+        tok = self.require_tokenizer()
+        device = batch["images"].device
         rows, label_rows = [], []
         for prompt, answer in zip(prompts, answers, strict=True):
             prompt_ids = tok(prompt, add_special_tokens=False)["input_ids"]
@@ -467,19 +466,11 @@ class OpenVLAOFT(VLABackbone):
         )
         return self.language_model.lm_head(hidden.last_hidden_state), labels
 
-    def _require_tokenizer(self) -> Any:
-        if self.tokenizer is None:
-            raise BackboneError(
-                "this backbone has no tokenizer: load a checkpoint folder that contains one "
-                "(from_pretrained / from_original) or set tokenizer to a tokenizer folder"
-            )
-        return self.tokenizer
-
     def _tokenize(
         self, instructions: list[str], device: torch.device
     ) -> tuple[Tensor, Tensor, Tensor]:
         """Right-padded ``[BOS] prompt [T*A slots] [</s>]`` ids, valid mask, slot positions."""
-        tok = self._require_tokenizer()
+        tok = self.require_tokenizer()
         n_slots = self.config.chunk_size * self.config.action_dim
         rows = []
         for instruction in instructions:
@@ -513,13 +504,11 @@ def _splice_after_bos(text: Tensor, text_valid: Tensor, prefix: Tensor) -> tuple
 
 
 def _make_tokenizer(spec: str) -> Any:
+    from capvector.backbones.tokenizers import byte_level_tokenizer, saved_tokenizer
+
     if spec == "byte":
-        from capvector.backbones.tokenizers import byte_level_tokenizer
-
         return byte_level_tokenizer()
-    from transformers import AutoTokenizer
-
-    tok = AutoTokenizer.from_pretrained(spec)
+    tok = saved_tokenizer(spec, "point `tokenizer` at an OpenVLA-OFT checkpoint folder")
     if tok.pad_token is None:  # Prismatic adds <PAD> = 32000 to Llama-2's tokenizer
         tok.add_special_tokens({"pad_token": "<PAD>"})
     return tok

@@ -38,6 +38,7 @@ from capvector.backbones.base import (
     merge_nested,
     preset_config,
 )
+from capvector.backbones.common import rename_prefix
 from capvector.io.loading import load_safetensors
 
 if TYPE_CHECKING:
@@ -89,11 +90,7 @@ def original_to_capvector(state: Mapping[str, Tensor], source: str) -> dict[str,
         if key == _ORIGINAL_LM_HEAD:
             lm_head = value
             continue
-        for old, new in _ORIGINAL_PREFIXES:
-            if key.startswith(old):
-                key = new + key[len(old) :]
-                break
-        out[key] = value
+        out[rename_prefix(key, _ORIGINAL_PREFIXES)] = value
     if lm_head is not None:
         if _EMBEDDING in out and not torch.equal(out[_EMBEDDING], lm_head):
             raise BackboneError(
@@ -108,10 +105,7 @@ def capvector_to_original(key: str) -> str:
     """Our key -> its openpi/LeRobot name (without LeRobot's ``model.`` prefix)."""
     if key == _EMBEDDING:
         return _ORIGINAL_LM_HEAD
-    for old, new in _ORIGINAL_PREFIXES:
-        if key.startswith(new):
-            return old + key[len(new) :]
-    return key
+    return rename_prefix(key, ((new, old) for old, new in _ORIGINAL_PREFIXES))
 
 
 # -- config.json ------------------------------------------------------------------------------

@@ -30,10 +30,10 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import torch
 import torch.nn.functional as F
@@ -55,12 +55,24 @@ from capvector.backbones.common import (
     right_pad,
 )
 from capvector.backbones.pi05.configuration import GemmaSpec, Pi05Config, SiglipSpec
-from capvector.data import keys
+from capvector.data.batch import Batch
+
+
+class Pi05Batch(Batch, total=False):
+    """A ``Batch`` with the one input only Pi0.5 reads."""
+
+    image_mask: Tensor
+    """(B, N_cam) bool, False for a missing camera (its tokens are never attended). Absent means
+    every camera is present. (openpi ``Observation.image_masks``.)"""
+
 
 IMAGE_MASK = "image_mask"
-"""Optional batch key: (B, N_cam) bool, False for a missing camera (its tokens are never attended).
-Absent means every camera is present. (openpi ``Observation.image_masks``.)"""
+"""``Pi05Batch``'s key, as a constant for the tests and scripts written against it."""
 
+PALIGEMMA_TOKENIZER = (
+    "download PaliGemma's tokenizer (google/paligemma-3b-pt-224) where the network allows and pass "
+    "its folder"
+)
 MASK_VALUE = -2.3819763e38
 """The finite large negative openpi/LeRobot put into masked attention logits (no NaN rows)."""
 
@@ -443,6 +455,10 @@ class Pi05(VLABackbone):
             "tokenizer", "a PaliGemma tokenizer folder (pi05 folders carry none)", type=Path
         ),
     )
+    missing_tokenizer_hint = (
+        f"set tokenizer to PaliGemma's tokenizer folder (from_original(..., tokenizer=...)) or "
+        f"load a capvector export that contains one; {PALIGEMMA_TOKENIZER}"
+    )
 
     # peft full-match regex: the linear layers of both Gemma streams (attention and MLP), as openpi's
     # LoRA variants (``gemma_2b_lora`` + ``gemma_300m_lora``). SigLIP and the adaRMS condition
@@ -573,7 +589,7 @@ class Pi05(VLABackbone):
     def num_visual_tokens(self) -> int:
         return self.config.num_images * self.grid**2
 
-    def forward(self, batch: Mapping[str, Any], request: OutputRequest | None = None) -> VLAOutput:
+    def forward(self, batch: Batch, request: OutputRequest | None = None) -> VLAOutput:
         """With target actions: the flow-matching loss at a random time, and as ``actions`` the
         one-step denoised estimate x_t − t·v (= a when v is exact), un-padded. Without targets:
         the sampled chunk (as ``predict_action``). Hidden states and logits are of the VLM stream
@@ -585,10 +601,10 @@ class Pi05(VLABackbone):
         prefix = self.embed_prefix(batch)
         hidden: dict[int, Tensor] = {0: prefix.embeds} if 0 in request.hidden_layers else {}
         loss = None
-        if keys.ACTIONS in batch:
-            target = self.pad_actions(batch[keys.ACTIONS].to(prefix.embeds.dtype))
-            # ε and t per sample from keys.NOISE_SEED when the batch has it (see draw_flow_noise).
-            noise, time = draw_flow_noise(target, self.sample_time, batch.get(keys.NOISE_SEED))
+        if "actions" in batch:
+            target = self.pad_actions(batch["actions"].to(prefix.embeds.dtype))
+            # ε and t per sample from "noise_seed" when the batch has it (see draw_flow_noise).
+            noise, time = draw_flow_noise(target, self.sample_time, batch.get("noise_seed"))
             x_t, velocity_target = flow_matching_path(target, noise, time)
             velocity, prefix_out = self.velocity(prefix, x_t, time, hidden, request.hidden_layers)
             loss = self.flow_loss(velocity, velocity_target)
@@ -612,12 +628,12 @@ class Pi05(VLABackbone):
         )
 
     @torch.no_grad()
-    def predict_action(self, batch: Mapping[str, Any], noise: Tensor | None = None) -> Tensor:
+    def predict_action(self, batch: Batch, noise: Tensor | None = None) -> Tensor:
         """(B, T, A) normalised actions; ``noise`` (B, T, max_action_dim) fixes the start x_1."""
         return self.sample_actions(batch, noise)
 
     def sample_actions(
-        self, batch: Mapping[str, Any], noise: Tensor | None = None, num_steps: int | None = None
+        self, batch: Batch, noise: Tensor | None = None, num_steps: int | None = None
     ) -> Tensor:
         """Prefix once, then ``num_steps`` (default ``num_inference_steps``) Euler steps -> (B, T, A)."""
         prefix = self.embed_prefix(batch)
@@ -755,21 +771,19 @@ class Pi05(VLABackbone):
 
     # -- embeddings ----------------------------------------------------------------------------
 
-    def embed_prefix(self, batch: Mapping[str, Any]) -> Prefix:
+    def embed_prefix(self, batch: Batch) -> Prefix:
         """Image tokens then the prompt (with the discretised state): the VLM stream's input."""
         visual, visual_valid = self.embed_images(batch)
-        ids, text_valid = self.tokenize(
-            batch[keys.INSTRUCTION], batch.get(keys.PROPRIO), visual.device
-        )
+        ids, text_valid = self.tokenize(batch["instruction"], batch.get("proprio"), visual.device)
         embeds = torch.cat([visual, self.embed_text(ids).to(visual.dtype)], dim=1)
         valid = torch.cat([visual_valid, text_valid], dim=1)
         is_visual = torch.zeros_like(valid)
         is_visual[:, : visual.shape[1]] = True
         return Prefix(embeds=embeds, valid=valid, visual=is_visual)
 
-    def embed_images(self, batch: Mapping[str, Any]) -> tuple[Tensor, Tensor]:
+    def embed_images(self, batch: Batch) -> tuple[Tensor, Tensor]:
         """Images -> SigLIP -> projector, not scaled: (B, N_cam * patches, W_vlm) and validity."""
-        images: Tensor = batch[keys.IMAGES]
+        images: Tensor = batch["images"]
         b, n_cam = images.shape[:2]
         check_cameras(images, self.config.num_images)
         proj = self.multi_modal_projector.linear
@@ -778,7 +792,7 @@ class Pi05(VLABackbone):
         # openpi patches transformers so PaliGemma's division by √width is gone: images enter
         # unscaled. We never call PaliGemma's get_image_features, so no version can add it back.
         visual = self.multi_modal_projector(features).reshape(b, -1, proj.out_features)
-        camera_valid = batch.get(IMAGE_MASK)
+        camera_valid = cast(Pi05Batch, batch).get("image_mask")
         if camera_valid is None:
             camera_valid = torch.ones(b, n_cam, dtype=torch.bool, device=images.device)
         return visual, camera_valid.to(torch.bool).repeat_interleave(self.grid**2, dim=1)
@@ -814,12 +828,12 @@ class Pi05(VLABackbone):
         add tokens; LeRobot fixed exactly that). openpi pads every prompt to ``max_token_len``; we
         pad to the batch's longest, which changes no output (padding is never attended).
         """
-        tok = self._require_tokenizer()
+        tok = self.require_tokenizer()
         bins = None
         if self.config.proprio_dim:
             if proprio is None:
                 raise BackboneError(
-                    f"the batch has no `{keys.PROPRIO}` but the backbone writes a "
+                    f"the batch has no `proprio` but the backbone writes a "
                     f"{self.config.proprio_dim}-d state into the prompt; set proprio_dim=0 to drop it"
                 )
             if proprio.shape[-1] != self.config.proprio_dim:
@@ -848,14 +862,6 @@ class Pi05(VLABackbone):
         pad_id = tok.pad_token_id if tok.pad_token_id is not None else 0
         return right_pad(rows, pad_id, device)
 
-    def _require_tokenizer(self) -> Any:
-        if self.tokenizer is None:
-            raise BackboneError(
-                "this backbone has no tokenizer: set tokenizer to PaliGemma's tokenizer folder "
-                "(from_original(..., tokenizer=...)) or load a capvector export that contains one"
-            )
-        return self.tokenizer
-
     # -- text objectives -------------------------------------------------------------------------
 
     @property
@@ -864,7 +870,7 @@ class Pi05(VLABackbone):
         return max(1, round(2 * self.num_layers / 3))
 
     def language_model_logits(
-        self, batch: Mapping[str, Any], prompts: list[str], answers: list[str]
+        self, batch: Batch, prompts: list[str], answers: list[str]
     ) -> tuple[Tensor, Tensor]:
         """PaliGemma's own prefix-LM pass through the VLM stream only (the expert is not run).
 
@@ -873,7 +879,7 @@ class Pi05(VLABackbone):
         (``tokenizer.py`` ``FASTTokenizer``). Logits use the tied embedding; labels are the answer
         ids at their own positions and IGNORE_INDEX elsewhere.
         """
-        tok = self._require_tokenizer()
+        tok = self.require_tokenizer()
         visual, visual_valid = self.embed_images(batch)
         rows, ar_rows, label_rows = [], [], []
         for prompt, answer in zip(prompts, answers, strict=True):
@@ -931,19 +937,11 @@ class Pi05(VLABackbone):
 
 
 def _load_tokenizer(spec: str) -> Any:
+    from capvector.backbones.tokenizers import byte_level_tokenizer, saved_tokenizer
+
     if spec == "byte":
-        from capvector.backbones.tokenizers import byte_level_tokenizer
-
         return byte_level_tokenizer()
-    from transformers import AutoTokenizer
-
-    path = Path(spec)
-    if not path.is_dir():
-        raise BackboneError(
-            f"tokenizer {spec!r} is neither 'byte' nor a local folder; download PaliGemma's tokenizer "
-            "(google/paligemma-3b-pt-224) where the network allows and pass its folder"
-        )
-    return AutoTokenizer.from_pretrained(str(path))
+    return saved_tokenizer(spec, PALIGEMMA_TOKENIZER)
 
 
 __all__ = [
@@ -955,6 +953,7 @@ __all__ = [
     "JointDecoderLayer",
     "MultiModalProjector",
     "Pi05",
+    "Pi05Batch",
     "Prefix",
     "PrefixCache",
     "SiglipTower",

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 from capvector.backbones.base import BackboneConfig, BackboneError, register_preset
@@ -61,7 +62,8 @@ class StarVLAConfig(BackboneConfig):
     """The VLM architecture in transformers' vocabulary (``text_config``, ``vision_config``,
     ``tie_word_embeddings``). ``from_qwen`` fills it from the checkpoint's ``config.json``."""
     head: str = "oft"
-    """A registered action head: 'oft', 'gr00t' or 'layerwise' (``heads.head_names()``)."""
+    """An action head of ``heads.ACTION_HEADS``: 'oft', 'gr00t', 'layerwise', or ``module:Class``
+    for a head of another package."""
     head_args: dict[str, Any] = field(default_factory=dict)
     """Fields of the head's config dataclass; the built model writes back every resolved field."""
     state_mode: str = "none"
@@ -208,49 +210,13 @@ def _tiny(head: str) -> StarVLAConfig:
     )
 
 
-@register_preset("starvla-qwen2.5-vl-3b-oft")
-def starvla_qwen2_5_vl_3b_oft() -> StarVLAConfig:
-    return _full_size("qwen2.5-vl", "oft")
-
-
-@register_preset("starvla-qwen2.5-vl-3b-gr00t")
-def starvla_qwen2_5_vl_3b_gr00t() -> StarVLAConfig:
-    return _full_size("qwen2.5-vl", "gr00t")
-
-
-@register_preset("starvla-qwen2.5-vl-3b-layerwise")
-def starvla_qwen2_5_vl_3b_layerwise() -> StarVLAConfig:
-    return _full_size("qwen2.5-vl", "layerwise")
-
-
-@register_preset("starvla-qwen3-vl-4b-oft")
-def starvla_qwen3_vl_4b_oft() -> StarVLAConfig:
-    return _full_size("qwen3-vl", "oft")
-
-
-@register_preset("starvla-qwen3-vl-4b-gr00t")
-def starvla_qwen3_vl_4b_gr00t() -> StarVLAConfig:
-    return _full_size("qwen3-vl", "gr00t")
-
-
-@register_preset("starvla-qwen3-vl-4b-layerwise")
-def starvla_qwen3_vl_4b_layerwise() -> StarVLAConfig:
-    return _full_size("qwen3-vl", "layerwise")
-
-
-@register_preset("starvla-tiny-oft")
-def starvla_tiny_oft() -> StarVLAConfig:
-    return _tiny("oft")
-
-
-@register_preset("starvla-tiny-gr00t")
-def starvla_tiny_gr00t() -> StarVLAConfig:
-    return _tiny("gr00t")
-
-
-@register_preset("starvla-tiny-layerwise")
-def starvla_tiny_layerwise() -> StarVLAConfig:
-    return _tiny("layerwise")
+# The presets: each head on each full-size VLM (``starvla-qwen2.5-vl-3b-oft``, ...) and on the
+# toy VLM (``starvla-tiny-oft``, ...).
+_FULL_SIZE_VLMS = {"qwen2.5-vl": "3b", "qwen3-vl": "4b"}
+for _head in HEADS:
+    for _version, _size in _FULL_SIZE_VLMS.items():
+        register_preset(f"starvla-{_version}-{_size}-{_head}")(partial(_full_size, _version, _head))
+    register_preset(f"starvla-tiny-{_head}")(partial(_tiny, _head))
 
 
 __all__ = [
@@ -264,14 +230,5 @@ __all__ = [
     "STATE_MODES",
     "QwenVersion",
     "StarVLAConfig",
-    "starvla_qwen2_5_vl_3b_gr00t",
-    "starvla_qwen2_5_vl_3b_layerwise",
-    "starvla_qwen2_5_vl_3b_oft",
-    "starvla_qwen3_vl_4b_gr00t",
-    "starvla_qwen3_vl_4b_layerwise",
-    "starvla_qwen3_vl_4b_oft",
-    "starvla_tiny_gr00t",
-    "starvla_tiny_layerwise",
-    "starvla_tiny_oft",
     "tiny_qwen_architecture",
 ]

@@ -38,7 +38,7 @@ from capvector.backbones.base import (
     load_state_dict_strictly,
     merge_nested,
 )
-from capvector.backbones.common import read_required_json
+from capvector.backbones.common import read_required_json, rename_prefix
 from capvector.io.loading import load_safetensors, load_torch
 
 if TYPE_CHECKING:
@@ -462,11 +462,7 @@ def starvla_key_map(
     for key, value in state.items():
         if key.startswith(tuple(dropped)):
             continue
-        for old, new in STARVLA_PREFIXES:
-            if key.startswith(old):
-                key = new + key[len(old) :]
-                break
-        mapped[key] = value
+        mapped[rename_prefix(key, STARVLA_PREFIXES)] = value
     if tied:
         mapped.pop("vlm.lm_head.weight", None)  # the embedding matrix under a second name
     return mapped

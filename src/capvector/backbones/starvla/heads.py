@@ -23,7 +23,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, TypeVar
 
@@ -33,6 +33,7 @@ from torch import Tensor, nn
 
 from capvector.backbones.base import BackboneError, draw_flow_noise
 from capvector.backbones.common import MLPResNet
+from capvector.registry import Registry
 
 # -- the interface -------------------------------------------------------------------------------
 
@@ -128,7 +129,7 @@ class ActionHead(nn.Module, ABC):
         noise_seeds: Tensor | None = None,
     ) -> Tensor:
         """Scalar training loss for target ``actions`` (B, T, A). Heads that draw noise draw
-        sample b's from ``noise_seeds[b]`` (``keys.NOISE_SEED``), else from the global RNG."""
+        sample b's from ``noise_seeds[b]`` (``batch["noise_seed"]``), else from the global RNG."""
 
     @abstractmethod
     def sample(self, cond: HeadInput, state: Tensor | None = None) -> Tensor:
@@ -153,7 +154,11 @@ class ActionHead(nn.Module, ABC):
 
 # -- registry ------------------------------------------------------------------------------------
 
-_HEADS: dict[str, type[ActionHead]] = {}
+ACTION_HEADS: Registry[type[ActionHead]] = Registry(
+    "action head", base=ActionHead, error=BackboneError
+)
+"""The heads a config's ``head`` names: a registered name, or ``module:Class`` for a head defined
+in another package."""
 H = TypeVar("H", bound=type[ActionHead])
 
 
@@ -161,23 +166,18 @@ def register_head(name: str) -> Callable[[H], H]:
     """Class decorator: makes a head buildable by name from a backbone config's ``head`` field."""
 
     def decorate(cls: H) -> H:
-        if name in _HEADS:
-            raise ValueError(f"action head {name!r} is registered twice")
         cls.name = name
-        _HEADS[name] = cls
-        return cls
+        return ACTION_HEADS.register(name)(cls)
 
     return decorate
 
 
 def head_names() -> list[str]:
-    return sorted(_HEADS)
+    return ACTION_HEADS.names()
 
 
 def head_class(name: str) -> type[ActionHead]:
-    if name not in _HEADS:
-        raise BackboneError(f"unknown action head {name!r}; registered heads: {head_names()}")
-    return _HEADS[name]
+    return ACTION_HEADS.get(name)
 
 
 def build_head(name: str, args: Mapping[str, Any], dims: HeadDims) -> ActionHead:
@@ -426,7 +426,45 @@ class DiTBlock(nn.Module):
         return x + self.ff(self.norm3(x))
 
 
-class CrossAttentionDiT(nn.Module):
+class _DiTBlocks(nn.Module):
+    """What both DiTs are: a timestep encoder and ``num_layers`` DiT blocks, block i cross-attending
+    to context i; odd blocks self-attend instead when interleaved (``cross_attention_dit.DiT``)."""
+
+    def __init__(
+        self,
+        width: int,
+        num_heads: int,
+        num_layers: int,
+        context_dim: int,
+        dropout: float,
+        interleave_self_attention: bool,
+    ) -> None:
+        super().__init__()
+        self.self_attention_blocks = {
+            i for i in range(num_layers) if interleave_self_attention and i % 2 == 1
+        }
+        self.timestep_encoder = TimestepEncoder(width)
+        self.transformer_blocks = nn.ModuleList(
+            DiTBlock(
+                width, num_heads, None if i in self.self_attention_blocks else context_dim, dropout
+            )
+            for i in range(num_layers)
+        )
+
+    def run_blocks(
+        self, x: Tensor, contexts: Sequence[Tensor], context_mask: Tensor, timestep: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """The blocks' output and the timestep embedding (B, width) they were conditioned on."""
+        temb = self.timestep_encoder(timestep)
+        for i, (block, context) in enumerate(zip(self.transformer_blocks, contexts, strict=True)):
+            if i in self.self_attention_blocks:
+                x = block(x, temb)
+            else:
+                x = block(x, temb, context, context_mask)
+        return x, temb
+
+
+class CrossAttentionDiT(_DiTBlocks):
     """GR00T's DiT: blocks cross-attend to the VLM tokens (odd blocks self-attend when interleaved),
     then an AdaLN-modulated output projection."""
 
@@ -440,33 +478,21 @@ class CrossAttentionDiT(nn.Module):
         dropout: float,
         interleave_self_attention: bool,
     ) -> None:
-        super().__init__()
-        self.self_attention_blocks = {
-            i for i in range(num_layers) if interleave_self_attention and i % 2 == 1
-        }
-        self.timestep_encoder = TimestepEncoder(width)
-        self.transformer_blocks = nn.ModuleList(
-            DiTBlock(
-                width, num_heads, None if i in self.self_attention_blocks else cross_dim, dropout
-            )
-            for i in range(num_layers)
+        super().__init__(
+            width, num_heads, num_layers, cross_dim, dropout, interleave_self_attention
         )
         self.norm_out = nn.LayerNorm(width, eps=1e-6, elementwise_affine=False)
         self.proj_out_1 = nn.Linear(width, 2 * width)
         self.proj_out_2 = nn.Linear(width, output_dim)
 
     def forward(self, x: Tensor, context: Tensor, context_mask: Tensor, timestep: Tensor) -> Tensor:
-        temb = self.timestep_encoder(timestep)
-        for i, block in enumerate(self.transformer_blocks):
-            if i in self.self_attention_blocks:
-                x = block(x, temb)
-            else:
-                x = block(x, temb, context, context_mask)
+        contexts = [context] * len(self.transformer_blocks)
+        x, temb = self.run_blocks(x, contexts, context_mask, timestep)
         shift, scale = self.proj_out_1(F.silu(temb)).chunk(2, dim=1)
         return self.proj_out_2(self.norm_out(x) * (1 + scale[:, None]) + shift[:, None])
 
 
-class LayerwiseDiT(nn.Module):
+class LayerwiseDiT(_DiTBlocks):
     """PI_v3's layer-wise DiT: block i cross-attends to (projected) VLM layer i. As StarVLA's
     ``LayerwiseFlowmatchingActionHead`` (``DiT.forward(..., return_pre_output=True)``), the output
     goes to the decoder without a final projection.
@@ -483,25 +509,12 @@ class LayerwiseDiT(nn.Module):
         dropout: float,
         interleave_self_attention: bool = False,
     ) -> None:
-        super().__init__()
-        self.self_attention_blocks = {
-            i for i in range(num_layers) if interleave_self_attention and i % 2 == 1
-        }
-        self.timestep_encoder = TimestepEncoder(width)
-        self.transformer_blocks = nn.ModuleList(
-            DiTBlock(width, num_heads, width, dropout) for _ in range(num_layers)
-        )
+        super().__init__(width, num_heads, num_layers, width, dropout, interleave_self_attention)
 
     def forward(
         self, x: Tensor, contexts: list[Tensor], context_mask: Tensor, timestep: Tensor
     ) -> Tensor:
-        temb = self.timestep_encoder(timestep)
-        for i, (block, context) in enumerate(zip(self.transformer_blocks, contexts, strict=True)):
-            if i in self.self_attention_blocks:
-                x = block(x, temb)
-            else:
-                x = block(x, temb, context, context_mask)
-        return x
+        return self.run_blocks(x, contexts, context_mask, timestep)[0]
 
 
 class MLP(nn.Module):
@@ -786,6 +799,7 @@ class LayerwiseHead(FlowMatchingHead):
 
 
 __all__ = [
+    "ACTION_HEADS",
     "ActionHead",
     "FlowHeadConfig",
     "FlowMatchingHead",

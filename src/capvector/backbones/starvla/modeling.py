@@ -60,7 +60,7 @@ from capvector.backbones.starvla.configuration import (
     StarVLAConfig,
 )
 from capvector.backbones.starvla.heads import HeadDims, HeadInput, build_head, head_class
-from capvector.data import keys
+from capvector.data.batch import Batch
 from capvector.io.loading import load_safetensors
 
 # Qwen-VL's chat-format special tokens (the same strings in Qwen2-VL, Qwen2.5-VL and Qwen3-VL).
@@ -111,16 +111,15 @@ def tiny_qwen_tokenizer() -> Any:
 
 
 def _load_tokenizer(spec: str) -> Any:
+    from capvector.backbones.tokenizers import saved_tokenizer
+
     if spec == "tiny":
         return tiny_qwen_tokenizer()
-    if not Path(spec, "tokenizer_config.json").is_file():
-        raise BackboneError(
-            f"tokenizer folder {spec} has no tokenizer_config.json; point `tokenizer` at the Qwen "
-            "checkpoint folder or load the model with from_pretrained / from_qwen"
-        )
-    from transformers import AutoTokenizer
-
-    return AutoTokenizer.from_pretrained(spec)
+    return saved_tokenizer(
+        spec,
+        "point `tokenizer` at the Qwen checkpoint folder or load the model with "
+        "from_pretrained / from_qwen",
+    )
 
 
 @dataclass(frozen=True)
@@ -142,6 +141,10 @@ class StarVLA(VLABackbone):
 
     config_class = StarVLAConfig
     original_loader = "capvector.backbones.starvla.convert"
+    missing_tokenizer_hint = (
+        "load a checkpoint folder that has one (StarVLA.from_qwen / from_pretrained) or set "
+        "tokenizer to a Qwen tokenizer folder"
+    )
     import_options = (
         ImportOption(
             "qwen_folder",
@@ -264,7 +267,7 @@ class StarVLA(VLABackbone):
         rows, cols = self.visual_grid
         return self.config.num_images * rows * cols
 
-    def forward(self, batch: Mapping[str, Any], request: OutputRequest | None = None) -> VLAOutput:
+    def forward(self, batch: Batch, request: OutputRequest | None = None) -> VLAOutput:
         request = request or OutputRequest()
         head = self.action_head
         encoding = self.encode(batch, request.hidden_layers, all_layers=head.uses_all_layers)
@@ -274,9 +277,9 @@ class StarVLA(VLABackbone):
         cond = encoding.head_input.to(head_dtype)
         state = None if state is None else state.to(head_dtype)
         with torch.autocast(device_type=cond.mask.device.type, enabled=False):
-            if keys.ACTIONS in batch:
-                target = batch[keys.ACTIONS].to(head_dtype)
-                seeds = batch.get(keys.NOISE_SEED)  # per-sample flow noise, see draw_flow_noise
+            if "actions" in batch:
+                target = batch["actions"].to(head_dtype)
+                seeds = batch.get("noise_seed")  # per-sample flow noise, see draw_flow_noise
                 if request.actions or head.loss_predicts_actions:
                     loss, actions = head.loss_and_actions(cond, target, state, seeds)
                 else:  # training: a flow head would run every denoising step for nothing
@@ -297,7 +300,7 @@ class StarVLA(VLABackbone):
     # -- Qwen-VL encoding ---------------------------------------------------------------------
 
     def encode(
-        self, batch: Mapping[str, Any], hidden_layers: Sequence[int] = (), all_layers: bool = False
+        self, batch: Batch, hidden_layers: Sequence[int] = (), all_layers: bool = False
     ) -> VLMEncoding:
         """Run the Qwen-VL on a batch: the head's conditioning and the requested hidden states.
 
@@ -305,10 +308,10 @@ class StarVLA(VLABackbone):
         final norm). ``all_layers`` also returns every layer for the head, as StarVLA's heads read
         HF's ``hidden_states[1:]`` (see ``QwenVersion.head_reads_final_norm``).
         """
-        images: Tensor = batch[keys.IMAGES]
+        images: Tensor = batch["images"]
         n_cam = images.shape[1]
         check_cameras(images, self.config.num_images)
-        instructions: list[str] = list(batch[keys.INSTRUCTION])
+        instructions: list[str] = list(batch["instruction"])
         state = _state(batch) if self.config.state_mode == "prompt" else None
         texts = [
             self.prompt_text(text, None if state is None else state[i])
@@ -388,7 +391,7 @@ class StarVLA(VLABackbone):
     ) -> tuple[Tensor, Tensor]:
         """Left-padded ids (B, S) and valid mask (B, S) of one user turn per text, ending with the
         generation prompt (StarVLA's ``build_qwenvl_inputs``)."""
-        tok = self._require_tokenizer()
+        tok = self.require_tokenizer()
         rendered = [self.render_chat(text, n_images) for text in texts]
         encoded = tok(rendered, padding=True, add_special_tokens=False, return_tensors="pt")
         return encoded["input_ids"].to(device), encoded["attention_mask"].to(device).bool()
@@ -400,7 +403,7 @@ class StarVLA(VLABackbone):
         once per visual token of that image.
         """
         content = [{"type": "image"}] * n_images + [{"type": "text", "text": text}]
-        chat = self._require_tokenizer().apply_chat_template(
+        chat = self.require_tokenizer().apply_chat_template(
             [{"role": "user", "content": content}], tokenize=False, add_generation_prompt=True
         )
         if chat.count(IMAGE_PAD) != n_images:
@@ -411,17 +414,8 @@ class StarVLA(VLABackbone):
         rows, cols = self.visual_grid
         return chat.replace(IMAGE_PAD, IMAGE_PAD * (rows * cols))
 
-    def _require_tokenizer(self) -> Any:
-        tok = self.tokenizer
-        if tok is None:
-            raise BackboneError(
-                "this backbone has no tokenizer: load a checkpoint folder that has one "
-                "(StarVLA.from_qwen / from_pretrained) or set tokenizer to a Qwen tokenizer folder"
-            )
-        return tok
-
     def language_model_logits(
-        self, batch: Mapping[str, Any], prompts: list[str], answers: list[str]
+        self, batch: Batch, prompts: list[str], answers: list[str]
     ) -> tuple[Tensor, Tensor]:
         """Qwen's own LM head over a user turn (cameras + prompt) and an assistant turn (answer),
         as StarVLA's VLM co-training (``build_qwenvl_inputs(..., solutions=...)``).
@@ -430,8 +424,8 @@ class StarVLA(VLABackbone):
         are left padded like the action pass. The prompt carries no action queries or state: this
         is the VLM's plain next-token objective.
         """
-        tok = self._require_tokenizer()
-        images: Tensor = batch[keys.IMAGES]
+        tok = self.require_tokenizer()
+        images: Tensor = batch["images"]
         n_cam = images.shape[1]
         rows, label_rows = [], []
         for prompt, answer in zip(prompts, answers, strict=True):
@@ -538,7 +532,7 @@ class StarVLA(VLABackbone):
 
     @property
     def _token_ids(self) -> TokenIds:
-        self._require_tokenizer()  # installs a configured tokenizer on first use
+        self.require_tokenizer()  # installs a configured tokenizer on first use
         assert self._ids is not None  # resolved with every tokenizer
         return self._ids
 
@@ -582,7 +576,7 @@ class StarVLA(VLABackbone):
         """Add ``tokens`` as special tokens (where missing) and return their id range, resolved
         from the tokenizer (StarVLA hard-codes 151665-153712 for its ``<robot_action_k>``). Grows
         the embeddings when the vocabulary is full; call it before training or loading weights."""
-        tok = self._require_tokenizer()
+        tok = self.require_tokenizer()
         ids = self._add_special_tokens(tok, tokens)
         self._fit_embeddings(tok, allow_resize=True)
         if ids != list(range(ids[0], ids[0] + len(ids))):
@@ -697,13 +691,13 @@ class VLMEncoding:
 # -- helpers -------------------------------------------------------------------------------------
 
 
-def _state(batch: Mapping[str, Any]) -> Tensor:
-    if keys.PROPRIO not in batch:
+def _state(batch: Batch) -> Tensor:
+    if "proprio" not in batch:
         raise BackboneError(
-            f"state_mode needs `{keys.PROPRIO}` in the batch; set state_mode='none' for data "
+            "state_mode needs `proprio` in the batch; set state_mode='none' for data "
             "without proprioception"
         )
-    return batch[keys.PROPRIO]
+    return batch["proprio"]
 
 
 def _qwen_version(name: str) -> QwenVersion:
