@@ -29,7 +29,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from capvector.eval.rollout import EnvCache, EpisodeSpec, run_episode
+from capvector.eval.rollout import EnvCache, Episode, EpisodeSpec, run_episode
 from capvector.sim.annotations import Annotator
 from capvector.sim.demos import record_episode
 from capvector.sim.envs import SimEnv, make_env_kwargs, suite
@@ -159,20 +159,14 @@ def main() -> None:
             return actions[t : t + CHUNK]
 
         start = time.perf_counter()
-        result = run_episode(
-            replay, EpisodeSpec("Lift", seed), cameras=CAMERAS, image_size=size, envs=envs
-        )
+        episode = Episode(EpisodeSpec("Lift", seed), envs, cameras=CAMERAS, image_size=size)
+        result = run_episode(replay, episode)
         durations.append(time.perf_counter() - start)
         lengths.append(result.steps)
         assert result.success
     start = time.perf_counter()
-    limit = run_episode(
-        lambda obs: np.zeros((CHUNK, 7)),
-        EpisodeSpec("Lift", SEEDS_FROM),
-        cameras=CAMERAS,
-        image_size=size,
-        envs=envs,
-    )
+    episode = Episode(EpisodeSpec("Lift", SEEDS_FROM), envs, cameras=CAMERAS, image_size=size)
+    limit = run_episode(lambda obs: np.zeros((CHUNK, 7)), episode)
     full = time.perf_counter() - start
     envs.close()
 

@@ -12,6 +12,7 @@ import pytest
 from capvector.eval.rollout import (
     EVAL_SEED_START,
     EnvCache,
+    Episode,
     EpisodeSpec,
     Observation,
     eval_specs,
@@ -71,7 +72,7 @@ class Replay:
 
 
 def _run(policy, spec: EpisodeSpec, envs: EnvCache, **kwargs):
-    return run_episode(policy, spec, cameras=CAMERAS, image_size=SIZE, envs=envs, **kwargs)
+    return run_episode(policy, Episode(spec, envs, cameras=CAMERAS, image_size=SIZE, **kwargs))
 
 
 @pytest.mark.sim

@@ -144,6 +144,9 @@ class Episode:
     the policy's next chunk, then :meth:`execute` that chunk, until it returns the result.
 
     Simulator faults and non-finite actions fail the episode, never the caller.
+    ``cameras``/``image_size``/``camera_fovy`` must match what the policy was trained on (the
+    dataset's ``cameras``, ``image_size`` and ``camera_fovy`` attrs; fovy defaults to the task's).
+    ``execute_steps`` executes only the first k actions of each chunk before re-planning.
     """
 
     def __init__(
@@ -219,29 +222,8 @@ class Episode:
         )  # fmt: skip
 
 
-def run_episode(
-    policy: Policy,
-    spec: EpisodeSpec,
-    *,
-    cameras: Sequence[str],
-    image_size: int,
-    depth: bool = False,
-    video: bool = False,
-    execute_steps: int | None = None,
-    camera_fovy: Mapping[str, float] | None = None,
-    envs: EnvCache | None = None,
-) -> EpisodeResult:
-    """Run ``policy`` on one episode; simulator faults fail the episode, never the caller.
-
-    ``cameras``/``image_size``/``camera_fovy`` must match what the policy was trained on (the
-    dataset's ``cameras``, ``image_size`` and ``camera_fovy`` attrs; fovy defaults to the task's).
-    ``execute_steps`` executes only the first k actions of each chunk before re-planning.
-    ``envs`` defaults to a module-level cache (see :func:`close_envs`).
-    """
-    episode = Episode(
-        spec, _default_envs if envs is None else envs, cameras=cameras, image_size=image_size,
-        depth=depth, video=video, execute_steps=execute_steps, camera_fovy=camera_fovy,
-    )  # fmt: skip
+def run_episode(policy: Policy, episode: Episode) -> EpisodeResult:
+    """Drive ``episode`` with ``policy``, one chunk at a time, until it ends."""
     while (result := episode.execute(policy(episode.observe()))) is None:
         pass
     return result
@@ -367,6 +349,11 @@ class RolloutEvaluator:
             "video": self.video_dir is not None and index < self.videos,
         }  # fmt: skip
 
+    def _episode(self, spec: EpisodeSpec, index: int) -> Episode:
+        """Episode ``index`` of the one-at-a-time loop, in this process."""
+        envs = _default_envs if self.envs is None else self.envs
+        return Episode(spec, envs, **self._episode_kwargs(index))
+
     def _finish(self, result: EpisodeResult, bar: Any) -> EpisodeResult:
         if result.frames:
             self._write_video(result)
@@ -378,7 +365,7 @@ class RolloutEvaluator:
         self, policy: Policy, specs: Sequence[EpisodeSpec], positions: list[int], bar: Any
     ) -> list[EpisodeResult]:
         return [
-            self._finish(run_episode(policy, spec, envs=self.envs, **self._episode_kwargs(i)), bar)
+            self._finish(run_episode(policy, self._episode(spec, i)), bar)
             for i, spec in zip(positions, specs, strict=True)
         ]
 
