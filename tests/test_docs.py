@@ -83,13 +83,13 @@ def run_python(block: Block, monkeypatch: pytest.MonkeyPatch) -> types.ModuleTyp
 
 
 def run_bash(block: Block, folder: Path) -> None:
-    """Runs the block in ``folder``, which sees the repository's assets/ and configs/, with this
-    environment's ``capvector`` first on PATH."""
+    """Runs the block in ``folder``, which sees the repository's assets/, configs/ and docs/ (the
+    committed results), with this environment's ``capvector`` first on PATH."""
     bin_dir = Path(sys.executable).parent
     assert (bin_dir / "capvector").exists(), (
         f"no capvector beside {sys.executable}: pip install -e ."
     )
-    for name in ("assets", "configs"):
+    for name in ("assets", "configs", "docs"):
         (folder / name).symlink_to(ROOT / name)
     env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}"}
     done = subprocess.run(

@@ -1,4 +1,5 @@
-"""`capvector report`: the arms of a recipe run, read back from real CSVLogger files."""
+"""`capvector report`: the arms of a recipe run, read back from real CSVLogger files; and the
+committed reports, rebuilt from their results.json."""
 
 from __future__ import annotations
 
@@ -9,7 +10,9 @@ import pytest
 from lightning.pytorch.loggers import CSVLogger
 
 from capvector.errors import CapVectorError
-from capvector.workflows.report import main, report
+from capvector.workflows.report import main, report, report_from_results
+
+RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results"
 
 
 def write_fit(run_dir: Path, stage: str, success: dict[int, float], l1: dict[int, float]) -> None:
@@ -130,3 +133,78 @@ def test_comparison_needs_the_per_episode_log(tmp_path: Path) -> None:
     write_fit(run, "sft_s0", {2: 0.5}, {2: 0.3})
     with pytest.raises(CapVectorError, match="no fit/version_0/episodes.csv"):
         report(run, [("x", "sft_s*", "eval_pre")], [], tmp_path / "o", 0.5, ["x"])
+
+
+# Each committed report and the arms its command compared with (docs/results.md).
+COMMITTED = [
+    ("powered", ["plain SFT", "aux-SFT"]),
+    ("pilot_few_demos/demos_10", ["plain SFT", "aux-SFT"]),
+    ("pilot_few_demos/demos_5", ["plain SFT"]),
+]
+
+
+@pytest.mark.parametrize(("name", "compare_to"), COMMITTED, ids=[n for n, _ in COMMITTED])
+def test_the_committed_reports_rebuild_from_their_results_json(
+    name: str, compare_to: list[str], tmp_path: Path
+) -> None:
+    """The run folders are not committed; their results.json is, and gives back every table."""
+    committed = RESULTS / name
+    out = tmp_path / "rebuilt"
+    main(["--from-results", str(committed / "results.json"), "--compare-to", *compare_to,
+          "--out", str(out)])  # fmt: skip
+    assert (out / "results.md").read_bytes() == (committed / "results.md").read_bytes()
+    assert (out / "results.json").read_bytes() == (committed / "results.json").read_bytes()
+    # The file's two records of the same episodes agree: each seed's success count (metrics.csv)
+    # and its per-episode outcomes (episodes.csv).
+    result = json.loads((committed / "results.json").read_text())
+    for arm, episodes in zip(result["arms"], result["comparison"]["arms"], strict=True):
+        for p, point in enumerate(episodes["points"]):
+            successes = [sum(seed[p]) for seed in episodes["outcomes"]]
+            assert successes == [k for k, _ in arm["counts"][str(point)]], (arm["arm"], point)
+
+
+def test_a_rebuild_computes_again_what_is_derived(tmp_path: Path) -> None:
+    """Stale derived numbers in the file change nothing; a changed measurement changes the
+    tables and intervals."""
+    committed = (RESULTS / "powered" / "results.md").read_text()
+    result = json.loads((RESULTS / "powered" / "results.json").read_text())
+    sft = result["arms"][0]
+    sft["success"]["600"]["mean"], sft["steps_to_threshold"] = 0.99, [600] * 5
+    result["references"] = dict.fromkeys(result["references"], 1.0)
+    for section in ("comparison", "zero_shot"):
+        for arm in result[section]["arms"]:
+            arm["success"] = [1.0] * len(arm["success"])
+        result[section]["differences"] = []
+    stale = tmp_path / "stale.json"
+    stale.write_text(json.dumps(result))
+    report_from_results(stale, tmp_path / "stale", 0.5, ["plain SFT", "aux-SFT"])
+    assert (tmp_path / "stale" / "results.md").read_text() == committed
+
+    sft["success"]["600"]["values"][0] = 0.82  # seed 0 at step 600: 0.32 measured
+    aux = result["comparison"]["arms"][1]
+    assert aux["arm"] == "aux-SFT" and aux["points"][2] == 600
+    aux["outcomes"][0][2][0] = flipped = 1 - aux["outcomes"][0][2][0]  # one episode at step 600
+    tampered = tmp_path / "tampered.json"
+    tampered.write_text(json.dumps(result))
+    text = report_from_results(tampered, tmp_path / "tampered", 0.5, ["plain SFT", "aux-SFT"])
+    assert "| plain SFT | 0% ± 0% | 25% ± 5% | 45% ± 21% |" in text  # mean 35% ± 4% before
+    shift = 1 / 250 if flipped else -1 / 250  # one of 5 seeds × 50 episodes
+    assert f"| aux-SFT | 5 × 50 | 0.0% | 32.0% | {0.388 + shift:.1%} |" in text
+    rebuilt = json.loads((tmp_path / "tampered" / "results.json").read_text())
+    difference = rebuilt["comparison"]["differences"][0]
+    assert difference["arm"] == "aux-SFT" and difference["against"] == "plain SFT"
+    assert difference["points"]["600"]["difference"] == pytest.approx(0.036 + shift)
+
+
+def test_from_results_takes_the_place_of_the_run_folder(tmp_path: Path) -> None:
+    powered = str(RESULTS / "powered" / "results.json")
+    with pytest.raises(CapVectorError, match="reads the arms from its file: drop --run-dir"):
+        main(["--from-results", powered, "--run-dir", "R", "--out", str(tmp_path / "o")])
+    with pytest.raises(CapVectorError, match="give --run-dir and --arm .* or --from-results"):
+        main(["--out", str(tmp_path / "o")])
+    with pytest.raises(CapVectorError, match="holds the input"):
+        main(["--from-results", powered, "--out", str(RESULTS / "powered")])
+    (tmp_path / "notes.json").write_text('{"threshold": 0.5}')
+    with pytest.raises(CapVectorError, match="not a results.json written by capvector report"):
+        main(["--from-results", str(tmp_path / "notes.json"), "--out", str(tmp_path / "o")])
+    assert not (tmp_path / "o").exists()

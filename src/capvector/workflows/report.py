@@ -5,6 +5,8 @@ the ``evaluate`` stage of their starting weights (step 0). From the fits' CSV lo
 rollout success and held-out action L1 at every validation, the step time and peak memory
 (``StepCost``); references are evaluate-only arms (e.g. θ_pre + λc with no training). Writes
 ``results.json``, ``results.md`` and ``success_vs_steps.png`` to ``--out`` and prints the table.
+``--from-results`` writes them again from a ``results.json`` alone (run folders are not committed),
+recomputing everything derived from the measurements it keeps.
 """
 
 from __future__ import annotations
@@ -17,6 +19,8 @@ import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
+
+import numpy as np
 
 from capvector.errors import CapVectorError
 from capvector.eval.comparison import (
@@ -298,6 +302,98 @@ def report(
         summaries.append(summarize_arm(label, runs, start, threshold))
         stage_dirs[label] = (dirs, run_dir / start_stage)
     ref_counts = {label: read_evaluation(run_dir / stage) for label, stage in references}
+    training = zero_shot_arms = None
+    if compare_to:
+        steps = sorted(set.intersection(*(set(map(int, a["success"])) for a in summaries)) - {0})
+        training = [training_arm(label, *stage_dirs[label], steps) for label, _, _ in arms]
+    if zero_shot:
+        zero_shot_arms = [
+            zero_shot_arm(label, _stage_dirs(run_dir, label, g)) for label, g in zero_shot
+        ]
+    return write_report(
+        out, summaries, ref_counts, threshold, compare_to, training, zero_shot_arms, resamples
+    )
+
+
+def report_from_results(
+    path: Path,
+    out: Path,
+    threshold: float,
+    compare_to: list[str] | None = None,
+    resamples: int = 10_000,
+) -> str:
+    """``report`` again from the ``results.json`` it wrote, e.g. a committed one whose run folder
+    is gone: what was measured (each seed's success, episode counts, held-out L1 and step time,
+    every episode's outcome) is read back, everything derived from it (spreads, steps to the
+    threshold, success over seeds, differences and their bootstrap intervals, tables, plot) is
+    computed again, with ``threshold``, ``compare_to`` and ``resamples`` as given."""
+    check_output(out, overwrite=True, inputs=[path])
+    try:
+        result = json.loads(path.read_text())
+        summaries = [_summary_from_json(arm, threshold) for arm in result["arms"]]
+        ref_counts = {label: tuple(c) for label, c in result["reference_counts"].items()}
+        training = _outcomes_from_json(result["comparison"]) if "comparison" in result else None
+        zero_shot = _outcomes_from_json(result["zero_shot"]) if "zero_shot" in result else None
+    except FileNotFoundError as err:
+        raise CapVectorError(f"{path} does not exist: give the results.json of a report") from err
+    except (ValueError, KeyError, IndexError, TypeError) as err:  # JSONDecodeError is one
+        raise CapVectorError(
+            f"{path} is not a results.json written by capvector report ({type(err).__name__}: "
+            f"{err}); give the results.json of a report"
+        ) from err
+    if compare_to and training is None:
+        raise CapVectorError(
+            f"{path} has no per-episode outcomes (it was written without --compare-to): drop "
+            "--compare-to"
+        )
+    return write_report(
+        out, summaries, ref_counts, threshold, compare_to, training, zero_shot, resamples
+    )
+
+
+def _summary_from_json(arm: dict[str, Any], threshold: float) -> dict[str, Any]:
+    """An arm's summary made again by ``summarize_arm`` from the per-seed values it stored."""
+    success, counts, l1 = arm["success"], arm["counts"], arm["held_out_l1"]
+    seconds = arm["step_seconds"]["values"] if arm["step_seconds"] else []
+    runs = []
+    for i, stage in enumerate(arm["seeds"]):
+        run = SeedRun(stage, peak_memory_mib=arm["peak_memory_mib"])  # the file keeps the max
+        for step in (s for s in success if s != "0"):
+            run.success[int(step)] = success[step]["values"][i]
+            if counts[step][i] is not None:
+                run.episodes[int(step)] = counts[step][i][1]
+        run.held_out_l1 = {int(s): v["values"][i] for s, v in l1.items()}
+        # Each seed's median step time is stored, in the order of the seeds that logged one;
+        # only their spread is used, so the first seeds carry them.
+        run.step_seconds = seconds[i : i + 1]
+        runs.append(run)
+    return summarize_arm(arm["arm"], runs, tuple(counts["0"][0]), threshold)
+
+
+def _outcomes_from_json(section: dict[str, Any]) -> list[ArmOutcomes]:
+    """The arms of a ``comparison`` or ``zero_shot`` section, from their per-episode outcomes."""
+    return [
+        ArmOutcomes(
+            a["arm"],
+            a["points"],
+            [tuple(seed) for seed in a["eval_seeds"]],
+            np.asarray(a["outcomes"], dtype=float),
+        )
+        for a in section["arms"]
+    ]
+
+
+def write_report(
+    out: Path,
+    summaries: list[dict[str, Any]],
+    ref_counts: dict[str, tuple[int, int]],
+    threshold: float,
+    compare_to: list[str] | None,
+    training: list[ArmOutcomes] | None,
+    zero_shot: list[ArmOutcomes] | None,
+    resamples: int,
+) -> str:
+    """Tables, comparisons, ``results.json`` and plot from the arms' summaries and outcomes."""
     refs = {label: k / n for label, (k, n) in ref_counts.items()}
     table = format_table(summaries, refs, threshold)
     result: dict[str, Any] = {
@@ -307,18 +403,16 @@ def report(
         "reference_counts": {label: list(c) for label, c in ref_counts.items()},
     }
     sections = [table]
-    if compare_to:
-        steps = sorted(set.intersection(*(set(map(int, a["success"])) for a in summaries)) - {0})
-        outcomes = [training_arm(label, *stage_dirs[label], steps) for label, _, _ in arms]
-        differences = compare(outcomes, compare_to, resamples)
-        result["comparison"] = _comparison_json(outcomes, differences, resamples)
-        sections.append(format_comparison(outcomes, differences, compare_to[0], False))
+    if compare_to and training is not None:
+        differences = compare(training, compare_to, resamples)
+        result["comparison"] = _comparison_json(training, differences, resamples)
+        sections.append(format_comparison(training, differences, compare_to[0], False))
     if zero_shot:
-        outcomes = [zero_shot_arm(label, _stage_dirs(run_dir, label, g)) for label, g in zero_shot]
-        against = [label for label in compare_to or [] if label in dict(zero_shot)]
-        differences = compare(outcomes, against or [outcomes[0].label], resamples)
-        result["zero_shot"] = _comparison_json(outcomes, differences, resamples)
-        sections.append(format_comparison(outcomes, differences, "", True))
+        labels = {a.label for a in zero_shot}
+        against = [label for label in compare_to or [] if label in labels]
+        differences = compare(zero_shot, against or [zero_shot[0].label], resamples)
+        result["zero_shot"] = _comparison_json(zero_shot, differences, resamples)
+        sections.append(format_comparison(zero_shot, differences, "", True))
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(out / "results.json", json.dumps(result, indent=2).encode())
     text = "\n\n".join(sections)
@@ -382,9 +476,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def report_cli(
-    run_dir: Path,
-    arm: list[Arm],
     out: Path,
+    run_dir: Path | None = None,
+    arm: list[Arm] | None = None,
+    from_results: Path | None = None,
     reference: list[Reference] | None = None,
     threshold: float = 0.5,
     compare_to: list[str] | None = None,
@@ -394,10 +489,12 @@ def report_cli(
     """The downstream comparison of a recipe run as a table and a plot.
 
     Args:
+        out: folder for the results
         run_dir: the recipe's run folder
         arm: an arm: its label, a glob of its fit stages (one per seed) and the evaluate stage of
             its starting weights (its step 0); repeatable
-        out: folder for the results
+        from_results: a results.json this command wrote, instead of --run-dir and its arms: what
+            it measured is read back and everything derived from it computed again
         reference: an evaluate-only arm (no training), drawn as a horizontal line; repeatable
         threshold: success rate to reach
         compare_to: arms to compare every other arm with: differences in success per step and
@@ -407,6 +504,22 @@ def report_cli(
             scene variant, compared like --compare-to; repeatable
         resamples: bootstrap resamples
     """
-    table = report(run_dir, arm, reference or [], out, threshold, compare_to, zero_shot, resamples)
+    if from_results is not None:
+        run_options = {"--run-dir": run_dir, "--arm": arm, "--reference": reference,
+                       "--zero-shot": zero_shot}  # fmt: skip
+        given = [flag for flag, value in run_options.items() if value]
+        if given:
+            raise CapVectorError(
+                f"--from-results reads the arms from its file: drop {', '.join(given)}"
+            )
+        table = report_from_results(from_results, out, threshold, compare_to, resamples)
+    elif run_dir is None or not arm:
+        raise CapVectorError(
+            "give --run-dir and --arm (a recipe run) or --from-results (a report's results.json)"
+        )
+    else:
+        table = report(
+            run_dir, arm, reference or [], out, threshold, compare_to, zero_shot, resamples
+        )
     print(table)
     print(f"\nplot: {out / 'success_vs_steps.png'}")
