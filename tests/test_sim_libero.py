@@ -73,13 +73,6 @@ def test_proprio_matches_robosuite_axis_angle() -> None:
     np.testing.assert_allclose(p[3:6], quat2axisangle(quat.copy()), rtol=1e-6)
 
 
-def test_missing_libero_raises_a_clear_import_error() -> None:
-    with pytest.raises(ImportError, match="LIBERO needs robosuite 1.4 and its assets: see README"):
-        libero.import_libero()
-    with pytest.raises(ImportError, match="LIBERO needs robosuite 1.4"):
-        libero.LiberoSuite("libero_spatial")
-
-
 @pytest.mark.parametrize("zipped", [True, False])
 def test_init_states_load_without_torch_load(tmp_path: Path, zipped: bool) -> None:
     import torch
