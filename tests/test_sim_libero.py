@@ -250,8 +250,8 @@ def test_port_follows_the_robosuite_14_referee(libero_env) -> None:
     orientation within 0.16° (0.03° is a constant offset of the eef frame), the fingers within
     0.6 mm. Objects at rest agree within 0.5 mm, except where an init state is not at rest:
     LIBERO-10 task 0 starts with objects interpenetrating (robosuite 1.5 / MuJoCo 3 ejects them
-    far higher; they land within 6.5 mm of 1.4's) and LIBERO-Spatial task 5's bowl drops from
-    the cabinet (35 mm apart). After contact, grasps diverge chaotically (end effector up to
+    far higher; they land within 6.5 mm of 1.4's) and LIBERO-Spatial task 5's bowl falls off the
+    ramekin it starts on (landing 35 mm apart). After contact, grasps diverge chaotically (end effector up to
     50 mm apart after a bowl slips), so the rest is checked by outcome: LIBERO's success
     predicate agrees on every episode, to within 2 steps of when it first holds.
     """

@@ -35,7 +35,8 @@ def main() -> None:
         "| eef max / mean (mm) | objects max / mean (mm) | success (1.4 / ours) |"
     )
     print("|---|---|---|---|---|---|---|")
-    for suite, errors in rows.items():
+    for suite in sorted(rows, key=libero.LIBERO_SUITES.index):
+        errors = rows[suite]
         eef = np.concatenate([e["eef"] for e in errors])
         objects = np.concatenate([e["objects"].ravel() for e in errors])
         wait_mm = max(e["eef"][10] for e in errors) * 1000

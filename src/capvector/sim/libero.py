@@ -343,9 +343,9 @@ def _hold_orientation_goal_like_robosuite_14(env: Any) -> None:
     robosuite 1.4's ``OperationalSpaceController.set_goal`` leaves the orientation goal unchanged
     when every rotation component is exactly 0 (``math.isclose(elem, 0.0)``); after ``reset`` that
     goal is the reset pose's orientation, not the init state's, so during LIBERO's 10 wait steps
-    the wrist turns 1-4 degrees towards it. robosuite 1.5 sets the goal to the current orientation.
+    the wrist turns 1-5 degrees towards it. robosuite 1.5 sets the goal to the current orientation.
     LIBERO's data and every published result come from 1.4: with this rule the port follows the
-    referee to 0.01 mm until the first contact, without it the end effector is up to 5 mm and
+    referee to 0.001 mm until the first contact, without it the end effector is up to 5 mm and
     4 degrees off after the wait steps (tests/fixtures/libero_referee/PROVENANCE.md). robosuite 1.5
     builds new robots and controllers at every reset, hence the hook on ``_reset_internal``.
     """
