@@ -17,9 +17,11 @@ the same layout, and robosuite's own numba kernels (``opspace_matrices``, ``orie
 ``nullspace_torques``). The controls written to ``data.ctrl`` and the controllers' state are
 identical; ``tests/test_fast_control.py`` compares whole trajectories with robosuite's full step.
 
-Only what we build is covered: one fixed-base arm with an ``OSC_POSE`` controller without
-interpolators and a ``GRIP`` gripper controller (``make_env_kwargs``'s BASIC config). Anything else
-keeps robosuite's code: :func:`supported` says why, and :func:`install` returns False.
+The substeps follow the env across hard resets (robosuite then builds a new model, data and
+robot; LIBERO resets that way). Only what we build is covered: one fixed-base arm with an
+``OSC_POSE`` controller without interpolators and a ``GRIP`` gripper controller
+(``make_env_kwargs``'s BASIC config; LIBERO's Panda has the same). Anything else keeps
+robosuite's code: :func:`supported` says why, and :func:`install` returns False.
 """
 
 from __future__ import annotations
