@@ -15,15 +15,19 @@ differently, and nothing else:
   the official env to the bit (``tests/test_libero_render.py``). The copy has the same bodies,
   geoms, cameras and lights, so ``mjv_updateScene`` draws it from the physics data as it is.
 - Drawn as the project's :class:`~capvector.sim.envs.CameraRenderer` draws: both cameras into one
-  buffer with one readback, no multisampling (robosuite's default is 4 samples), no reflections
-  (the table's reflectance draws the scene a second time), shadows, skybox or haze, geoms wholly
-  outside a camera's view skipped. The geom groups drawn are robosuite's (visual, and the
-  controller's target markers).
+  buffer with one readback, no multisampling (robosuite's default is 4 samples), no reflections,
+  shadows, skybox or haze, geoms wholly outside a camera's view skipped. The geom groups drawn
+  are robosuite's (visual, and the controller's target markers). Reflections cost the most
+  after the meshes: LIBERO-Spatial's stove base is a mirror (a box with reflectance 0.5), for
+  which robosuite draws the whole scene a second time; without them it looks matte grey.
 
-Decimation is numpy, ~0.2 s for a whole scene, cached in memory per mesh (keyed by the mesh's
-bytes and the grid), so a hard reset (LIBERO rebuilds the model on every ``reset``) only copies
-the model and builds a GL context again. The images differ from robosuite's by a few grey levels
-on average: ``benchmarks/bench_libero_render.py`` measures both.
+Decimation is numpy, ~0.2 s for a whole scene, cached in memory per mesh (keyed by a digest of
+its vertices and faces, and the grid), so a hard reset (LIBERO rebuilds the model on every
+``reset``) only copies the model (~0.3 s) and builds a GL context again (~1.5 s: the scene's
+textures, 190 MB). The images differ from robosuite's by ~4 grey levels (of 255) on average,
+mostly at edges (anti-aliasing) and on the mirror: ``benchmarks/bench_libero_render.py``
+measures both, and :meth:`FastRenderEnv.render` draws the state a step returns, where robosuite's camera
+observations show the state 2 substeps (4 ms) earlier (its sampling timer).
 
 :func:`fast_rendering_default` decides the default: fast where the GL renderer is a software one
 (``MUJOCO_GL=osmesa``, or an EGL/GLX renderer string naming llvmpipe, softpipe, swrast, ...),
@@ -211,11 +215,12 @@ class FastRenderEnv:
         return getattr(self.env, name)
 
     def render(self) -> dict[str, np.ndarray]:
+        """The current images, upright (the render model is rebuilt after a hard reset)."""
         model = self.env.env.sim.model._model
         if model is not self._source:
             if self._renderer is not None:
                 self._renderer.close()
-            self._renderer = None
+                self._renderer = None  # a rebuild that raises leaves no closed renderer behind
             self._renderer = CameraRenderer(
                 render_model(model, self.cells),
                 self.cameras,
