@@ -250,7 +250,8 @@ class CameraRenderer:
     fingers; the zoomed agentview misses the upper arm and the pedestal). ``cull=True`` drops every
     geom whose bounding sphere lies wholly outside the camera's view frustum before drawing; the
     picture is unchanged (no shadows or reflections are drawn that could come from such a geom).
-    Skybox and haze are off too: no default camera of our tasks sees the sky.
+    Skybox and haze are off too: no default camera of our tasks sees the sky. ``geom_groups``
+    are the geom groups drawn (LIBERO's fast rendering adds robosuite's marker group 2).
     """
 
     def __init__(
@@ -262,6 +263,7 @@ class CameraRenderer:
         depth: bool = False,
         msaa_samples: int = 0,
         cull: bool = True,
+        geom_groups: Sequence[int] = (1,),
     ) -> None:
         if not cameras:
             raise ValueError("CameraRenderer needs at least one camera")
@@ -307,7 +309,7 @@ class CameraRenderer:
         )
         self._option = mujoco.MjvOption()
         self._option.geomgroup[:] = 0
-        self._option.geomgroup[1] = 1
+        self._option.geomgroup[list(geom_groups)] = 1
         self._full = mujoco.MjrRect(0, 0, width, size)
         self._rects = [mujoco.MjrRect(i * size, 0, size, size) for i in range(len(self.cameras))]
         self._rgb = np.empty((size, width, 3), dtype=np.uint8)

@@ -17,9 +17,11 @@ the same layout, and robosuite's own numba kernels (``opspace_matrices``, ``orie
 ``nullspace_torques``). The controls written to ``data.ctrl`` and the controllers' state are
 identical; ``tests/test_fast_control.py`` compares whole trajectories with robosuite's full step.
 
-Only what we build is covered: one fixed-base arm with an ``OSC_POSE`` controller without
-interpolators and a ``GRIP`` gripper controller (``make_env_kwargs``'s BASIC config). Anything else
-keeps robosuite's code: :func:`supported` says why, and :func:`install` returns False.
+The substeps follow the env across hard resets (robosuite then builds a new model, data and
+robot; LIBERO resets that way). Only what we build is covered: one fixed-base arm with an
+``OSC_POSE`` controller without interpolators and a ``GRIP`` gripper controller
+(``make_env_kwargs``'s BASIC config; LIBERO's Panda has the same). Anything else keeps
+robosuite's code: :func:`supported` says why, and :func:`install` returns False.
 """
 
 from __future__ import annotations
@@ -40,11 +42,18 @@ class _FastSubsteps:
     """``env._pre_action`` with robosuite's own code on policy steps and the lean path between."""
 
     def __init__(self, env: Any) -> None:
+        self.env = env
+        self.original = type(env)._pre_action.__get__(env)
+        self._bind_sim()
+
+    def _bind_sim(self) -> None:
+        # A hard reset (LIBERO's default: robosuite rebuilds the model from its XML) makes a new
+        # model, data and robot: everything below is taken from the env as it is now.
+        env = self.env
         robot = env.robots[0]
         self.robot = robot
         self.arm_name = robot.arms[0]
         self.gripper_name = robot.get_gripper_name(self.arm_name)
-        self.original = type(env)._pre_action.__get__(env)
         self.model = env.sim.model._model
         self.data = env.sim.data._data
         actuators = robot._ref_actuators_indexes_dict
@@ -76,6 +85,8 @@ class _FastSubsteps:
     def __call__(self, action: Any, policy_step: bool = False) -> None:
         if policy_step:
             self.original(action, policy_step=True)
+            if self.env.sim.model._model is not self.model:
+                self._bind_sim()
             self._bind_controllers()
             # The gripper's clipped output robosuite has just written holds until the next action.
             self.gripper_ctrl = self.data.ctrl[self.gripper_actuators].copy()

@@ -1,0 +1,256 @@
+"""LIBERO's scenes rendered at a fraction of robosuite's cost on a CPU, with the same physics.
+
+On Mesa's software rasteriser (llvmpipe: machines without a GPU renderer) a LIBERO frame costs
+what its triangles cost, not its pixels: a LIBERO-Spatial scene holds ~293k visual mesh faces
+(each black bowl 42.5k, the robot's pedestal 33k), so two 128 px cameras take ~180 ms per step
+with robosuite's defaults, at 128 px as at 256 px. The fast mode renders the same cameras
+differently, and nothing else:
+
+- Visual meshes are decimated by vertex clustering (:func:`decimate_mesh`): each mesh's vertices
+  are snapped to a grid of ``cells`` cells along its largest extent, faces that collapse are
+  dropped, and every surviving face keeps its own normals and texture coordinates. At 128 px a
+  bowl covers a few hundred pixels; the default grid (:data:`FAST_CELLS`) keeps ~2k of its faces.
+- The decimated meshes live in a copy of the MuJoCo model used only for drawing
+  (:func:`render_model`); physics runs on robosuite's model, untouched, so the states are those of
+  the official env to the bit (``tests/test_libero_render.py``). The copy has the same bodies,
+  geoms, cameras and lights, so ``mjv_updateScene`` draws it from the physics data as it is.
+- Drawn as the project's :class:`~capvector.sim.envs.CameraRenderer` draws: both cameras into one
+  buffer with one readback, no multisampling (robosuite's default is 4 samples), no reflections,
+  shadows, skybox or haze, geoms wholly outside a camera's view skipped. The geom groups drawn
+  are robosuite's (visual, and the controller's target markers). Reflections cost the most
+  after the meshes: LIBERO-Spatial's stove base is a mirror (a box with reflectance 0.5), for
+  which robosuite draws the whole scene a second time; without them it looks matte grey.
+
+Decimation is numpy, ~0.2 s for a whole scene, cached in memory per mesh (keyed by a digest of
+its vertices and faces, and the grid), so a hard reset (LIBERO rebuilds the model on every
+``reset``) only copies the model (~0.3 s) and builds a GL context again (~1.5 s: the scene's
+textures, 190 MB). The images differ from robosuite's by ~4 grey levels (of 255) on average,
+mostly at edges (anti-aliasing) and on the mirror: ``benchmarks/bench_libero_render.py``
+measures both, and :meth:`FastRenderEnv.render` draws the state a step returns, where robosuite's camera
+observations show the state 2 substeps (4 ms) earlier (its sampling timer).
+
+:func:`fast_rendering_default` decides the default: fast where the GL renderer is a software one
+(``MUJOCO_GL=osmesa``, or an EGL/GLX renderer string naming llvmpipe, softpipe, swrast, ...),
+robosuite's where a GPU draws (it renders the full scene in milliseconds there).
+"""
+
+from __future__ import annotations
+
+import copy
+import functools
+import hashlib
+import logging
+import os
+from collections.abc import Sequence
+from typing import Any
+
+import mujoco
+import numpy as np
+import robosuite.macros as macros
+from robosuite.environments.robot_env import IMAGE_CONVENTION_MAPPING
+
+from capvector.errors import CapVectorError
+from capvector.sim.envs import CameraRenderer, _gl_context_class
+
+__all__ = [
+    "FAST_CELLS",
+    "FastRenderEnv",
+    "decimate_mesh",
+    "fast_rendering_default",
+    "gl_renderer",
+    "render_model",
+]
+
+log = logging.getLogger(__name__)
+
+FAST_CELLS = 16
+"""Grid cells along a visual mesh's largest extent (see ``benchmarks/bench_libero_render.py``
+for the cost and the image difference of other values)."""
+DRAWN_GROUPS = (1, 2)
+"""robosuite's offscreen renderer draws groups 1 (visual meshes) and 2 (its controller's target
+markers) and hides group 0 (collision geoms): ``MjvOption``'s defaults with
+``render_collision_mesh=False``."""
+SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swrast", "software rasterizer", "swiftshader")
+"""Substrings of ``GL_RENDERER`` (lower case) that name a CPU rasteriser."""
+
+
+@functools.cache
+def gl_renderer() -> str:
+    """``GL_RENDERER`` of the OpenGL backend ``MUJOCO_GL`` selects ("" when none can be made)."""
+    if os.environ.get("MUJOCO_GL", "egl").lower() == "osmesa":
+        return "OSMesa"  # Mesa's off-screen renderer: software by construction
+    try:
+        context = _gl_context_class()(1, 1)
+    except Exception as e:  # no display, no EGL device: nothing renders, fast or not
+        log.debug("no GL context to query the renderer: %s", e)
+        return ""
+    try:
+        context.make_current()
+        from OpenGL import GL
+
+        name = GL.glGetString(GL.GL_RENDERER)
+        return name.decode() if isinstance(name, bytes) else str(name or "")
+    finally:
+        context.free()
+
+
+def fast_rendering_default() -> bool:
+    """True where OpenGL runs on the CPU (or cannot be queried): the fast mode pays off there."""
+    name = gl_renderer().lower()
+    return name == "" or name == "osmesa" or any(s in name for s in SOFTWARE_RENDERERS)
+
+
+def decimate_mesh(
+    vert: np.ndarray, face: np.ndarray, cells: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Vertex clustering on a ``cells``-cell grid along the mesh's largest extent.
+
+    ``vert`` (V, 3) and ``face`` (F, 3) are one mesh's vertices and faces (indices into ``vert``).
+    Returns ``kept`` (K,) indices of the faces that survive (three distinct clusters, one face per
+    cluster triple and winding), ``faces`` (K, 3) their new vertex indices into ``vert``, and
+    ``moved`` (C,) / ``positions`` (C, 3): the one vertex standing for each cluster and the mean of
+    its cluster, where it moves to. A face keeps its corners' normals and texture coordinates.
+    """
+    low = vert.min(axis=0)
+    extent = float((vert.max(axis=0) - low).max())
+    if extent == 0.0 or len(face) == 0:
+        return np.arange(len(face)), face.copy(), np.zeros(0, np.int64), np.zeros((0, 3))
+    cell = np.minimum(np.floor((vert - low) * (cells / extent)), cells).astype(np.int64)
+    key = (cell[:, 0] * (cells + 1) + cell[:, 1]) * (cells + 1) + cell[:, 2]
+    _, moved, cluster = np.unique(key, return_index=True, return_inverse=True)
+    cluster = cluster.reshape(-1)
+    count = np.bincount(cluster)
+    positions = np.stack([np.bincount(cluster, vert[:, j]) for j in range(3)], axis=1)
+    positions /= count[:, None]
+    corners = cluster[face]
+    kept = np.flatnonzero(
+        (corners[:, 0] != corners[:, 1])
+        & (corners[:, 1] != corners[:, 2])
+        & (corners[:, 2] != corners[:, 0])
+    )
+    # Many faces of a dense patch land on the same three clusters: draw one of them. Rotating
+    # each triple to start at its smallest cluster keeps the winding (front and back differ).
+    corners = corners[kept]
+    start = np.argmin(corners, axis=1)
+    rows = np.arange(len(corners))[:, None]
+    canonical = corners[rows, (start[:, None] + np.arange(3)) % 3]
+    _, first = np.unique(canonical, axis=0, return_index=True)
+    kept = kept[np.sort(first)]
+    return kept, moved[cluster[face[kept]]], moved, positions
+
+
+_DECIMATED: dict[tuple[bytes, int], tuple[np.ndarray, ...]] = {}
+"""Decimations by (mesh digest, cells): a hard reset compiles the same meshes again. A scene's
+entries take a few MB; LIBERO has a few hundred distinct meshes in all."""
+
+
+def drawn_meshes(model: mujoco.MjModel, groups: Sequence[int] = DRAWN_GROUPS) -> list[int]:
+    """Ids of the meshes that geoms of ``groups`` draw."""
+    drawn = np.isin(model.geom_group, groups) & (model.geom_type == mujoco.mjtGeom.mjGEOM_MESH)
+    return sorted({int(i) for i in model.geom_dataid[drawn]})
+
+
+def render_model(
+    model: mujoco.MjModel, cells: int = FAST_CELLS, groups: Sequence[int] = DRAWN_GROUPS
+) -> mujoco.MjModel:
+    """A copy of ``model`` whose drawn meshes are decimated; ``model`` itself is not changed.
+
+    The copy's arrays keep their sizes: each decimated mesh's faces are written to the start of its
+    own face range and ``mesh_facenum`` shrinks, which is all that ``mjr_uploadMesh`` reads.
+    Built-in shapes are tessellated more coarsely too: cylinders and spheres with 12 slices and 2
+    stacks instead of 28 x 16 (LIBERO's table legs: 4 x ~1k triangles), planes as a grid of 0.5 m
+    squares (the floor: 48 x 48 squares); neither changes a 128 px image of these scenes.
+    """
+    out = copy.copy(model)
+    out.vis.quality.numslices = min(out.vis.quality.numslices, 12)
+    out.vis.quality.numstacks = min(out.vis.quality.numstacks, 2)
+    planes = out.geom_type == mujoco.mjtGeom.mjGEOM_PLANE
+    out.geom_size[planes, 2] = np.maximum(out.geom_size[planes, 2], 0.5)
+    for i in drawn_meshes(model, groups):
+        v0, nv = model.mesh_vertadr[i], model.mesh_vertnum[i]
+        f0, nf = model.mesh_faceadr[i], model.mesh_facenum[i]
+        vert = np.ascontiguousarray(model.mesh_vert[v0 : v0 + nv], dtype=np.float64)
+        face = np.ascontiguousarray(model.mesh_face[f0 : f0 + nf], dtype=np.int32)
+        digest = hashlib.blake2b(vert.tobytes() + face.tobytes(), digest_size=16).digest()
+        if (digest, cells) not in _DECIMATED:
+            _DECIMATED[digest, cells] = decimate_mesh(vert, face, cells)
+        kept, faces, moved, positions = _DECIMATED[digest, cells]
+        out.mesh_vert[v0 + moved] = positions
+        k = len(kept)
+        out.mesh_face[f0 : f0 + k] = faces
+        out.mesh_facenormal[f0 : f0 + k] = model.mesh_facenormal[f0 + kept]
+        if model.mesh_texcoordadr[i] >= 0:
+            out.mesh_facetexcoord[f0 : f0 + k] = model.mesh_facetexcoord[f0 + kept]
+        out.mesh_facenum[i] = k
+    return out
+
+
+class FastRenderEnv:
+    """A LIBERO env built without robosuite's renderer, whose observations carry camera images
+    drawn by the fast renderer: the keys (``<camera>_image``), shape, dtype and orientation of
+    LIBERO's ``OffScreenRenderEnv`` (robosuite's ``IMAGE_CONVENTION``: bottom-up by default).
+
+    Everything else is the wrapped env's (``env.env``, ``sim``, ``check_success``,
+    ``get_sim_state``, ``seed``, ...). The render model follows the physics model across hard
+    resets. ``render()`` gives the current images upright, ``{camera: (H, W, 3) uint8}``.
+    """
+
+    def __init__(
+        self, env: Any, cameras: Sequence[str], image_size: int, *, cells: int = FAST_CELLS
+    ) -> None:
+        if not cameras:
+            raise CapVectorError("FastRenderEnv needs at least one camera")
+        self.env = env
+        self.cameras = tuple(cameras)
+        self.image_size = image_size
+        self.cells = cells
+        self._source: mujoco.MjModel | None = None
+        self._renderer: CameraRenderer | None = None
+        self._flip = IMAGE_CONVENTION_MAPPING[macros.IMAGE_CONVENTION] == 1  # OpenGL rows
+
+    def __getattr__(self, name: str) -> Any:
+        # Only reached for attributes this class lacks; "env" itself is always set in __init__.
+        if name == "env":
+            raise AttributeError(name)
+        return getattr(self.env, name)
+
+    def render(self) -> dict[str, np.ndarray]:
+        """The current images, upright (the render model is rebuilt after a hard reset)."""
+        model = self.env.env.sim.model._model
+        if model is not self._source:
+            if self._renderer is not None:
+                self._renderer.close()
+                self._renderer = None  # a rebuild that raises leaves no closed renderer behind
+            self._renderer = CameraRenderer(
+                render_model(model, self.cells),
+                self.cameras,
+                self.image_size,
+                geom_groups=DRAWN_GROUPS,
+            )
+            self._source = model
+        images, _ = self._renderer.render(self.env.env.sim.data._data)
+        return images
+
+    def _with_images(self, obs: dict[str, Any]) -> dict[str, Any]:
+        for camera, image in self.render().items():
+            obs[f"{camera}_image"] = np.ascontiguousarray(image[::-1]) if self._flip else image
+        return obs
+
+    def reset(self) -> dict[str, Any]:
+        return self._with_images(self.env.reset())
+
+    def step(self, action: Any) -> tuple[dict[str, Any], float, bool, dict[str, Any]]:
+        obs, reward, done, info = self.env.step(action)
+        return self._with_images(obs), reward, done, info
+
+    def set_init_state(self, init_state: np.ndarray) -> dict[str, Any]:
+        return self._with_images(self.env.set_init_state(init_state))
+
+    def regenerate_obs_from_state(self, mujoco_state: np.ndarray) -> dict[str, Any]:
+        return self._with_images(self.env.regenerate_obs_from_state(mujoco_state))
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+        self.env.close()
