@@ -18,7 +18,7 @@ the same layout, and robosuite's own numba kernels (``opspace_matrices``, ``orie
 identical; ``tests/test_fast_control.py`` compares whole trajectories with robosuite's full step.
 
 Only what we build is covered: one fixed-base arm with an ``OSC_POSE`` controller without
-interpolators and a ``GRIP`` gripper controller (``make_env_kwargs``'s BASIC config). Anything else
+interpolators and a ``GRIP`` gripper controller (``SimEnv``'s BASIC config). Anything else
 keeps robosuite's code: :func:`supported` says why, and :func:`install` returns False.
 """
 
