@@ -18,8 +18,8 @@ parameter with ``requires_grad`` False after LoRA injection: what ``VLAModule(fr
 - peak RSS: parameters and AdamW state + the process's peak RSS growth during one step (RSS
   before it taken after ``malloc_trim``); it adds the CPU runtime's own overhead (glibc arenas,
   oneDNN), which a GPU's allocated bytes do not have;
-- estimate, CPU autocast: ``estimate_memory(..., strategy="ddp", attention="efficient",
-  device="cpu")`` total (weights on the meta device, nothing allocated), the trace following CPU
+- estimate, CPU autocast: ``estimate_memory(..., TrainingSettings(strategy="ddp",
+  attention="efficient"), device="cpu")`` total (weights on the meta device, nothing allocated), the trace following CPU
   autocast's casts to compare with this CPU run; CUDA autocast: the same as a GPU casts (what
   ``capvector backbone-info --memory`` reports). The CPU runs SDPA through its flash kernel (no
   attention matrix kept), as a GPU does;
@@ -125,16 +125,16 @@ def measure(preset: str, batch_size: int, lora_rank: int, frozen_dtype: str) -> 
     """Run in a fresh process: the estimates, and one real step's peak memory."""
     import torch
 
-    from capvector.profiling.memory import estimate_memory, saved_activation_bytes
+    from capvector.profiling.memory import TrainingSettings, estimate_memory, saved_activation_bytes
 
     torch.manual_seed(0)
     torch.set_num_threads(1)
-    settings = dict(
-        batch_size=batch_size, precision="bf16-mixed", strategy="ddp", lora_rank=lora_rank,
+    settings = TrainingSettings(
+        batch=batch_size, precision="bf16-mixed", strategy="ddp", lora_rank=lora_rank,
         frozen_dtype=frozen_dtype, attention="efficient",
     )  # fmt: skip
-    estimate = estimate_memory(preset, **settings, device="cpu")
-    on_gpu = estimate_memory(preset, **settings)
+    estimate = estimate_memory(preset, settings, device="cpu")
+    on_gpu = estimate_memory(preset, settings)
     model, optimizer, step = training_step(preset, batch_size, lora_rank, frozen_dtype)
     step()  # warm-up: AdamW state, lazy buffers, tokenizer caches, kernels' workspaces
     ctypes.CDLL("libc.so.6").malloc_trim(0)  # give the warm-up's freed memory back to the OS

@@ -32,7 +32,7 @@ import numpy as np
 from capvector.eval.rollout import EnvCache, Episode, EpisodeSpec, run_episode
 from capvector.sim.annotations import Annotator
 from capvector.sim.demos import record_episode
-from capvector.sim.envs import SimEnv, make_env_kwargs, suite
+from capvector.sim.envs import SimEnv, suite
 from capvector.sim.experts import make_expert
 
 CAMERAS = ["agentview", "robot0_eye_in_hand"]
@@ -74,9 +74,10 @@ def per_step_ms(
     return statistics.median(times)
 
 
-def robosuite_camera_env(size: int):
-    kwargs = make_env_kwargs("Lift", cameras=CAMERAS, image_size=size)
-    kwargs.update(has_offscreen_renderer=True, use_camera_obs=True)
+def robosuite_camera_env(sim: SimEnv):
+    """robosuite rendering ``sim``'s cameras itself, as its camera observables."""
+    size = sim.image_size
+    kwargs = {**sim.env_kwargs, "has_offscreen_renderer": True, "use_camera_obs": True}
     env = suite.make("Lift", **copy.deepcopy(kwargs))
 
     def reset(seed: int) -> None:
@@ -103,7 +104,7 @@ def main() -> None:
     physics = SimEnv("Lift", cameras=())
     camera = SimEnv("Lift", cameras=CAMERAS, image_size=size)
     msaa = SimEnv("Lift", cameras=CAMERAS, image_size=size, msaa_samples=4)
-    rs_env, rs_reset, rs_step = robosuite_camera_env(size)
+    rs_env, rs_reset, rs_step = robosuite_camera_env(camera)
     for sim in (full_step, physics, camera, msaa):  # warm up: numba JIT, GL contexts, caches
         sim.reset(0)
         sim.step(np.zeros(7))

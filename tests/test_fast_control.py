@@ -74,12 +74,16 @@ def test_the_fast_step_skips_only_what_sim_env_does_not_read() -> None:
 
 
 def test_controllers_it_does_not_cover_keep_robosuite_s_code() -> None:
+    import copy
+
     import robosuite
 
     from capvector.sim import fast_control
-    from capvector.sim.envs import make_env_kwargs
+    from capvector.sim.envs import SimEnv
 
-    kwargs = make_env_kwargs("Lift", "Panda", cameras=())
+    sim = SimEnv("Lift", cameras=())
+    kwargs = copy.deepcopy(sim.env_kwargs)
+    sim.close()
     arm = kwargs["controller_configs"]["body_parts"]["right"]
     arm.update(type="JOINT_POSITION", output_max=0.05, output_min=-0.05)
     env = robosuite.make("Lift", **kwargs)

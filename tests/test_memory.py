@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 import torch
 
@@ -10,6 +12,7 @@ from capvector.backbones.starvla import HALF, tiny_qwen_architecture
 from capvector.cli import main
 from capvector.errors import CapVectorError
 from capvector.profiling.memory import (
+    MemoryEstimate,
     efficient_attention,
     estimate_memory,
     lora_settings,
@@ -17,6 +20,7 @@ from capvector.profiling.memory import (
     saved_activation_bytes,
     synthetic_batch,
 )
+from capvector.profiling.settings import TrainingSettings
 from capvector.training.lora import cast_frozen_parameters, set_trainable
 
 TINY_PRESETS = [name for name in list_presets() if "tiny" in name]
@@ -27,7 +31,9 @@ def test_meta_activation_estimate_is_close_to_a_real_step(preset: str) -> None:
     """Every family, including those whose forward reads values (prompts with the discretised
     state, Qwen-VL's token positions): the batch keeps its values on the CPU while the weights
     stay on the meta device."""
-    estimate = estimate_memory(preset, batch_size=4, precision="32-true", strategy="ddp")
+    estimate = estimate_memory(
+        preset, TrainingSettings(batch=4, precision="32-true", strategy="ddp")
+    )
     torch.manual_seed(0)
     model = build_backbone(preset)
     store: list[float] = []
@@ -58,17 +64,17 @@ def test_qwen3_vl_masks_on_meta_features_trace_too() -> None:
 
 
 def test_strategies_shard_what_they_should() -> None:
-    ddp = estimate_memory("openvla-oft-tiny", strategy="ddp", devices=4, precision="32-true")
-    zero2 = estimate_memory(
-        "openvla-oft-tiny", strategy="deepspeed_zero2", devices=4, precision="32-true"
-    )
-    fsdp = estimate_memory("openvla-oft-tiny", strategy="fsdp2", devices=4, precision="32-true")
+    def on_4(strategy: str) -> MemoryEstimate:
+        settings = TrainingSettings(strategy=strategy, devices=4, precision="32-true")
+        return estimate_memory("openvla-oft-tiny", settings)
+
+    ddp, zero2, fsdp = on_4("ddp"), on_4("deepspeed_zero2"), on_4("fsdp2")
     params = sum(p.numel() for p in build_backbone("openvla-oft-tiny").parameters())
     assert ddp.parameters == zero2.parameters == pytest.approx(4 * params)
     assert zero2.optimizer == pytest.approx(ddp.optimizer / 4)
     assert fsdp.parameters < ddp.parameters
     with pytest.raises(ValueError, match="unknown strategy"):
-        estimate_memory("openvla-oft-tiny", strategy="fsdp1")
+        estimate_memory("openvla-oft-tiny", TrainingSettings(strategy="fsdp1"))
 
 
 def test_backbone_info_prints_the_estimate(capsys: pytest.CaptureFixture[str]) -> None:
@@ -105,8 +111,8 @@ def test_planner_total_is_within_25_percent_of_a_real_step(preset: str, frozen_d
     """LoRA, bf16-mixed, frozen weights in ``frozen_dtype`` (cast by hand as VLAModule will), AdamW:
     the estimate (following CPU autocast) against the parameters, AdamW state and the allocator's
     peak during a real CPU step."""
-    settings = dict(batch_size=2, precision="bf16-mixed", strategy="ddp", lora_rank=4)
-    estimate = estimate_memory(preset, **settings, frozen_dtype=frozen_dtype, device="cpu")
+    settings = TrainingSettings(2, "bf16-mixed", "ddp", lora_rank=4, frozen_dtype=frozen_dtype)
+    estimate = estimate_memory(preset, settings, device="cpu")
     torch.manual_seed(0)
     model = build_backbone(preset)
     set_trainable(model, lora_settings(4))
@@ -130,9 +136,9 @@ def test_planner_total_is_within_25_percent_of_a_real_step(preset: str, frozen_d
 
 
 def test_frozen_dtype_stores_what_does_not_train_in_it() -> None:
-    settings = dict(batch_size=2, precision="bf16-mixed", strategy="ddp", lora_rank=4)
-    fp32 = estimate_memory("openvla-oft-tiny", **settings, frozen_dtype="float32")
-    bf16 = estimate_memory("openvla-oft-tiny", **settings, frozen_dtype="bfloat16")
+    settings = TrainingSettings(2, "bf16-mixed", "ddp", lora_rank=4)
+    fp32 = estimate_memory("openvla-oft-tiny", replace(settings, frozen_dtype="float32"))
+    bf16 = estimate_memory("openvla-oft-tiny", replace(settings, frozen_dtype="bfloat16"))
     backbone = build_backbone("openvla-oft-tiny")
     set_trainable(backbone, lora_settings(4))
     trainable = sum(p.numel() for p in backbone.parameters() if p.requires_grad)
@@ -145,7 +151,9 @@ def test_frozen_dtype_stores_what_does_not_train_in_it() -> None:
     # float32 frozen weights under autocast: autograd saves their bf16 copies; bf16 ones not.
     assert bf16.activations < fp32.activations
     with pytest.raises(CapVectorError, match="needs precision bf16-mixed"):
-        estimate_memory("openvla-oft-tiny", precision="32-true", frozen_dtype="bfloat16")
+        estimate_memory(
+            "openvla-oft-tiny", TrainingSettings(precision="32-true", frozen_dtype="bfloat16")
+        )
 
 
 def test_efficient_attention_keeps_no_attention_matrix() -> None:
@@ -162,14 +170,14 @@ def test_efficient_attention_keeps_no_attention_matrix() -> None:
     # + the logsumexp (s is a multiple of 32) and the two 8-byte RNG scalars
     assert saved["efficient"][0] == qkvo + b * h * s * 4 + 16
     assert saved["math"][0] >= qkvo - b * h * s * d * 4 + b * h * s * s * 4
-    math = estimate_memory("openvla-oft-tiny", batch_size=2, attention="math")
-    efficient = estimate_memory("openvla-oft-tiny", batch_size=2, attention="efficient")
+    math = estimate_memory("openvla-oft-tiny", TrainingSettings(2, attention="math"))
+    efficient = estimate_memory("openvla-oft-tiny", TrainingSettings(2, attention="efficient"))
     assert efficient.activations < math.activations
 
 
 def test_activation_checkpointing_selects_the_total() -> None:
-    plain = estimate_memory("pi05-tiny", batch_size=2)
-    checkpointed = estimate_memory("pi05-tiny", batch_size=2, activation_checkpointing=True)
+    plain = estimate_memory("pi05-tiny", TrainingSettings(2))
+    checkpointed = estimate_memory("pi05-tiny", TrainingSettings(2, activation_checkpointing=True))
     assert plain.total == plain.total_plain
     assert checkpointed.total == checkpointed.total_checkpointed < plain.total
 

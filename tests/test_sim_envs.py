@@ -16,7 +16,6 @@ from capvector.sim.envs import (
     SimulationFault,
     camera_intrinsics,
     get_task,
-    make_env_kwargs,
 )
 
 CAMERAS = ("agentview", "robot0_eye_in_hand")
@@ -36,10 +35,10 @@ def test_unknown_task_names_the_known_ones() -> None:
         get_task("Lfit")
 
 
-def test_env_kwargs_are_json_and_single_arm() -> None:
+def test_env_kwargs_are_json_and_single_arm(sim: SimEnv) -> None:
     import json
 
-    kwargs = make_env_kwargs("Lift", "Panda", cameras=CAMERAS, image_size=32)
+    kwargs = sim.env_kwargs
     assert json.loads(json.dumps(kwargs)) == kwargs
     assert list(kwargs["controller_configs"]["body_parts"]) == ["right"]
     assert kwargs["controller_configs"]["body_parts"]["right"]["type"] == "OSC_POSE"

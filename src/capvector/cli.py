@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 
 from capvector.errors import CapVectorError
 from capvector.io.outputs import check_output
+from capvector.profiling.settings import TrainingSettings
 from capvector.tool_cli import Tool, run_tool
 from capvector.workflows.fit import run_lightning_cli
 
@@ -139,14 +140,7 @@ def backbone_info_cli(
     list: bool = False,
     memory: bool = False,
     flops: bool = False,
-    batch: int = 8,
-    precision: str = "bf16-mixed",
-    strategy: str = "fsdp2",
-    devices: int = 1,
-    lora_rank: int | None = None,
-    frozen_dtype: str = "float32",
-    attention: str = "efficient",
-    activation_checkpointing: bool = False,
+    settings: TrainingSettings,
     steps: int = 100_000,
     mfu: float = 0.4,
     gpu_tflops: float = 989.0,
@@ -159,15 +153,7 @@ def backbone_info_cli(
         list: list the registered presets
         memory: estimate per-device training memory
         flops: training FLOPs per sample, GPU-hours
-        batch: per-device batch size
-        precision: trainer.precision: 32-true, bf16-mixed or bf16-true
-        strategy: ddp, fsdp2, deepspeed_zero2 or deepspeed_zero3
-        devices: devices the model is sharded over
-        lora_rank: train LoRA of this rank
-        frozen_dtype: storage dtype of the parameters that do not train (model.frozen_dtype)
-        attention: SDPA as a GPU runs it, efficient (efficient/flash kernels: no S x S attention
-            matrix kept), or math (what the meta device and some CPUs take)
-        activation_checkpointing: the total assumes model.activation_checkpointing: true
+        settings: the training run (each field an option: --batch, --precision, ...)
         steps: optimizer steps (--flops)
         mfu: model FLOPs utilisation (--flops)
         gpu_tflops: peak dense TFLOP/s (H100 bf16: 989)
@@ -179,15 +165,10 @@ def backbone_info_cli(
     if list or not preset:
         print("\n".join(list_presets()))
         return
-    settings = {
-        "batch_size": batch, "precision": precision, "strategy": strategy, "devices": devices,
-        "lora_rank": lora_rank, "frozen_dtype": frozen_dtype, "attention": attention,
-        "activation_checkpointing": activation_checkpointing,
-    }  # fmt: skip
     if memory:  # first: it checks the settings, so a typo fails before anything is printed
         from capvector.profiling.memory import describe, estimate_memory
 
-        estimate = describe(estimate_memory(preset, **settings), **settings)
+        estimate = describe(estimate_memory(preset, settings), settings)
     with torch.device("meta"):
         model = build_backbone(preset)
     print(f"{preset} ({type(model).__name__})")
@@ -207,7 +188,8 @@ def backbone_info_cli(
     if flops:
         from capvector.profiling.flops import estimate_flops
 
-        counted = estimate_flops(preset, batch_size=batch, lora_rank=lora_rank)
+        batch, devices = settings.batch, settings.devices
+        counted = estimate_flops(preset, batch_size=batch, lora_rank=settings.lora_rank)
         print(
             counted.table(
                 steps=steps, batch_size=batch, devices=devices, mfu=mfu, gpu_tflops=gpu_tflops

@@ -1,8 +1,10 @@
 """The tools' command lines, built from typed functions by jsonargparse: a parameter is an option
 (``--name-with-dashes``, required without a default; a positional-only one is a positional), its
-annotation its type, its ``Args:`` docstring entry its help. ``--config FILE`` reads options from
-YAML (keys the parameter names) and ``--print_config`` prints them, unless the function has a
-``config`` parameter of its own (the recipe's).
+annotation its type, its ``Args:`` docstring entry its help; a dataclass parameter (settings a
+library function takes too) is one option per field, helped by the dataclass's ``Attributes:``.
+``--config FILE`` reads options from YAML (keys the parameter and field names) and
+``--print_config`` prints them, unless the function has a ``config`` parameter of its own (the
+recipe's).
 
 The spellings stay argparse's, which recipes, docs and scripts use: a ``bool`` is ``--flag`` /
 ``--no-flag``; a list is ``--opt A B ...``; a list of ``NamedTuple`` records is an option given
@@ -16,11 +18,13 @@ prints as all bad input: exit code 2.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import inspect
 import re
 import sys
 import typing
 from collections.abc import Callable, Collection, Sequence
+from dataclasses import MISSING
 from typing import Any
 
 from capvector.errors import CapVectorError
@@ -38,32 +42,42 @@ def run_tool(
 
 
 class Tool:
-    """The parser of ``capvector NAME``: one option per parameter of ``function`` but ``skip`` and
-    ``**kwargs``; ``parser.add_argument`` adds more (import-original's, per family)."""
+    """The parser of ``capvector NAME``: one option per parameter of ``function`` (per field of a
+    dataclass parameter) but ``skip`` and ``**kwargs``; ``parser.add_argument`` adds more
+    (import-original's, per family)."""
 
     def __init__(self, function: Callable[..., object], name: str, skip: Collection[str] = ()):
-        import docstring_parser
         from jsonargparse import ActionConfigFile, ArgumentParser
 
-        doc = docstring_parser.parse(inspect.getdoc(function) or "")
-        helps = {  # an entry may document several parameters: "aux, sft: ..."
-            name.strip(): " ".join(p.description.split())
-            for p in doc.params
-            for name in p.arg_name.split(",")
-            if p.description
-        }
+        description, helps = _documented(function)
         self.function, self.hints = function, typing.get_type_hints(function)
         self.records: dict[str, Any] = {}  # parameter: its NamedTuple, built after parsing
+        self.groups: dict[str, Any] = {}  # parameter: its dataclass, built after parsing
         self.parser = ArgumentParser(
-            prog=f"capvector {name}", description=doc.description, exit_on_error=False
+            prog=f"capvector {name}", description=description, exit_on_error=False
         )
         parameters = inspect.signature(function).parameters
         self.reads_config = "config" not in parameters
         if self.reads_config:
             self.parser.add_argument("--config", action=ActionConfigFile, help="options from YAML")
         for param in parameters.values():
-            if param.name not in skip and param.kind is not param.VAR_KEYWORD:
+            if param.name in skip or param.kind is param.VAR_KEYWORD:
+                continue
+            if dataclasses.is_dataclass(self.hints[param.name]):
+                self._add_fields(param.name, self.hints[param.name])
+            else:
                 self._add(param, self.hints[param.name], helps.get(param.name))
+
+    def _add_fields(self, name: str, settings: type) -> None:
+        """A dataclass parameter: one option per field, documented where the dataclass is."""
+        self.groups[name] = settings
+        _, helps = _documented(settings)
+        hints = typing.get_type_hints(settings)
+        self.hints.update(hints)
+        for field in dataclasses.fields(settings):
+            default = inspect.Parameter.empty if field.default is MISSING else field.default
+            param = inspect.Parameter(field.name, inspect.Parameter.KEYWORD_ONLY, default=default)
+            self._add(param, hints[field.name], helps.get(field.name))
 
     def _add(self, param: inspect.Parameter, hint: Any, doc: str | None) -> None:
         kwargs: dict[str, Any] = {"help": doc, "type": hint}
@@ -95,6 +109,9 @@ class Tool:
             for name, record in self.records.items():
                 if values[name] is not None:
                     values[name] = [_record(record, name, value) for value in values[name]]
+            for name, settings in self.groups.items():
+                fields = [field.name for field in dataclasses.fields(settings)]
+                values[name] = settings(**{field: values.pop(field) for field in fields})
         except argparse.ArgumentError as err:
             message = " ".join(line.strip() for line in str(err).strip().splitlines())
             # jsonargparse's own, over several lines: 'Parser key "x": ... Given value: y'
@@ -113,6 +130,21 @@ class Tool:
         values, parameters = dict(values), inspect.signature(self.function).parameters.values()
         given = [p.name for p in parameters if p.kind is p.POSITIONAL_ONLY and p.name in values]
         return self.function(*[values.pop(name) for name in given], **values, **fixed)
+
+
+def _documented(function: Callable[..., object] | type) -> tuple[str | None, dict[str, str]]:
+    """The description of a function or dataclass, and the help of each parameter or field from
+    its ``Args:`` or ``Attributes:`` docstring entry."""
+    import docstring_parser
+
+    doc = docstring_parser.parse(inspect.getdoc(function) or "")
+    helps = {  # an entry may document several parameters: "aux, sft: ..."
+        name.strip(): " ".join(p.description.split())
+        for p in doc.params
+        for name in p.arg_name.split(",")
+        if p.description
+    }
+    return doc.description, helps
 
 
 def _list_item(hint: Any) -> Any:

@@ -25,6 +25,7 @@ on the meta device.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import weakref
 from collections.abc import Iterator, Sequence
@@ -42,6 +43,7 @@ from torch.utils._python_dispatch import TorchDispatchMode, _disable_current_mod
 from capvector.backbones.base import VLABackbone, build_backbone, list_presets, preset_config
 from capvector.data.batch import Batch
 from capvector.errors import CapVectorError
+from capvector.profiling.settings import TrainingSettings
 from capvector.training.lora import (
     FROZEN_DTYPES,
     LoraSettings,
@@ -469,27 +471,22 @@ def _tiny_tokenizer(preset: str) -> dict[str, Any]:
     return {}
 
 
-def _check(strategy: str, precision: str, frozen_dtype: str, attention: str) -> torch.dtype:
-    if strategy not in STRATEGIES:
-        raise CapVectorError(f"unknown strategy {strategy!r}; choose from {', '.join(STRATEGIES)}")
-    if precision not in PRECISIONS:
+def _check(settings: TrainingSettings) -> torch.dtype:
+    """The storage dtype of what does not train, once the settings are known to be valid."""
+    for what, value, choices in [
+        ("strategy", settings.strategy, STRATEGIES),
+        ("precision", settings.precision, PRECISIONS),
+        ("frozen dtype", settings.frozen_dtype, FROZEN_DTYPES),
+        ("attention path", settings.attention, ATTENTION_PATHS),
+    ]:
+        if value not in choices:
+            raise CapVectorError(f"unknown {what} {value!r}; choose from {', '.join(choices)}")
+    if settings.frozen_dtype != "float32" and settings.precision == "32-true":
         raise CapVectorError(
-            f"unknown precision {precision!r}; choose from {', '.join(PRECISIONS)}"
+            f"frozen dtype {settings.frozen_dtype} needs precision bf16-mixed (autocast), as "
+            "training does: pass --precision bf16-mixed or --frozen-dtype float32"
         )
-    if frozen_dtype not in FROZEN_DTYPES:
-        raise CapVectorError(
-            f"unknown frozen dtype {frozen_dtype!r}; choose from {', '.join(FROZEN_DTYPES)}"
-        )
-    if attention not in ATTENTION_PATHS:
-        raise CapVectorError(
-            f"unknown attention path {attention!r}; choose from {', '.join(ATTENTION_PATHS)}"
-        )
-    if frozen_dtype != "float32" and precision == "32-true":
-        raise CapVectorError(
-            f"frozen dtype {frozen_dtype} needs precision bf16-mixed (autocast), as training does: "
-            "pass --precision bf16-mixed or --frozen-dtype float32"
-        )
-    return FROZEN_DTYPES[frozen_dtype]
+    return FROZEN_DTYPES[settings.frozen_dtype]
 
 
 def meta_backbone(preset: str, lora_rank: int | None, **overrides: Any) -> VLABackbone:
@@ -501,36 +498,25 @@ def meta_backbone(preset: str, lora_rank: int | None, **overrides: Any) -> VLABa
 
 
 def estimate_memory(
-    preset: str,
-    batch_size: int = 8,
-    precision: str = "bf16-mixed",
-    strategy: str = "fsdp2",
-    devices: int = 1,
-    lora_rank: int | None = None,
-    frozen_dtype: str = "float32",
-    attention: str = "efficient",
-    activation_checkpointing: bool = False,
-    device: str = "cuda",
+    preset: str, settings: TrainingSettings | None = None, device: str = "cuda"
 ) -> MemoryEstimate:
-    """Per-device bytes for training ``preset`` with AdamW; ``batch_size`` is per device.
-
-    ``attention="efficient"`` models a GPU's SDPA kernels (no attention matrix kept), ``"math"``
-    the math path (what the meta device and some CPUs take). ``activation_checkpointing`` picks
-    which activation figure ``total`` uses; both are always reported. ``device`` is the autocast
-    policy the trace follows: ``cuda``, or ``cpu`` to compare with a CPU run.
-    """
+    """Per-device bytes for training ``preset`` with AdamW as ``settings`` say (default:
+    ``TrainingSettings()``). ``device`` is the autocast policy the trace follows: ``cuda``, or
+    ``cpu`` to compare with a CPU run."""
+    settings = settings or TrainingSettings()
     if device not in AUTOCAST_DEVICES:
         raise CapVectorError(
             f"unknown device {device!r}; choose from {', '.join(AUTOCAST_DEVICES)}"
         )
-    dtype = _check(strategy, precision, frozen_dtype, attention)
+    dtype = _check(settings)
+    precision, strategy, devices = settings.precision, settings.strategy, settings.devices
     shard_params = strategy in ("fsdp2", "deepspeed_zero3")
     shard_grads = strategy != "ddp" and devices > 1
     traces = []
     for checkpointed in (False, True):
-        backbone = meta_backbone(preset, lora_rank)
+        backbone = meta_backbone(preset, settings.lora_rank)
         set_storage_dtypes(backbone, precision, dtype)
-        batch = synthetic_batch(backbone, batch_size, "cpu")
+        batch = synthetic_batch(backbone, settings.batch, "cpu")
         try:
             traces.append(
                 trace_step(
@@ -538,7 +524,7 @@ def estimate_memory(
                     batch,
                     checkpointed,
                     precision,
-                    attention,
+                    settings.attention,
                     device=device,
                     keep_gradients=not shard_grads,
                 )  # fmt: skip
@@ -572,18 +558,19 @@ def estimate_memory(
         activations_checkpointed=saved_checkpointed,
         working=peak - saved - traced_grads,
         working_checkpointed=peak_checkpointed - saved_checkpointed - traced_grads,
-        checkpointing=activation_checkpointing,
+        checkpointing=settings.activation_checkpointing,
         trainable_parameters=trainable / (devices if shard_params else 1),
     )
 
 
-def describe(estimate: MemoryEstimate, **settings: Any) -> str:
-    header = ", ".join(f"{k}={v}" for k, v in settings.items())
+def describe(estimate: MemoryEstimate, settings: TrainingSettings) -> str:
+    header = ", ".join(f"{k}={v}" for k, v in dataclasses.asdict(settings).items())
     return f"per-device memory estimate ({header}):\n{estimate.table()}"
 
 
 __all__ = [
     "MemoryEstimate",
+    "TrainingSettings",
     "describe",
     "estimate_memory",
     "meta_backbone",

@@ -101,54 +101,6 @@ MODEL_FIXES: dict[str, list[tuple[str, str]]] = {
 }
 
 
-def make_env_kwargs(
-    task: str,
-    robot: str = "Panda",
-    *,
-    gripper: str | None = None,
-    cameras: Sequence[str] = DEFAULT_CAMERAS,
-    image_size: int = DEFAULT_IMAGE_SIZE,
-    depth: bool = False,
-) -> dict[str, Any]:
-    """The ``robosuite.make`` kwargs (JSON-serialisable) for ``task`` on ``robot``.
-
-    These go verbatim into the HDF5 ``env_args`` so robomimic-style readers rebuild the same env.
-    The camera entries describe what we render ourselves; robosuite's own camera observables stay
-    off (``use_camera_obs=False``).
-    """
-    get_task(task)
-    _check_robot(robot, gripper)
-    # robosuite 1.5 "BASIC" composite controller = OSC_POSE delta for the arm, input range ±1,
-    # 0.05 m / 0.5 rad per step, input_ref_frame "base"; the same 7-d action on every arm.
-    controller = suite.load_composite_controller_config(controller="BASIC", robot=robot)
-    # basic.json also configures left arm, torso, head, base and legs; a single arm only has the
-    # "right" part, and robosuite warns about each missing part on every reset.
-    parts = controller.get("body_parts", {})
-    if "right" not in parts:
-        raise CapVectorError(f"robosuite's BASIC controller config has no right arm for {robot!r}")
-    controller["body_parts"] = {"right": parts["right"]}
-    kwargs: dict[str, Any] = {
-        "robots": robot,
-        "controller_configs": controller,
-        "has_renderer": False,
-        "has_offscreen_renderer": False,
-        "use_camera_obs": False,
-        "use_object_obs": True,
-        "ignore_done": True,
-        "hard_reset": False,
-        "reward_shaping": False,
-        "control_freq": 20,
-        "seed": 0,
-        "camera_names": list(cameras),
-        "camera_heights": image_size,
-        "camera_widths": image_size,
-        "camera_depths": depth,
-    }
-    if gripper is not None:
-        kwargs["gripper_types"] = gripper
-    return kwargs
-
-
 def _check_robot(robot: str, gripper: str | None) -> None:
     """A robot and gripper robosuite knows, the robot with one arm (robosuite's own failures are
     an assertion and a KeyError deep in ``suite.make``)."""
@@ -434,14 +386,13 @@ class SimEnv:
     ) -> None:
         self.task = task
         self.spec = get_task(task)
+        _check_robot(robot, gripper)
         self.robot = robot
         self.gripper = gripper
         self.cameras = tuple(cameras)
         self.image_size = image_size
         self.depth = depth
-        self.env_kwargs = make_env_kwargs(
-            task, robot, gripper=gripper, cameras=cameras, image_size=image_size, depth=depth
-        )
+        self.env_kwargs = self._make_kwargs()
         self.env = suite.make(self.spec.env_name, **copy.deepcopy(self.env_kwargs))
         self.fast_control = fast_step and install_fast_control(self.env)
         if fast_step:
@@ -476,6 +427,46 @@ class SimEnv:
         except Exception:
             self.close()
             raise
+
+    def _make_kwargs(self) -> dict[str, Any]:
+        """The ``robosuite.make`` kwargs (JSON-serialisable) of this task, robot and cameras.
+
+        These go verbatim into the HDF5 ``env_args`` so robomimic-style readers rebuild the same
+        env. The camera entries describe what we render ourselves; robosuite's own camera
+        observables stay off (``use_camera_obs=False``).
+        """
+        robot = self.robot
+        # robosuite 1.5 "BASIC" composite controller = OSC_POSE delta for the arm, input range ±1,
+        # 0.05 m / 0.5 rad per step, input_ref_frame "base"; the same 7-d action on every arm.
+        controller = suite.load_composite_controller_config(controller="BASIC", robot=robot)
+        # basic.json also configures left arm, torso, head, base and legs; a single arm only has
+        # the "right" part, and robosuite warns about each missing part on every reset.
+        parts = controller.get("body_parts", {})
+        if "right" not in parts:
+            raise CapVectorError(
+                f"robosuite's BASIC controller config has no right arm for {robot!r}"
+            )
+        controller["body_parts"] = {"right": parts["right"]}
+        kwargs: dict[str, Any] = {
+            "robots": robot,
+            "controller_configs": controller,
+            "has_renderer": False,
+            "has_offscreen_renderer": False,
+            "use_camera_obs": False,
+            "use_object_obs": True,
+            "ignore_done": True,
+            "hard_reset": False,
+            "reward_shaping": False,
+            "control_freq": 20,
+            "seed": 0,
+            "camera_names": list(self.cameras),
+            "camera_heights": self.image_size,
+            "camera_widths": self.image_size,
+            "camera_depths": self.depth,
+        }
+        if self.gripper is not None:
+            kwargs["gripper_types"] = self.gripper
+        return kwargs
 
     def _check_and_set_cameras(
         self, model: mujoco.MjModel, camera_fovy: Mapping[str, float] | None

@@ -20,7 +20,7 @@ identical; ``tests/test_fast_control.py`` compares whole trajectories with robos
 The substeps follow the env across hard resets (robosuite then builds a new model, data and
 robot; LIBERO resets that way). Only what we build is covered: one fixed-base arm with an
 ``OSC_POSE`` controller without interpolators and a ``GRIP`` gripper controller
-(``make_env_kwargs``'s BASIC config; LIBERO's Panda has the same). Anything else keeps
+(``SimEnv``'s BASIC config; LIBERO's Panda has the same). Anything else keeps
 robosuite's code: :func:`supported` says why, and :func:`install` returns False.
 """
 

@@ -1,0 +1,34 @@
+"""The training run an estimate is for, declared once for ``estimate_memory`` and for
+``backbone-info``'s options (the tool gives each field an option of its own). Plain Python, so the
+CLI can read it without importing torch."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class TrainingSettings:
+    """What the training run does that changes its cost per device.
+
+    Attributes:
+        batch: per-device batch size
+        precision: trainer.precision: 32-true, bf16-mixed or bf16-true
+        strategy: ddp, fsdp2, deepspeed_zero2 or deepspeed_zero3
+        devices: devices the model is sharded over
+        lora_rank: train LoRA of this rank (none: the whole model trains)
+        frozen_dtype: storage dtype of the parameters that do not train (model.frozen_dtype)
+        attention: SDPA as a GPU runs it, efficient (efficient/flash kernels: no S x S attention
+            matrix kept), or math (what the meta device and some CPUs take)
+        activation_checkpointing: the total assumes model.activation_checkpointing: true (both
+            figures are always reported)
+    """
+
+    batch: int = 8
+    precision: str = "bf16-mixed"
+    strategy: str = "fsdp2"
+    devices: int = 1
+    lora_rank: int | None = None
+    frozen_dtype: str = "float32"
+    attention: str = "efficient"
+    activation_checkpointing: bool = False
