@@ -66,6 +66,7 @@ def bad(tmp_path_factory: pytest.TempPathFactory, inputs: Path) -> Path:  # noqa
         {"name": "c", "command": "backbone-info", "args": info},  # after b, the stage before it
     ])  # fmt: skip
     (root / "typo.yaml").write_text("trainer:\n  max_stesp: 1\n")
+    (root / "libero.yaml").write_text("data:\n  eval_tasks:\n    - {suite: libero_spatial}\n")
     # A real one-step fit's checkpoint, then cut as a run killed while saving it leaves it.
     runs = root / "runs"
     assert main(fit_args(inputs, runs, "--trainer.callbacks+=lightning.pytorch.callbacks.ModelCheckpoint",
@@ -96,6 +97,26 @@ CASES: dict[str, tuple[Case, str]] = {
     "evaluate: a misspelt scene variant": (
         lambda i, b, o: ["evaluate", "--ckpt", str(i / "missing.ckpt"), "--variant", "lightning", "--json", str(o / "r.json")],
         r"unknown scene variant 'lightning' \(did you mean lighting\?\)",
+    ),
+    "evaluate: a misspelt LIBERO suite": (
+        lambda i, b, o: ["evaluate", "--ckpt", str(i / "missing.ckpt"), "--suite", "libero_spatail", "--json", str(o / "r.json")],
+        r"unknown LIBERO suite 'libero_spatail' \(did you mean libero_spatial or .*\); known: libero_spatial, libero_object",
+    ),
+    "evaluate: a LIBERO task the suite lacks": (
+        lambda i, b, o: ["evaluate", "--ckpt", str(i / "missing.ckpt"), "--suite", "libero_goal", "--tasks", "0", "10", "--json", str(o / "r.json")],
+        r"libero_goal has tasks 0\.\.9, not 10",
+    ),
+    "evaluate: more LIBERO trials than official initial states": (
+        lambda i, b, o: ["evaluate", "--ckpt", str(i / "missing.ckpt"), "--suite", "libero_10", "--trials", "60", "--json", str(o / "r.json")],
+        r"LIBERO tasks have 50 official initial states, one per trial: trials must be 1\.\.50, not 60",
+    ),
+    "evaluate: LIBERO task ids without a suite": (
+        lambda i, b, o: ["evaluate", "--ckpt", str(i / "missing.ckpt"), "--tasks", "3", "--json", str(o / "r.json")],
+        r"--tasks and --trials choose LIBERO trials: give --suite too",
+    ),
+    "evaluate: a robosuite task and a LIBERO suite at once": (
+        lambda i, b, o: ["evaluate", "--ckpt", str(i / "missing.ckpt"), "--suite", "libero_spatial", "--task", "Lift", "--variant", "lighting", "--json", str(o / "r.json")],
+        r"--task, --variant choose robosuite episodes; --suite libero_spatial runs LIBERO's own scenes",
     ),
     "recipe: ${out.X} naming no stage, and no run folder made": (
         lambda i, b, o: ["recipe", "--config", str(b / "nosuch.yaml"), f"run_dir={o / 'run'}"],
@@ -128,6 +149,10 @@ CASES: dict[str, tuple[Case, str]] = {
     "sweep-scale: neither rollouts nor held-out demos": (
         lambda i, b, o: ["sweep-scale", "--base", str(i / "oft_sft"), "--vector", str(i / "oft_vector"), "--out", str(o)],
         r"give --task/--episodes \(rollouts\) and/or --demos",
+    ),
+    "sweep-scale: LIBERO's official initial states, which evaluation reports": (
+        lambda i, b, o: ["sweep-scale", "--base", str(i / "oft_sft"), "--vector", str(i / "oft_vector"), "--fit-config", str(b / "libero.yaml"), "--out", str(o)],
+        r"data\.eval_tasks has LIBERO's libero_spatial, whose trials start from the official initial states that evaluation reports",
     ),
     "demos: a misspelt robot, before simulating": (
         lambda i, b, o: ["demos", "--task", "Lift", "--episodes", "1", "--robot", "Sawyr", "--out", str(o / "d.hdf5")],

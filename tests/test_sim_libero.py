@@ -2,8 +2,8 @@
 
 The real environments (the `libero` extra: rpent-libero on robosuite 1.5) are built for two tasks
 of every suite, with their official init states, and replayed against the robosuite 1.4 referee
-fixture (tests/fixtures/libero_referee, see its PROVENANCE.md). The episode loop's bookkeeping is
-also exercised against a stand-in that implements the four LIBERO env methods the protocol calls.
+fixture (tests/fixtures/libero_referee, see its PROVENANCE.md). Episodes under the evaluation
+protocol: tests/test_libero_eval.py.
 """
 
 from __future__ import annotations
@@ -17,7 +17,6 @@ import numpy as np
 import pytest
 
 from capvector.sim import libero
-from capvector.sim.policy import Observation
 
 
 def test_step_limits_follow_oft() -> None:
@@ -98,77 +97,6 @@ def test_init_states_refuse_code(tmp_path: Path) -> None:
     path.write_bytes(pickle.dumps(Evil()))
     with pytest.raises(pickle.UnpicklingError, match="only numpy arrays"):
         libero.load_init_states(path)
-
-
-class StandInLiberoEnv:
-    """The four methods of LIBERO's OffScreenRenderEnv the protocol uses; done after `solve_at`
-    policy steps. Observations are bottom-up like LIBERO's (robosuite 1.4, OpenGL convention)."""
-
-    def __init__(self, solve_at: int | None = None, fail_at: int | None = None) -> None:
-        self.solve_at, self.fail_at = solve_at, fail_at
-        self.actions: list[list[float]] = []
-        image = np.zeros((4, 4, 3), dtype=np.uint8)
-        image[-1] = 255  # bottom row of the raw array = top of the scene
-        self.obs = {
-            "agentview_image": image,
-            "robot0_eye_in_hand_image": image,
-            "robot0_eef_pos": np.zeros(3),
-            "robot0_eef_quat": np.array([1.0, 0.0, 0.0, 0.0]),
-            "robot0_gripper_qpos": np.zeros(2),
-        }
-
-    def reset(self) -> None:
-        self.actions.clear()
-
-    def set_init_state(self, state: np.ndarray) -> dict:
-        return self.obs
-
-    def step(self, action: list[float]):
-        self.actions.append(action)
-        policy_steps = len(self.actions) - libero.NUM_WAIT_STEPS
-        if self.fail_at is not None and policy_steps == self.fail_at:
-            raise RuntimeError("MuJoCo exploded")
-        return self.obs, 0.0, self.solve_at is not None and policy_steps >= self.solve_at, {}
-
-
-def test_episode_protocol_waits_flips_and_maps_the_gripper() -> None:
-    env = StandInLiberoEnv(solve_at=12)
-    seen: list[Observation] = []
-
-    def policy(obs: Observation) -> np.ndarray:
-        seen.append(obs)
-        return np.tile([0.5, 0, 0, 0, 0, 0, 0.9], (8, 1))  # OFT: 0.9 -> open
-
-    result = libero.run_libero_episode(
-        policy, env, "put the bowl", np.zeros(5), max_steps=220, gripper_convention="open_is_one"
-    )
-    assert result.success and result.steps == 12 and result.reason is None
-    assert env.actions[:10] == [libero.WAIT_ACTION.tolist()] * 10
-    assert env.actions[10] == [0.5, 0, 0, 0, 0, 0, -1.0]
-    assert len(seen) == 2 and seen[0]["instruction"] == "put the bowl"
-    assert seen[0]["images"]["agentview"][0].min() == 255  # rotated: scene top is row 0
-    assert seen[0]["proprio"].shape == (8,)
-
-
-def test_episode_limits_and_simulator_errors() -> None:
-    still = libero.run_libero_episode(
-        lambda obs: np.zeros((8, 7)), StandInLiberoEnv(), "x", np.zeros(1), max_steps=20
-    )
-    assert not still.success and still.steps == 20 and still.reason == "step limit (20) reached"
-    crash = libero.run_libero_episode(
-        lambda obs: np.zeros((5, 7)),
-        StandInLiberoEnv(fail_at=7),
-        "x",
-        np.zeros(1),
-        max_steps=20,
-        execute_steps=5,
-    )
-    # the 7th policy step raises: 6 steps completed
-    assert not crash.success and crash.steps == 6 and "MuJoCo exploded" in crash.reason
-    with pytest.raises(ValueError, match=r"\(T, 7\)"):
-        libero.run_libero_episode(
-            lambda obs: np.zeros(3), StandInLiberoEnv(), "x", np.zeros(1), max_steps=20
-        )
 
 
 # --- LIBERO itself (the `libero` extra) ---------------------------------------------------------

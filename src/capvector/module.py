@@ -29,7 +29,7 @@ from capvector.data.batch import Batch
 from capvector.data.episodes import EpisodeDataset, EpisodeItem, is_episode_batch
 from capvector.data.spec import DataSpec
 from capvector.errors import CapVectorError
-from capvector.eval.episodes import EpisodeSpec
+from capvector.eval.episodes import AnyEpisodeSpec
 from capvector.eval.metrics import SuccessRate
 from capvector.eval.policy import VLAPolicy
 from capvector.eval.results import metric_key
@@ -64,7 +64,8 @@ class RolloutSettings:
     execute_steps: int | None = None
     """Execute only the first k actions of each chunk (None: the whole chunk, as OpenVLA-OFT)."""
     batch_size: int = 8
-    """Episodes in flight at once, one batched policy forward for all (1: one at a time)."""
+    """Episodes in flight at once, one batched policy forward for all (1: one at a time). Each
+    LIBERO episode in flight holds an env of its own (~1.2 GB)."""
     workers: int | None = None
     """Processes stepping the simulators (0: this one); None: one per usable core, up to
     ``batch_size`` (``capvector.eval.rollout.default_workers``)."""
@@ -455,7 +456,7 @@ def _as(cls: type[T], value: T | Mapping[str, Any] | None) -> T | None:
     return cls(**value) if isinstance(value, Mapping) else value
 
 
-def _task_key(spec: EpisodeSpec) -> str:
+def _task_key(spec: AnyEpisodeSpec) -> str:
     return metric_key(spec.task, spec.robot, spec.variant)
 
 

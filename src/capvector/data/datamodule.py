@@ -18,6 +18,8 @@ from capvector.data.episodes import (
     EpisodeItem,
     EpisodeSampler,
     EvalTask,
+    LiberoEvalTask,
+    eval_task,
     is_episode_batch,
 )
 from capvector.data.hdf5 import DatasetError, HDF5RobotDataset
@@ -54,7 +56,7 @@ class RobotDataModule(L.LightningDataModule):
         self,
         train_files: list[str] | None = None,
         val_files: list[str] | None = None,
-        eval_tasks: list[EvalTask] | None = None,
+        eval_tasks: list[EvalTask | LiberoEvalTask] | None = None,
         cameras: Sequence[str] = DEFAULT_CAMERAS,
         proprio_keys: Sequence[str] = DEFAULT_PROPRIO,
         chunk_size: int = 8,
@@ -77,7 +79,9 @@ class RobotDataModule(L.LightningDataModule):
         Args:
             train_files: HDF5 files in the robomimic/LIBERO layout.
             val_files: held-out files; validation then reports the action L1 on them.
-            eval_tasks: MuJoCo rollout episodes for the validation loop (success rates).
+            eval_tasks: MuJoCo rollout episodes for the validation loop (success rates):
+                robosuite tasks (``{task: Lift, episodes: 20}``) and LIBERO trials under the
+                official protocol (``{suite: libero_spatial, tasks: [0, 1], trials: 5}``).
             cameras: camera names (``obs/<camera>_image``), in the order the model sees them.
             proprio_keys: ``obs`` keys concatenated into the proprio vector.
             chunk_size: actions per sample (the model's chunk size follows it).
@@ -107,7 +111,7 @@ class RobotDataModule(L.LightningDataModule):
         check_normalization(normalization)
         super().__init__()
         self.save_hyperparameters()
-        self.eval_tasks = [EvalTask(**t) if isinstance(t, Mapping) else t for t in eval_tasks or []]
+        self.eval_tasks = [eval_task(t) for t in eval_tasks or []]
         # Plain data in checkpoints, so they load with torch.load(weights_only=True).
         self.hparams["eval_tasks"] = [dataclasses.asdict(t) for t in self.eval_tasks] or None
         self.generate = DemoGeneration(**generate) if isinstance(generate, Mapping) else generate

@@ -9,12 +9,19 @@ one-process run on the same episodes.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
+from typing import Any
 
 from torch.utils.data import Dataset, DistributedSampler
 
-from capvector.eval.episodes import DEFAULT_ROBOT, EVAL_SEED_START, EpisodeSpec, eval_specs
+from capvector.eval.episodes import (
+    DEFAULT_ROBOT,
+    EVAL_SEED_START,
+    AnyEpisodeSpec,
+    eval_specs,
+    libero_specs,
+)
 
 
 @dataclass
@@ -34,9 +41,31 @@ class EvalTask:
     sawyer, ur5e, ...); None evaluates the scene as trained."""
 
 
+@dataclass
+class LiberoEvalTask:
+    """Trials of LIBERO tasks under the official protocol (``capvector.eval.libero``): trial i
+    starts from the task's official initial state i, which no demo of ours starts from."""
+
+    suite: str
+    """libero_spatial, libero_object, libero_goal, libero_10 or libero_90."""
+    tasks: list[int] | None = None
+    """Task ids in the suite's canonical order; None: all of them."""
+    trials: int = 10
+    """Trials per task, 1..50 (the official protocol runs 50)."""
+    max_steps: int | None = None
+    """Step limit after the wait steps; None: the suite's (220 spatial, 280 object, ...)."""
+
+
+def eval_task(entry: EvalTask | LiberoEvalTask | Mapping[str, Any]) -> EvalTask | LiberoEvalTask:
+    """An ``eval_tasks`` entry as its dataclass: a mapping with ``suite`` is a LIBERO one."""
+    if not isinstance(entry, Mapping):
+        return entry
+    return LiberoEvalTask(**entry) if "suite" in entry else EvalTask(**entry)
+
+
 @dataclass(frozen=True)
 class EpisodeItem:
-    spec: EpisodeSpec
+    spec: AnyEpisodeSpec
     index: int
     """Position in the full episode list (video naming, ordering)."""
     counted: bool = True
@@ -49,9 +78,12 @@ def is_episode_batch(batch: object) -> bool:
 
 
 class EpisodeDataset(Dataset):
-    def __init__(self, tasks: list[EvalTask]) -> None:
-        self.specs: list[EpisodeSpec] = []
+    def __init__(self, tasks: list[EvalTask | LiberoEvalTask]) -> None:
+        self.specs: list[AnyEpisodeSpec] = []
         for t in tasks:
+            if isinstance(t, LiberoEvalTask):
+                self.specs += libero_specs(t.suite, t.tasks, t.trials, t.max_steps)
+                continue
             self.specs += eval_specs(
                 t.task, t.episodes, robot=t.robot, start_seed=t.start_seed, max_steps=t.max_steps,
                 gripper=t.gripper, variant=t.variant,

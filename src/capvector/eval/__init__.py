@@ -4,10 +4,12 @@ Importing this package, ``episodes``, ``results``, ``metrics``, ``comparison`` a
 imports neither robosuite nor MuJoCo (training code may use them freely); ``rollout`` does, so
 ``VLAModule`` imports it only when its validation loop rolls out.
 
-- :mod:`~capvector.eval.episodes`: ``EpisodeSpec``, evaluation and validation seeds
+- :mod:`~capvector.eval.episodes`: ``EpisodeSpec``, ``LiberoEpisodeSpec``, evaluation and
+  validation seeds
 - :mod:`~capvector.eval.policy`: ``VLAPolicy``, a trained backbone as a closed-loop policy
 - :mod:`~capvector.eval.rollout`: ``RolloutEvaluator``, the one rollout loop every evaluation uses
   (one episode at a time, or batched: many in flight, one policy call per round)
+- :mod:`~capvector.eval.libero`: ``LiberoEpisode``, a LIBERO trial under the official protocol
 - :mod:`~capvector.eval.workers`: the worker processes that step batched episodes' simulators
 - :mod:`~capvector.eval.video`: ``write_video``
 - :mod:`~capvector.eval.metrics`: ``SuccessRate``, the validation loop's metric across ranks

@@ -56,6 +56,8 @@ class SuccessRow:
     failures: tuple[str, ...] = ()
     label: str | None = None
     """Whose row it is in a table of several runs (e.g. a recipe's stage)."""
+    instruction: str | None = None
+    """The task's language instruction (LIBERO's tasks are told apart by it)."""
     outcomes: tuple[tuple[int, bool], ...] = field(default=(), compare=False)
     """(seed, success) of every episode, so intervals paired by seed can be recomputed."""
 
@@ -74,6 +76,7 @@ class SuccessRow:
             "episodes": self.episodes, "successes": self.successes,
             "success_rate": self.success_rate, "ci95": list(self.ci95),
             "mean_steps": self.mean_steps, "failures": list(self.failures),
+            **({"instruction": self.instruction} if self.instruction else {}),
             "outcomes": [[seed, bool(ok)] for seed, ok in self.outcomes],
         }  # fmt: skip
 
@@ -83,7 +86,7 @@ class SuccessRow:
             task=row["task"], robot=row["robot"], episodes=int(row["episodes"]),
             successes=int(row["successes"]), mean_steps=float(row.get("mean_steps", 0.0)),
             variant=row.get("variant"), failures=tuple(row.get("failures", ())),
-            label=label, outcomes=tuple((int(a), bool(b)) for a, b in row.get("outcomes", ())),
+            label=label, instruction=row.get("instruction"), outcomes=tuple((int(a), bool(b)) for a, b in row.get("outcomes", ())),
         )  # fmt: skip
 
 
@@ -112,15 +115,38 @@ def success_rows(results: Iterable[_Episode]) -> list[SuccessRow]:
     return rows
 
 
+def pooled_row(rows: Sequence[SuccessRow], task: str) -> SuccessRow:
+    """All episodes of ``rows`` as one row named ``task`` (a suite's total)."""
+    episodes = sum(r.episodes for r in rows)
+    steps = sum(r.mean_steps * r.episodes for r in rows)
+    return SuccessRow(
+        task, rows[0].robot if rows else DEFAULT_ROBOT, episodes, sum(r.successes for r in rows),
+        steps / episodes if episodes else 0.0,
+        failures=tuple(sorted({f for r in rows for f in r.failures})),
+    )  # fmt: skip
+
+
+INSTRUCTION_WIDTH = 48
+"""Characters of an instruction a table shows."""
+
+
 def format_success_table(rows: Sequence[SuccessRow]) -> str:
-    """Markdown: a label column when rows carry labels, a variant column when any has one."""
+    """Markdown: a label column when rows carry labels, a variant column when any has one, an
+    instruction column (shortened) when any has one."""
     labelled = any(r.label for r in rows)
     varied = any(r.variant for r in rows)
-    head = ["stage"] * labelled + ["task", "robot"] + ["variant"] * varied
-    head += ["success (n; 95% CI)", "mean steps"]
+    told = any(r.instruction for r in rows)
+    head = ["stage"] * labelled + ["task"] + ["instruction"] * told + ["robot"]
+    head += ["variant"] * varied + ["success (n; 95% CI)", "mean steps"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
-        cells = [r.label or ""] * labelled + [r.task, r.robot] + [r.variant or "–"] * varied
+        cells = [r.label or ""] * labelled + [r.task]
+        cells += [_shorten(r.instruction or "", INSTRUCTION_WIDTH)] * told + [r.robot]
+        cells += [r.variant or "–"] * varied
         cells += [success_cell(r.successes, r.episodes), f"{r.mean_steps:.1f}"]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def _shorten(text: str, width: int) -> str:
+    return text if len(text) <= width else text[: width - 1].rstrip() + "…"

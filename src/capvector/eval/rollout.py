@@ -15,12 +15,14 @@ robosuite. Success is ``env._check_success()`` after every step; the episode end
 success or at the step limit (``EpisodeSpec.max_steps``, else the task's default limit).
 
 Episodes are described by :class:`~capvector.eval.episodes.EpisodeSpec` (seeds, arm, scene
-variant; no simulator import). :class:`RolloutEvaluator` is the one loop every evaluation runs: the
-validation loop of ``VLAModule``, ``capvector evaluate`` and ``capvector sweep-scale``. It drives
-:class:`Episode` s one at a time (``batch_size=1``) or batched: ``batch_size`` episodes in flight
-in :class:`Slots` (here, or in :mod:`capvector.eval.workers` processes), one policy call per round
-for all of their next chunks (:func:`act`). Each episode has its own env, reset from its seed, so
-the outcome of an episode does not depend on how it was batched.
+variant; no simulator import), LIBERO trials by :class:`~capvector.eval.episodes.LiberoEpisodeSpec`
+(run as :class:`~capvector.eval.libero.LiberoEpisode`, LIBERO's protocol). :class:`RolloutEvaluator`
+is the one loop every evaluation runs: the validation loop of ``VLAModule``, ``capvector evaluate``
+and ``capvector sweep-scale``. It drives episodes one at a time (``batch_size=1``) or batched:
+``batch_size`` episodes in flight in :class:`Slots` (here, or in :mod:`capvector.eval.workers`
+processes), one policy call per round for all of their next chunks (:func:`act`). Each episode has
+its own env, reset from its seed, so the outcome of an episode does not depend on how it was
+batched.
 """
 
 from __future__ import annotations
@@ -35,7 +37,14 @@ from typing import Any
 
 import numpy as np
 
-from capvector.eval.episodes import EVAL_SEED_START, EpisodeSpec, eval_specs
+from capvector.eval.episodes import (
+    EVAL_SEED_START,
+    AnyEpisodeSpec,
+    EpisodeSpec,
+    LiberoEpisodeSpec,
+    eval_specs,
+)
+from capvector.eval.libero import LiberoEpisode, build_libero_env
 from capvector.eval.workers import close_pools, worker_pool
 from capvector.io.names import STAGE_CORES
 from capvector.sim.envs import SimEnv, SimulationFault
@@ -53,6 +62,7 @@ __all__ = [
     "close_envs",
     "eval_specs",
     "run_episode",
+    "start_episode",
     "to_env_action",
 ]
 
@@ -73,16 +83,16 @@ class EnvCache:
     """Keeps built :class:`SimEnv` s for reuse across episodes (``robosuite.make`` costs seconds).
 
     Keyed by everything that changes the env: task, arm, gripper, cameras, size, depth, fovy and
-    scene variant (a variant's env carries its :class:`SceneRandomizer`, see :meth:`randomizer`).
-    At most ``max_envs`` are kept; the least recently used one is closed beyond that.
-    ``fast_step=False`` builds envs that run robosuite's full step (the same states, slower; see
-    :class:`SimEnv`).
+    scene variant (a variant's env carries its :class:`SceneRandomizer`, see :meth:`randomizer`),
+    and LIBERO's envs (:meth:`libero`). At most ``max_envs`` are kept, of them one LIBERO env (each
+    holds ~1.2 GB); the least recently used one is closed beyond that. ``fast_step=False`` builds
+    envs that run robosuite's full step (the same states, slower; see :class:`SimEnv`).
     """
 
     def __init__(self, max_envs: int = 4, *, fast_step: bool = True) -> None:
         self.max_envs = max_envs
         self.fast_step = fast_step
-        self._envs: OrderedDict[tuple, SimEnv] = OrderedDict()
+        self._envs: OrderedDict[tuple, Any] = OrderedDict()
         self._randomizers: dict[int, SceneRandomizer] = {}
 
     def get(
@@ -104,21 +114,35 @@ class EnvCache:
             self._envs.move_to_end(key)
             return self._envs[key]
         sim = SimEnv(task, robot, fast_step=self.fast_step, **settings)
-        self._envs[key] = sim
         if variant is not None:
             self._randomizers[id(sim)] = SceneRandomizer(sim, get_variant(variant))
+        return self._add(key, sim)
+
+    def libero(self, suite: str, task_id: int, *, cameras: Sequence[str], image_size: int) -> Any:
+        """LIBERO's env of a task (:func:`~capvector.eval.libero.build_libero_env`); building it
+        closes the LIBERO env of another task first."""
+        key = ("libero", suite, task_id, tuple(cameras), image_size)
+        if key in self._envs:
+            self._envs.move_to_end(key)
+            return self._envs[key]
+        for other in [k for k in self._envs if k[0] == "libero"]:
+            self._close(self._envs.pop(other))
+        return self._add(key, build_libero_env(suite, task_id, cameras, image_size))
+
+    def _add(self, key: tuple, env: Any) -> Any:
+        self._envs[key] = env
         while len(self._envs) > self.max_envs:
             _, old = self._envs.popitem(last=False)
             self._close(old)
-        return sim
+        return env
 
     def randomizer(self, sim: SimEnv) -> SceneRandomizer | None:
         """The scene variant's randomizer of an env this cache built (None: no variant)."""
         return self._randomizers.get(id(sim))
 
-    def _close(self, sim: SimEnv) -> None:
-        self._randomizers.pop(id(sim), None)
-        sim.close()
+    def _close(self, env: Any) -> None:
+        self._randomizers.pop(id(env), None)
+        env.close()
 
     def close(self) -> None:
         while self._envs:
@@ -222,7 +246,14 @@ class Episode:
         )  # fmt: skip
 
 
-def run_episode(policy: Policy, episode: Episode) -> EpisodeResult:
+def start_episode(spec: AnyEpisodeSpec, envs: EnvCache, **settings: Any) -> Episode | LiberoEpisode:
+    """The episode of ``spec``, reset to its initial state; ``settings`` as :class:`Episode`'s."""
+    if isinstance(spec, LiberoEpisodeSpec):
+        return LiberoEpisode(spec, envs, **settings)
+    return Episode(spec, envs, **settings)
+
+
+def run_episode(policy: Policy, episode: Episode | LiberoEpisode) -> EpisodeResult:
     """Drive ``episode`` with ``policy``, one chunk at a time, until it ends."""
     while (result := episode.execute(policy(episode.observe()))) is None:
         pass
@@ -240,7 +271,7 @@ class Slots:
 
     def __init__(self) -> None:
         self._envs: dict[int, EnvCache] = {}
-        self._episodes: dict[int, Episode] = {}
+        self._episodes: dict[int, Episode | LiberoEpisode] = {}
 
     def handle(self, commands: Sequence[tuple[int, str, Any]]) -> list[tuple[int, Any]]:
         replies: list[tuple[int, Any]] = []
@@ -248,7 +279,7 @@ class Slots:
             if command == "start":
                 spec, kwargs = payload
                 envs = self._envs.setdefault(slot, EnvCache(max_envs=2))
-                self._episodes[slot] = Episode(spec, envs, **kwargs)
+                self._episodes[slot] = start_episode(spec, envs, **kwargs)
                 replies.append((slot, self._episodes[slot].observe()))
             elif command == "act":
                 episode = self._episodes[slot]
@@ -287,15 +318,19 @@ def act(policy: Policy, observations: Sequence[Observation]) -> list[np.ndarray]
     return [as_chunk(c) for c in chunks]
 
 
-def default_workers(batch_size: int) -> int:
-    """Worker processes for ``batch_size`` episodes in flight: one per core this process may use
-    (``CAPVECTOR_CORES``, a ``capvector recipe`` stage's share of the machine, else
-    ``OMP_NUM_THREADS``, else all), at most one per episode; fewer than 2 runs the simulators in
-    this process. Outcomes do not depend on it."""
-    cores = int(
+def usable_cores() -> int:
+    """The cores this process may use: ``CAPVECTOR_CORES`` (a ``capvector recipe`` stage's share
+    of the machine), else ``OMP_NUM_THREADS``, else all."""
+    return int(
         os.environ.get(STAGE_CORES) or os.environ.get("OMP_NUM_THREADS") or os.cpu_count() or 1
     )
-    workers = min(cores, batch_size)
+
+
+def default_workers(batch_size: int) -> int:
+    """Worker processes for ``batch_size`` episodes in flight: one per usable core
+    (:func:`usable_cores`), at most one per episode; fewer than 2 runs the simulators in this
+    process. Outcomes do not depend on it."""
+    workers = min(usable_cores(), batch_size)
     return workers if workers >= 2 else 0
 
 
@@ -324,7 +359,7 @@ class RolloutEvaluator:
     def run(
         self,
         policy: Policy,
-        specs: Sequence[EpisodeSpec],
+        specs: Sequence[AnyEpisodeSpec],
         indices: Sequence[int] | None = None,
         progress: bool = False,
     ) -> list[EpisodeResult]:
@@ -349,10 +384,10 @@ class RolloutEvaluator:
             "video": self.video_dir is not None and index < self.videos,
         }  # fmt: skip
 
-    def _episode(self, spec: EpisodeSpec, index: int) -> Episode:
+    def _episode(self, spec: AnyEpisodeSpec, index: int) -> Episode | LiberoEpisode:
         """Episode ``index`` of the one-at-a-time loop, in this process."""
         envs = _default_envs if self.envs is None else self.envs
-        return Episode(spec, envs, **self._episode_kwargs(index))
+        return start_episode(spec, envs, **self._episode_kwargs(index))
 
     def _finish(self, result: EpisodeResult, bar: Any) -> EpisodeResult:
         if result.frames:
@@ -362,7 +397,7 @@ class RolloutEvaluator:
         return result
 
     def _run_serial(
-        self, policy: Policy, specs: Sequence[EpisodeSpec], positions: list[int], bar: Any
+        self, policy: Policy, specs: Sequence[AnyEpisodeSpec], positions: list[int], bar: Any
     ) -> list[EpisodeResult]:
         return [
             self._finish(run_episode(policy, self._episode(spec, i)), bar)
@@ -370,7 +405,7 @@ class RolloutEvaluator:
         ]
 
     def _run_batched(
-        self, policy: Policy, specs: Sequence[EpisodeSpec], positions: list[int], bar: Any
+        self, policy: Policy, specs: Sequence[AnyEpisodeSpec], positions: list[int], bar: Any
     ) -> list[EpisodeResult]:
         """Up to ``batch_size`` episodes at once: the simulators step (in worker processes, or
         here) while the policy waits, then one policy call serves every episode's next chunk."""
@@ -412,5 +447,6 @@ class RolloutEvaluator:
 
         assert self.video_dir is not None and result.frames
         variant = f"_{result.variant}" if result.variant else ""
-        name = f"{result.task}_{result.robot}{variant}_seed{result.seed}.mp4"
+        task = result.task.replace("/", "_")  # LIBERO's libero_spatial/3
+        name = f"{task}_{result.robot}{variant}_seed{result.seed}.mp4"
         write_video(result.frames, Path(self.video_dir) / name)

@@ -15,6 +15,6 @@ imports neither robosuite nor MuJoCo):
 - :mod:`~capvector.sim.annotations`: per-step text about what the expert does and where things are
 - :mod:`~capvector.sim.demos`: ``capvector demos``, recording to robomimic/LIBERO-layout HDF5
 - :mod:`~capvector.sim.policy`: the policy interface (``Observation``, ``EpisodeResult``)
-- :mod:`~capvector.sim.libero`: LIBERO adapter following the OpenVLA-OFT / openpi protocol
+- :mod:`~capvector.sim.libero`: LIBERO's envs and the OpenVLA-OFT / openpi protocol's constants
 - :mod:`~capvector.sim.libero_render`: LIBERO's scenes rendered ~13x cheaper on a CPU, same physics
 """

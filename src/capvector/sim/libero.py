@@ -1,5 +1,6 @@
-"""LIBERO: its task suites as environments, and evaluation following the OpenVLA-OFT / openpi
-protocol.
+"""LIBERO: its task suites as environments, and the OpenVLA-OFT / openpi evaluation protocol's
+constants and pure helpers (the episodes themselves run in :mod:`capvector.eval.libero`, batched
+like robosuite's).
 
 Two installs work. With this project's robosuite 1.5: ``pip install 'capvector[libero]'``, which
 brings ``rpent-libero`` (LIBERO's environments ported to robosuite 1.5; BDDL files and init
@@ -32,7 +33,6 @@ import dataclasses
 import functools
 import importlib.metadata
 import importlib.util
-import logging
 import math
 import os
 import pickle
@@ -46,9 +46,7 @@ from typing import Any, Literal
 import numpy as np
 
 from capvector.errors import CapVectorError, unknown_name
-from capvector.sim.policy import EpisodeResult, Observation, Policy, as_chunk
-
-log = logging.getLogger(__name__)
+from capvector.sim.policy import Observation
 
 LIBERO_MAX_STEPS: dict[str, int] = {
     "libero_spatial": 220,  # longest training demo: 193 steps
@@ -57,6 +55,16 @@ LIBERO_MAX_STEPS: dict[str, int] = {
     "libero_10": 520,  # 505
     "libero_90": 400,  # 373
 }
+LIBERO_NUM_TASKS: dict[str, int] = {
+    "libero_spatial": 10,
+    "libero_object": 10,
+    "libero_goal": 10,
+    "libero_10": 10,
+    "libero_90": 90,
+}
+"""Tasks per suite (ids 0..n-1 in the benchmark's canonical order, the one papers report)."""
+LIBERO_TRIALS = 50
+"""Fixed initial states per task: the official protocol runs trial i from state i, 50 per task."""
 NUM_WAIT_STEPS = 10
 WAIT_ACTION = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0])
 """No motion, gripper open: what OFT/openpi send while objects settle (``get_libero_dummy_action``)."""
@@ -124,9 +132,12 @@ def libero_proprio(obs: Mapping[str, np.ndarray]) -> np.ndarray:
     ).astype(np.float32)
 
 
-def libero_observation(obs: Mapping[str, np.ndarray], instruction: str) -> Observation:
-    """A LIBERO env observation as our policy :class:`Observation` (images rotated 180°)."""
-    images = {cam: flip_image(obs[key]) for cam, key in LIBERO_CAMERAS.items()}
+def libero_observation(
+    obs: Mapping[str, np.ndarray], instruction: str, cameras: Sequence[str] = tuple(LIBERO_CAMERAS)
+) -> Observation:
+    """A LIBERO env observation as our policy :class:`Observation`: ``cameras``' images
+    (``<camera>_image``) rotated 180°, the 8-d proprio, the instruction."""
+    images = {camera: flip_image(obs[f"{camera}_image"]) for camera in cameras}
     return {"images": images, "proprio": libero_proprio(obs), "instruction": instruction}
 
 
@@ -599,97 +610,3 @@ def replay_actions(
         success.append(bool(done))
         record()
     return {**{k: np.stack(v) for k, v in frames.items()}, "success": np.array(success)}
-
-
-def run_libero_episode(
-    policy: Policy,
-    env: Any,
-    instruction: str,
-    init_state: np.ndarray,
-    *,
-    max_steps: int,
-    gripper_convention: GripperConvention = "close_positive",
-    execute_steps: int | None = None,
-    video: bool = False,
-    trial: int = 0,
-    task: str = "",
-) -> EpisodeResult:
-    """One trial: reset, load ``init_state``, wait 10 steps, then run chunks until done/limit.
-
-    Simulator exceptions fail the trial (as in OFT/openpi); a policy returning a wrong shape
-    raises, since that is a bug rather than a failed trial.
-    """
-    frames: list[np.ndarray] | None = [] if video else None
-    steps = 0
-
-    def finish(success: bool, reason: str | None) -> EpisodeResult:
-        if reason is not None and not reason.startswith("step limit"):
-            log.warning("LIBERO %s trial %d: %s", task, trial, reason)
-        return EpisodeResult(success, steps, reason, frames, trial, task, "Panda")
-
-    try:
-        env.reset()
-        obs = env.set_init_state(init_state)
-        for _ in range(NUM_WAIT_STEPS):
-            obs, _, _, _ = env.step(WAIT_ACTION.tolist())
-    except Exception as e:
-        return finish(False, f"{type(e).__name__} during reset: {e}")
-    while steps < max_steps:
-        observation = libero_observation(obs, instruction)
-        if frames is not None:
-            frames.append(np.concatenate(list(observation["images"].values()), axis=1))
-        chunk = as_chunk(policy(observation))
-        if execute_steps is not None:
-            chunk = chunk[:execute_steps]
-        for action in chunk:
-            if not np.all(np.isfinite(action)):
-                return finish(False, f"non-finite action at step {steps}: {action.tolist()}")
-            try:
-                obs, _, done, _ = env.step(to_libero_action(action, gripper_convention).tolist())
-            except Exception as e:
-                return finish(False, f"{type(e).__name__} at step {steps}: {e}")
-            steps += 1
-            if done:
-                return finish(True, None)
-            if steps >= max_steps:
-                break
-    return finish(False, f"step limit ({max_steps}) reached")
-
-
-def run_libero_suite(
-    policy: Policy,
-    suite: str,
-    *,
-    trials_per_task: int = 50,
-    tasks: list[int] | None = None,
-    gripper_convention: GripperConvention = "close_positive",
-    execute_steps: int | None = None,
-    videos_per_task: int = 0,
-) -> list[EpisodeResult]:
-    """The OFT/openpi protocol over a suite: ``trials_per_task`` fixed init states per task."""
-    results = []
-    for task_id in tasks if tasks is not None else range(len(_suite_tasks(suite))):
-        env = make_libero_env(suite, task_id)
-        instruction = libero_task(suite, task_id).instruction
-        states = initial_states(suite, task_id)
-        if trials_per_task > len(states):
-            raise ValueError(
-                f"{suite} task {task_id} has {len(states)} init states, {trials_per_task} asked"
-            )
-        for trial in range(trials_per_task):
-            results.append(
-                run_libero_episode(
-                    policy,
-                    env,
-                    instruction,
-                    states[trial],
-                    max_steps=max_steps(suite),
-                    gripper_convention=gripper_convention,
-                    execute_steps=execute_steps,
-                    video=trial < videos_per_task,
-                    trial=trial,
-                    task=f"{suite}/{task_id}",
-                )
-            )
-        env.close()
-    return results

@@ -1,45 +1,54 @@
-"""``capvector evaluate``: roll a trained policy out in MuJoCo and print a success table."""
+"""``capvector evaluate``: roll a trained policy out in MuJoCo (robosuite tasks, or LIBERO's suites
+under the official protocol) and print a success table."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from json import dumps
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
-from capvector.data.episodes import EvalTask
+from capvector.data.episodes import EpisodeDataset, EvalTask, LiberoEvalTask
+from capvector.errors import CapVectorError
+from capvector.eval.episodes import LIBERO_TRIALS, AnyEpisodeSpec
 from capvector.eval.policy import VLAPolicy
-from capvector.eval.results import SuccessRow, format_success_table, success_rows
+from capvector.eval.results import SuccessRow, format_success_table, pooled_row, success_rows
 from capvector.io.outputs import atomic_write_bytes, check_output
 from capvector.module import load_module
 from capvector.tool_cli import run_tool
 
+if TYPE_CHECKING:
+    from capvector.eval.rollout import EpisodeResult
+
 
 def evaluate(
     checkpoint: str,
-    tasks: list[EvalTask],
+    tasks: list[EvalTask | LiberoEvalTask],
     video_dir: str | None = None,
     videos: int = 2,
     execute_steps: int | None = None,
     batch_size: int = 8,
     workers: int | None = None,
-) -> list[SuccessRow]:
-    """One row per (task, robot, variant): episodes, successes and each episode's outcome.
-    ``batch_size`` episodes run at once, their simulators in ``workers`` processes (see
-    ``RolloutEvaluator``)."""
-    from capvector.data.episodes import EpisodeDataset
+    image_size: int | None = None,
+) -> list[EpisodeResult]:
+    """Every episode's result, in the order of ``EpisodeDataset(tasks).specs``. ``batch_size``
+    episodes run at once, their simulators in ``workers`` processes (see ``RolloutEvaluator``);
+    cameras render at ``image_size`` (default: the policy's own; the backbone resizes what it
+    gets to its input size)."""
     from capvector.eval.rollout import RolloutEvaluator
 
     specs = EpisodeDataset(tasks).specs  # an unknown task or variant fails before the load
     module = load_module(checkpoint).eval()
     spec = module.data_spec
     evaluator = RolloutEvaluator(
-        cameras=spec.cameras, image_size=spec.image_size, camera_fovy=spec.camera_fovy,
-        execute_steps=execute_steps, videos=videos,
+        cameras=spec.cameras, image_size=image_size or spec.image_size,
+        camera_fovy=spec.camera_fovy, execute_steps=execute_steps, videos=videos,
         video_dir=None if video_dir is None else Path(video_dir), batch_size=batch_size,
         workers=workers,
     )  # fmt: skip
     policy = VLAPolicy(module.backbone, spec)
-    return success_rows(evaluator.run(policy, specs, progress=True))
+    return evaluator.run(policy, specs, progress=True)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -48,44 +57,122 @@ def main(argv: list[str] | None = None) -> int:
 
 def evaluate_cli(
     ckpt: str,
-    task: Sequence[str] = ("Lift",),
+    task: Sequence[str] | None = None,
     robot: str = "Panda",
     gripper: str | None = None,
     episodes: int = 20,
     variant: Sequence[str | None] = (None,),
     start_seed: int = EvalTask.start_seed,
+    suite: str | None = None,
+    tasks: Sequence[int] | None = None,
+    trials: int = LIBERO_TRIALS,
+    max_steps: int | None = None,
+    image_size: int | None = None,
     video: str | None = None,
     videos: int = 2,
     execute_steps: int | None = None,
-    batch_size: int = 8,
+    batch_size: int | None = None,
     workers: int | None = None,
     json: str | None = None,
 ) -> None:
-    """MuJoCo rollouts of a checkpoint.
+    """MuJoCo rollouts of a checkpoint: robosuite tasks, or a LIBERO suite (--suite) under the
+    official protocol.
 
     Args:
         ckpt: Lightning checkpoint or export folder
-        task: robosuite task(s)
+        task: robosuite task(s) (default Lift)
         gripper: e.g. PandaGripper for IIWA/UR5e/Kinova3/Jaco
         variant: zero-shot scene variants (camera, camera-strong, lighting, color, all, sawyer,
             ur5e); each task is evaluated in each
         start_seed: first evaluation seed
+        suite: a LIBERO suite (libero_spatial, libero_object, libero_goal, libero_10,
+            libero_90), evaluated as OpenVLA-OFT and openpi do: trial i from the task's official
+            initial state i, 10 wait steps, the suite's step limit, LIBERO's success predicate
+        tasks: LIBERO task ids (default: every task of the suite)
+        trials: LIBERO trials per task, 1..50 (the official protocol runs 50)
+        max_steps: step limit of an episode (default: the task's; LIBERO: the suite's)
+        image_size: render the cameras at this size (default: the policy's; LIBERO's protocol
+            renders 256); the backbone resizes to its own input size
         video: folder for mp4s of the first --videos episodes
         batch_size: episodes in flight at once, one batched policy forward for all (1: one at a
-            time)
+            time; default 8, for LIBERO one per usable core: each holds an env of ~1.2 GB)
         workers: processes stepping the simulators (0: this one; default: one per core)
-        json: also write the rows as JSON
+        json: also write the rows as JSON, with every episode's outcome
     """
     for what, path in (("--json", json), ("--video", video)):
         if path is not None:  # before minutes of rollouts
             check_output(path, overwrite=True, inputs=[ckpt], what=what)
-    tasks = [
-        EvalTask(t, episodes, robot, start_seed, gripper=gripper, variant=v)
-        for t in task
-        for v in variant
-    ]
-    rows = evaluate(ckpt, tasks, video, videos, execute_steps, batch_size, workers)
-    print(format_success_table(rows))
+    eval_tasks = _eval_tasks(
+        task, robot, gripper, episodes, variant, start_seed, suite, tasks, trials, max_steps
+    )
+    specs = EpisodeDataset(eval_tasks).specs
+    if batch_size is None:
+        batch_size = 8 if suite is None else _libero_batch_size(workers)
+    results = evaluate(
+        ckpt, eval_tasks, video, videos, execute_steps, batch_size, workers, image_size
+    )
+    # success_rows makes a row per (task, robot, variant), in order of appearance: as here
+    by_row: dict[tuple[Any, ...], list[tuple[AnyEpisodeSpec, EpisodeResult]]] = {}
+    for s, r in zip(specs, results, strict=True):
+        by_row.setdefault((s.task, s.robot, s.variant), []).append((s, r))
+    rows = success_rows(results)
+    table = rows
+    if suite is not None:
+        from capvector.eval.libero import libero_task
+
+        def instruction(row: SuccessRow) -> str:
+            spec = by_row[row.task, row.robot, row.variant][0][0]
+            return libero_task(spec.suite, spec.task_id).instruction
+
+        rows = [dataclasses.replace(row, instruction=instruction(row)) for row in rows]
+        table = [*rows, pooled_row(rows, f"{suite} (all)")]
+    print(format_success_table(table))
     if json:
-        payload = [r.to_dict() for r in rows]
+        payload = [
+            {**row.to_dict(), "per_episode": [
+                {**s.describe(), "success": r.success, "steps": r.steps, "reason": r.reason}
+                for s, r in by_row[row.task, row.robot, row.variant]
+            ]}
+            for row in rows
+        ]  # fmt: skip
         atomic_write_bytes(json, dumps(payload, indent=2).encode())
+
+
+def _eval_tasks(
+    task: Sequence[str] | None,
+    robot: str,
+    gripper: str | None,
+    episodes: int,
+    variant: Sequence[str | None],
+    start_seed: int,
+    suite: str | None,
+    tasks: Sequence[int] | None,
+    trials: int,
+    max_steps: int | None,
+) -> list[EvalTask | LiberoEvalTask]:
+    """The command line's episodes; options of the other kind of evaluation are refused."""
+    if suite is None:
+        if tasks is not None or trials != LIBERO_TRIALS:
+            raise CapVectorError("--tasks and --trials choose LIBERO trials: give --suite too")
+        return [
+            EvalTask(t, episodes, robot, start_seed, max_steps, gripper, v)
+            for t in task or ["Lift"]
+            for v in variant
+        ]
+    robosuite = {"--task": task is not None, "--robot": robot != "Panda",
+                 "--gripper": gripper is not None, "--variant": list(variant) != [None]}  # fmt: skip
+    if any(robosuite.values()):
+        given = ", ".join(name for name, on in robosuite.items() if on)
+        raise CapVectorError(
+            f"{given} choose robosuite episodes; --suite {suite} runs LIBERO's own scenes: "
+            "give one or the other"
+        )
+    return [LiberoEvalTask(suite, None if tasks is None else list(tasks), trials, max_steps)]
+
+
+def _libero_batch_size(workers: int | None) -> int:
+    """One LIBERO episode per worker: a worker steps its episodes one after the other, so more
+    would only hold more envs (~1.2 GB each)."""
+    from capvector.eval.rollout import usable_cores
+
+    return max(1, usable_cores() if workers is None else workers)

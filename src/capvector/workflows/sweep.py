@@ -69,6 +69,12 @@ def fit_settings(
             "whose data has eval_tasks or val_files"
         )
     for t in data.eval_tasks or []:  # validation seeds, never the evaluation ones
+        if "suite" in vars(t):
+            raise CapVectorError(
+                f"data.eval_tasks has LIBERO's {t.suite}, whose trials start from the official "
+                "initial states that evaluation reports: choosing λ on them would tune on the "
+                "test episodes; sweep with robosuite tasks or held-out demos (--demos)"
+            )
         t.start_seed = max(t.start_seed, VALIDATION_SEED_START)
     EpisodeDataset([EvalTask(**vars(t)) for t in data.eval_tasks or []])  # unknown task: fails
     load_export_config(base)  # an export folder, before any work
