@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from capvector.cli import main
+from capvector.errors import CapVectorError
 from capvector.eval.episodes import LiberoEpisodeSpec, libero_specs
 from capvector.eval.rollout import RolloutEvaluator, close_envs
 from capvector.sim import libero
@@ -170,6 +171,23 @@ def test_a_non_finite_action_fails_only_its_trial() -> None:
     assert result.reason.startswith("non-finite action at step 0")
     assert (result.task, result.seed) == (f"{SUITE}/0", 3)
     close_envs()
+
+
+@pytest.mark.sim
+def test_rendering_is_one_option_away_from_the_official_renderer() -> None:
+    """`rendering` reaches the env: official is LIBERO's own renderer, fast ours; a typo is named."""
+    from capvector.eval.libero import build_libero_env
+    from capvector.sim.libero_render import FastRenderEnv
+
+    for rendering, fast in (("official", False), ("fast", True)):
+        env = build_libero_env(SUITE, 0, ("agentview",), 32, rendering)
+        try:
+            assert isinstance(env, FastRenderEnv) is fast
+            assert env.reset()["agentview_image"].shape == (32, 32, 3)
+        finally:
+            env.close()
+    with pytest.raises(CapVectorError, match="official"):
+        libero_specs(SUITE, [0], 1, rendering="offical")
 
 
 @pytest.mark.sim

@@ -54,6 +54,9 @@ class LiberoEvalTask:
     """Trials per task, 1..50 (the official protocol runs 50)."""
     max_steps: int | None = None
     """Step limit after the wait steps; None: the suite's (220 spatial, 280 object, ...)."""
+    rendering: str = "auto"
+    """Who draws the images: auto (the fast renderer on a CPU's OpenGL, robosuite's on a GPU),
+    fast, or official (LIBERO's own; ``capvector.sim.libero.make_libero_env``)."""
 
 
 def eval_task(entry: EvalTask | LiberoEvalTask | Mapping[str, Any]) -> EvalTask | LiberoEvalTask:
@@ -82,7 +85,7 @@ class EpisodeDataset(Dataset):
         self.specs: list[AnyEpisodeSpec] = []
         for t in tasks:
             if isinstance(t, LiberoEvalTask):
-                self.specs += libero_specs(t.suite, t.tasks, t.trials, t.max_steps)
+                self.specs += libero_specs(t.suite, t.tasks, t.trials, t.max_steps, t.rendering)
                 continue
             self.specs += eval_specs(
                 t.task, t.episodes, robot=t.robot, start_seed=t.start_seed, max_steps=t.max_steps,

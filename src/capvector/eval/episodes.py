@@ -16,12 +16,14 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, get_args
 
 from capvector.errors import CapVectorError, unknown_name
-from capvector.sim.libero import LIBERO_MAX_STEPS, LIBERO_NUM_TASKS, LIBERO_TRIALS
+from capvector.sim.libero import LIBERO_MAX_STEPS, LIBERO_NUM_TASKS, LIBERO_TRIALS, Rendering
 from capvector.sim.tasks import get_task
 from capvector.sim.variants import get_variant
+
+LIBERO_RENDERINGS: tuple[str, ...] = get_args(Rendering)
 
 EVAL_SEED_START = 1_000_000
 """First default evaluation seed; keep demo seeds below it."""
@@ -90,6 +92,8 @@ class LiberoEpisodeSpec:
     trial: int
     max_steps: int | None = None
     """Step limit after the wait steps; None: the suite's (220 spatial, 280 object, ...)."""
+    rendering: Rendering = "auto"
+    """Who draws the images (``capvector.sim.libero.Rendering``): auto, fast or official."""
 
     robot: ClassVar[str] = DEFAULT_ROBOT  # every LIBERO scene has one Panda
     variant: ClassVar[str | None] = None
@@ -126,6 +130,7 @@ def libero_specs(
     tasks: Sequence[int] | None = None,
     trials: int = LIBERO_TRIALS,
     max_steps: int | None = None,
+    rendering: Rendering = "auto",
 ) -> list[LiberoEpisodeSpec]:
     """Trials ``0..trials-1`` of each of ``tasks`` (default: the whole suite), task by task.
 
@@ -147,8 +152,10 @@ def libero_specs(
         )
     if max_steps is not None and max_steps < 1:
         raise CapVectorError(f"max_steps must be at least 1, not {max_steps}")
+    if rendering not in LIBERO_RENDERINGS:
+        raise unknown_name("LIBERO rendering", rendering, LIBERO_RENDERINGS)
     return [
-        LiberoEpisodeSpec(suite, task_id, trial, max_steps)
+        LiberoEpisodeSpec(suite, task_id, trial, max_steps, rendering)
         for task_id in tasks
         for trial in range(trials)
     ]

@@ -47,16 +47,19 @@ class LiberoEnvs(Protocol):
     """Where episodes get their env: :class:`capvector.eval.rollout.EnvCache`."""
 
     def libero(
-        self, suite: str, task_id: int, *, cameras: Sequence[str], image_size: int
+        self, suite: str, task_id: int, *, cameras: Sequence[str], image_size: int, rendering: str
     ) -> Any: ...
 
 
-def build_libero_env(suite: str, task_id: int, cameras: Sequence[str], image_size: int) -> Any:
-    """The env of a task as evaluation uses it: ``cameras`` at ``image_size`` (no camera: no
-    renderer, for state-based policies), soft resets (module docstring)."""
+def build_libero_env(
+    suite: str, task_id: int, cameras: Sequence[str], image_size: int, rendering: str = "auto"
+) -> Any:
+    """The env of a task as evaluation uses it: ``cameras`` at ``image_size`` drawn by
+    ``rendering`` (no camera: no renderer, for state-based policies), soft resets (module
+    docstring)."""
     return make_libero_env(
         suite, task_id, cameras=tuple(cameras), image_size=image_size, render=bool(cameras),
-        hard_reset=False,
+        rendering=rendering, hard_reset=False,
     )  # fmt: skip
 
 
@@ -102,8 +105,9 @@ class LiberoEpisode:
         self.cameras = tuple(cameras)
         self.execute_steps = execute_steps
         self.env = envs.libero(
-            spec.suite, spec.task_id, cameras=self.cameras, image_size=image_size
-        )
+            spec.suite, spec.task_id, cameras=self.cameras, image_size=image_size,
+            rendering=spec.rendering,
+        )  # fmt: skip
         if camera_fovy:
             _check_fovy(self.env, camera_fovy)
         self.instruction = libero_task(spec.suite, spec.task_id).instruction

@@ -118,16 +118,18 @@ class EnvCache:
             self._randomizers[id(sim)] = SceneRandomizer(sim, get_variant(variant))
         return self._add(key, sim)
 
-    def libero(self, suite: str, task_id: int, *, cameras: Sequence[str], image_size: int) -> Any:
+    def libero(
+        self, suite: str, task_id: int, *, cameras: Sequence[str], image_size: int, rendering: str
+    ) -> Any:
         """LIBERO's env of a task (:func:`~capvector.eval.libero.build_libero_env`); building it
         closes the LIBERO env of another task first."""
-        key = ("libero", suite, task_id, tuple(cameras), image_size)
+        key = ("libero", suite, task_id, tuple(cameras), image_size, rendering)
         if key in self._envs:
             self._envs.move_to_end(key)
             return self._envs[key]
         for other in [k for k in self._envs if k[0] == "libero"]:
             self._close(self._envs.pop(other))
-        return self._add(key, build_libero_env(suite, task_id, cameras, image_size))
+        return self._add(key, build_libero_env(suite, task_id, cameras, image_size, rendering))
 
     def _add(self, key: tuple, env: Any) -> Any:
         self._envs[key] = env

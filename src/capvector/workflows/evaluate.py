@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 from capvector.data.episodes import EpisodeDataset, EvalTask, LiberoEvalTask
 from capvector.errors import CapVectorError
-from capvector.eval.episodes import LIBERO_TRIALS, AnyEpisodeSpec
+from capvector.eval.episodes import LIBERO_TRIALS, AnyEpisodeSpec, Rendering
 from capvector.eval.policy import VLAPolicy
 from capvector.eval.results import SuccessRow, format_success_table, pooled_row, success_rows
 from capvector.io.outputs import atomic_write_bytes, check_output
@@ -67,6 +67,7 @@ def evaluate_cli(
     tasks: Sequence[int] | None = None,
     trials: int = LIBERO_TRIALS,
     max_steps: int | None = None,
+    rendering: Rendering = "auto",
     image_size: int | None = None,
     video: str | None = None,
     videos: int = 2,
@@ -91,6 +92,9 @@ def evaluate_cli(
         tasks: LIBERO task ids (default: every task of the suite)
         trials: LIBERO trials per task, 1..50 (the official protocol runs 50)
         max_steps: step limit of an episode (default: the task's; LIBERO: the suite's)
+        rendering: who draws LIBERO's images: auto (the fast renderer where OpenGL runs on the
+            CPU, robosuite's on a GPU), fast, or official (LIBERO's own: for policies trained on
+            LIBERO's released data)
         image_size: render the cameras at this size (default: the policy's; LIBERO's protocol
             renders 256); the backbone resizes to its own input size
         video: folder for mp4s of the first --videos episodes
@@ -103,8 +107,9 @@ def evaluate_cli(
         if path is not None:  # before minutes of rollouts
             check_output(path, overwrite=True, inputs=[ckpt], what=what)
     eval_tasks = _eval_tasks(
-        task, robot, gripper, episodes, variant, start_seed, suite, tasks, trials, max_steps
-    )
+        task, robot, gripper, episodes, variant, start_seed, suite, tasks, trials, max_steps,
+        rendering,
+    )  # fmt: skip
     specs = EpisodeDataset(eval_tasks).specs
     if batch_size is None:
         batch_size = 8 if suite is None else _libero_batch_size(workers)
@@ -149,6 +154,7 @@ def _eval_tasks(
     tasks: Sequence[int] | None,
     trials: int,
     max_steps: int | None,
+    rendering: Rendering,
 ) -> list[EvalTask | LiberoEvalTask]:
     """The command line's episodes; options of the other kind of evaluation are refused."""
     if suite is None:
@@ -167,7 +173,9 @@ def _eval_tasks(
             f"{given} choose robosuite episodes; --suite {suite} runs LIBERO's own scenes: "
             "give one or the other"
         )
-    return [LiberoEvalTask(suite, None if tasks is None else list(tasks), trials, max_steps)]
+    return [
+        LiberoEvalTask(suite, None if tasks is None else list(tasks), trials, max_steps, rendering)
+    ]
 
 
 def _libero_batch_size(workers: int | None) -> int:
