@@ -37,6 +37,7 @@ import numpy as np
 
 from capvector.eval.episodes import EVAL_SEED_START, EpisodeSpec, eval_specs
 from capvector.eval.workers import close_pools, worker_pool
+from capvector.io.cpus import usable_cpus
 from capvector.io.names import STAGE_CORES
 from capvector.sim.envs import SimEnv, SimulationFault
 from capvector.sim.policy import EpisodeResult, Observation, Policy, as_chunk
@@ -308,11 +309,9 @@ def act(policy: Policy, observations: Sequence[Observation]) -> list[np.ndarray]
 def default_workers(batch_size: int) -> int:
     """Worker processes for ``batch_size`` episodes in flight: one per core this process may use
     (``CAPVECTOR_CORES``, a ``capvector recipe`` stage's share of the machine, else
-    ``OMP_NUM_THREADS``, else all), at most one per episode; fewer than 2 runs the simulators in
-    this process. Outcomes do not depend on it."""
-    cores = int(
-        os.environ.get(STAGE_CORES) or os.environ.get("OMP_NUM_THREADS") or os.cpu_count() or 1
-    )
+    ``OMP_NUM_THREADS``, else the CPUs this process may use), at most one per episode; fewer than 2
+    runs the simulators in this process. Outcomes do not depend on it."""
+    cores = int(os.environ.get(STAGE_CORES) or os.environ.get("OMP_NUM_THREADS") or usable_cpus())
     workers = min(cores, batch_size)
     return workers if workers >= 2 else 0
 
@@ -420,10 +419,14 @@ class RolloutEvaluator:
             commands = next_commands
         return results  # type: ignore[return-value]
 
+    def video_path(self, result: EpisodeResult) -> Path:
+        """Where the mp4 of an episode recorded as video is written."""
+        assert self.video_dir is not None
+        variant = f"_{result.variant}" if result.variant else ""
+        return Path(self.video_dir) / f"{result.task}_{result.robot}{variant}_seed{result.seed}.mp4"
+
     def _write_video(self, result: EpisodeResult) -> None:
         from capvector.eval.video import write_video
 
-        assert self.video_dir is not None and result.frames
-        variant = f"_{result.variant}" if result.variant else ""
-        name = f"{result.task}_{result.robot}{variant}_seed{result.seed}.mp4"
-        write_video(result.frames, Path(self.video_dir) / name)
+        assert result.frames
+        write_video(result.frames, self.video_path(result))

@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
+from lightning.pytorch.loggers import Logger
+
 from capvector.errors import CapVectorError
 from capvector.eval.comparison import (
     ArmOutcomes,
@@ -29,6 +31,7 @@ from capvector.eval.comparison import (
 from capvector.eval.results import metric_key
 from capvector.io.outputs import atomic_write_bytes, check_output
 from capvector.tool_cli import run_tool
+from capvector.training.loggers import log_figure
 
 SUCCESS = "val/success_rate"
 EPISODES = "val/episodes"
@@ -390,6 +393,7 @@ def report_cli(
     compare_to: list[str] | None = None,
     zero_shot: list[ZeroShotArm] | None = None,
     resamples: int = 10_000,
+    logger: Logger | None = None,
 ) -> None:
     """The downstream comparison of a recipe run as a table and a plot.
 
@@ -406,7 +410,13 @@ def report_cli(
         zero_shot: an arm's evaluate stages (one per seed, run with --variant ...): success per
             scene variant, compared like --compare-to; repeatable
         resamples: bootstrap resamples
+        logger: a Lightning logger to show the plot in as well, given as in a fit config's
+            trainer.logger, e.g. --logger lightning.pytorch.loggers.WandbLogger
+            --logger.project P (TensorBoard, W&B and MLflow show it)
     """
     table = report(run_dir, arm, reference or [], out, threshold, compare_to, zero_shot, resamples)
     print(table)
     print(f"\nplot: {out / 'success_vs_steps.png'}")
+    if logger is not None:
+        log_figure([logger], "report/success_vs_steps", out / "success_vs_steps.png")
+        logger.finalize("success")
