@@ -160,6 +160,9 @@ def test_resources_and_launcher_errors_are_clear(tmp_path: Path) -> None:
         CapVectorError, match=r"unknown `resources` key\(s\) \['gpu'\]; known: gpus"
     ):
         run(write_recipe(tmp_path / "r1.yaml", stages), dry_run=True)
+    stages[0]["resources"] = {"gpus": "two"}
+    with pytest.raises(CapVectorError, match="`resources.gpus` must be a whole number, got 'two'"):
+        run(write_recipe(tmp_path / "r1.yaml", stages), dry_run=True)
     stages = [{"name": "a", "command": "backbone-info"}]
     with pytest.raises(CapVectorError, match="a SLURM job needs a time limit"):
         run(write_recipe(tmp_path / "r2.yaml", stages, launcher="slurm"), dry_run=True)

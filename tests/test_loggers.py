@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import struct
 import subprocess
 import sys
@@ -113,6 +114,9 @@ def test_videos_and_figures_reach_tensorboard_and_wandb(tmp_path: Path) -> None:
     log_figure(loggers, "report/figure", tmp_path / "figure.png", step=3)
     tensorboard.finalize("success")
     wandb.experiment.finish()
+    import wandb as wandb_sdk
+
+    wandb_sdk.teardown()  # its service, which later processes would otherwise share
 
     events = tensorboard_events(Path(tensorboard.log_dir))
     (gif,) = events.Images("val/video/Lift_Panda_seed7")
@@ -168,8 +172,10 @@ def test_a_recipe_fit_keeps_the_configs_loggers_and_they_show_videos_and_the_rep
     ]  # fmt: skip
     recipe = tmp_path / "recipe.yaml"
     recipe.write_text(json.dumps({"run_dir": str(tmp_path / "run"), "stages": stages}))
+    # The stages' W&B runs, not a W&B service this test process may run (WANDB_SERVICE).
+    env = {k: v for k, v in os.environ.items() if not k.startswith("WANDB_")}
     done = subprocess.run([sys.executable, "-m", "capvector.cli", "recipe", "--config", str(recipe)],
-                          capture_output=True, text=True, cwd=REPO)  # fmt: skip
+                          capture_output=True, text=True, cwd=REPO, env=env)  # fmt: skip
     assert done.returncode == 0, done.stderr[-3000:]
 
     # The recipe's own record, where it reads it: metrics, episodes, checkpoint, the mp4.

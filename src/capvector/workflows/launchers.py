@@ -75,6 +75,12 @@ class Resources:
                     f"{where}: unknown `resources` key(s) {unknown}; known: {', '.join(known)}"
                 )
             values.update({k: v for k, v in (entry or {}).items() if v is not None})
+        kinds = {"mem_gb": ((int, float), "a number"), "partition": (str, "a name"),
+                 "slurm": (Mapping, "a mapping of sbatch options")}  # fmt: skip
+        for name, value in values.items():
+            kind, what = kinds.get(name, (int, "a whole number"))
+            if not isinstance(value, kind) or isinstance(value, bool):
+                raise CapVectorError(f"{where}: `resources.{name}` must be {what}, got {value!r}")
         return cls(**values)
 
 
@@ -293,8 +299,9 @@ class StageJob:
 
     submitit calls ``checkpoint`` on its requeue signal: the job is requeued as it is, and the
     stage runs again. A ``fit`` stage on SLURM leaves that signal to the fit: its Lightning saves a
-    checkpoint and requeues the job itself (``SLURMEnvironment`` with auto-requeue), and this
-    process ends without a result, so the recipe keeps waiting for the requeued job."""
+    checkpoint and requeues the job itself (``SLURMEnvironment`` with auto-requeue). A job ended
+    from outside (that signal, or SIGTERM: a requeue, a preemption, a cancel) leaves no result, so
+    the recipe waits for a requeued job and takes a cancelled one as failed."""
 
     def __init__(
         self, directory: Path, command: Callable[[], list[str]], threads: int, launcher: str,
@@ -313,10 +320,14 @@ class StageJob:
         command = self.command()
         cores = usable_cpus()
         env = stage_environment(self.threads, cores)
-        requeued: list[int] = []
+        stopped: list[int] = []  # signals that end this job from outside; the stage gets them too
+
+        def note(signum: int, _frame: object) -> None:
+            stopped.append(signum)
+
+        signal.signal(signal.SIGTERM, note)  # a cancel, a preemption, a requeue
         if self.fit and self.launcher == "slurm":
-            # The fit's own handler saves and requeues; here the signal only marks the requeue.
-            signal.signal(REQUEUE_SIGNAL, lambda signum, _frame: requeued.append(signum))
+            signal.signal(REQUEUE_SIGNAL, note)  # the fit's Lightning saves and requeues
         began = time.time()
         with log.open("ab") as out:
             process = subprocess.Popen(command, env=env, stdout=out, stderr=subprocess.STDOUT)
@@ -332,9 +343,9 @@ class StageJob:
                 write_done(self.directory, command, began, launcher=self.launcher, job=job,
                            threads=self.threads, cores=cores)  # fmt: skip
             return
-        if requeued:  # no result: the requeued job writes it
-            sys.exit(f"the fit requeued this job, which goes on from its checkpoint (exit {code})")
-        raise CapVectorError(f"`{' '.join(command[2:4])} ...` exited with {code}\n{log_tail(log)}")
+        if stopped:  # no result: a requeued job writes its own, a cancelled one has none
+            sys.exit(f"stopped by signal {stopped[0]} (the stage exited with {code})")
+        raise CapVectorError(f"capvector {command[3]} exited with {code}\n{log_tail(log)}")
 
     def checkpoint(self) -> Any:
         """submitit's hook on the requeue signal: requeue the stage as it is."""
