@@ -13,7 +13,7 @@ export MUJOCO_GL ?= egl
 $(VENV)/.installed: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[dev,libero]"
+	$(PY) -m pip install --quiet -e ".[dev,libero,tensorboard,wandb]"
 	$(PY) -m pip install --quiet --no-build-isolation "deepspeed==0.19.8"
 	touch $@
 
@@ -25,7 +25,10 @@ demo: $(VENV)/.installed
 	$(CAPVECTOR) recipe --config configs/recipes/demo.yaml
 	@cat docs/results/powered/headline.md
 
+# SLURM (Debian's slurm-wlm and munge) for tests/test_slurm.py, which starts a one-node cluster:
+# installed here when missing, where apt-get runs as root; elsewhere that test says why it skips.
 test: $(VENV)/.installed
+	tools/slurm/install.sh
 	$(PY) -m pytest -q
 
 lint: $(VENV)/.installed

@@ -43,7 +43,7 @@ TOOLS: dict[str, tuple[str, str]] = {  # name: ("module:function", help), import
     "extract": ("capvector.vectors.cli:extract_main", "capability vector = aux - sft"),
     "merge": ("capvector.vectors.cli:merge_main", "base + sum of scaled vectors"),
     "compose": ("capvector.vectors.cli:compose_main", "combine vectors (sum, TIES)"),
-    "inspect": ("capvector.vectors.cli:inspect_main", "norms, cosines and plots of vectors"),
+    "inspect": ("capvector.workflows.inspection:main", "norms, cosines and plots of vectors"),
     "report": ("capvector.workflows.report:main", "success vs steps of a recipe's arms"),
     "serve": ("capvector.serve.cli:main", "answer observations over openpi's websocket protocol"),
 }

@@ -46,6 +46,7 @@ from capvector.io.names import (
 from capvector.io.weights import dtype_name
 from capvector.objectives.base import Objective
 from capvector.training.distributed import full_state_dict, is_rank_zero, parallelize
+from capvector.training.loggers import log_video
 from capvector.training.lora import (
     LoraSettings,
     cast_frozen_parameters,
@@ -284,11 +285,17 @@ class VLAModule(L.LightningModule):
 
     def _rollout(self, items: list[EpisodeItem]) -> None:
         counted = [item for item in items if item.counted]  # the rest only evens out the ranks
-        results = self._evaluator().run(
+        evaluator = self._evaluator()
+        results = evaluator.run(
             VLAPolicy(self.backbone, self.data_spec),
             [item.spec for item in counted],
             [item.index for item in counted],
         )
+        for result in results:  # the mp4s are written; the loggers people watch show them too
+            if result.frames:
+                path = evaluator.video_path(result)
+                log_video(self.loggers, f"val/video/{path.stem}", result.frames, path,
+                          self.global_step)  # fmt: skip
         for item, result in zip(counted, results, strict=True):
             self._episode_rows.append(
                 [self.global_step, _task_key(item.spec), item.spec.seed, int(result.success)]

@@ -105,7 +105,9 @@ class Tool:
     def parse(self, argv: Sequence[str] | None) -> dict[str, Any]:
         """The options of ``argv`` (default ``sys.argv[1:]``), by parameter name."""
         try:
-            values = self.parser.parse_args(sys.argv[1:] if argv is None else list(argv)).as_dict()
+            parsed = self.parser.parse_args(sys.argv[1:] if argv is None else list(argv))
+            # A class-typed option (report's --logger LoggerClass --logger.save_dir D) is built.
+            values = self.parser.instantiate(parsed).as_dict()
             for name, record in self.records.items():
                 if values[name] is not None:
                     values[name] = [_record(record, name, value) for value in values[name]]

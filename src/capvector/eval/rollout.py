@@ -46,6 +46,7 @@ from capvector.eval.episodes import (
 )
 from capvector.eval.libero import LiberoEpisode, build_libero_env
 from capvector.eval.workers import close_pools, worker_pool
+from capvector.io.cpus import usable_cpus
 from capvector.io.names import STAGE_CORES
 from capvector.sim.envs import SimEnv, SimulationFault
 from capvector.sim.policy import EpisodeResult, Observation, Policy, as_chunk
@@ -322,10 +323,9 @@ def act(policy: Policy, observations: Sequence[Observation]) -> list[np.ndarray]
 
 def usable_cores() -> int:
     """The cores this process may use: ``CAPVECTOR_CORES`` (a ``capvector recipe`` stage's share
-    of the machine), else ``OMP_NUM_THREADS``, else all."""
-    return int(
-        os.environ.get(STAGE_CORES) or os.environ.get("OMP_NUM_THREADS") or os.cpu_count() or 1
-    )
+    of the machine), else ``OMP_NUM_THREADS``, else the CPUs this process may use (affinity and
+    cgroup quota: :func:`capvector.io.cpus.usable_cpus`)."""
+    return int(os.environ.get(STAGE_CORES) or os.environ.get("OMP_NUM_THREADS") or usable_cpus())
 
 
 def default_workers(batch_size: int) -> int:
@@ -444,11 +444,15 @@ class RolloutEvaluator:
             commands = next_commands
         return results  # type: ignore[return-value]
 
+    def video_path(self, result: EpisodeResult) -> Path:
+        """Where the mp4 of an episode recorded as video is written."""
+        assert self.video_dir is not None
+        variant = f"_{result.variant}" if result.variant else ""
+        task = result.task.replace("/", "_")  # LIBERO's libero_spatial/3
+        return Path(self.video_dir) / f"{task}_{result.robot}{variant}_seed{result.seed}.mp4"
+
     def _write_video(self, result: EpisodeResult) -> None:
         from capvector.eval.video import write_video
 
-        assert self.video_dir is not None and result.frames
-        variant = f"_{result.variant}" if result.variant else ""
-        task = result.task.replace("/", "_")  # LIBERO's libero_spatial/3
-        name = f"{task}_{result.robot}{variant}_seed{result.seed}.mp4"
-        write_video(result.frames, Path(self.video_dir) / name)
+        assert result.frames
+        write_video(result.frames, self.video_path(result))

@@ -1,4 +1,5 @@
-"""A CSV logger whose history survives a resumed fit.
+"""A CSV logger whose history survives a resumed fit, and videos and figures for the loggers people
+watch (TensorBoard, Weights & Biases, MLflow), whichever are attached.
 
 Lightning's ``CSVLogger`` deletes ``metrics.csv`` when its version folder already holds files, so a
 fit resumed from a checkpoint into the same folder (what ``capvector recipe`` does after an
@@ -11,13 +12,18 @@ take the last row of a step (``capvector.workflows.report`` does).
 from __future__ import annotations
 
 import csv
+import io
 import os
+from collections.abc import Iterable, Sequence
+from pathlib import Path
 from typing import Any
 
+import numpy as np
 from lightning.fabric.utilities.cloud_io import get_filesystem
 from lightning.pytorch.loggers import CSVLogger as LightningCSVLogger
 from lightning.pytorch.loggers.csv_logs import ExperimentWriter
-from lightning.pytorch.loggers.logger import rank_zero_experiment
+from lightning.pytorch.loggers.logger import Logger, rank_zero_experiment
+from lightning.pytorch.utilities.rank_zero import rank_zero_only
 
 
 class AppendingExperimentWriter(ExperimentWriter):
@@ -63,4 +69,70 @@ class CSVLogger(LightningCSVLogger):
         return self._experiment
 
 
-__all__ = ["CSVLogger"]
+@rank_zero_only
+def log_video(
+    loggers: Iterable[Logger],
+    key: str,
+    frames: Sequence[np.ndarray],
+    path: str | os.PathLike[str],
+    step: int | None = None,
+    fps: int = 20,
+) -> None:
+    """A rollout video to each logger that shows videos: TensorBoard gets ``frames`` ((H, W, 3)
+    uint8) as an animated GIF, W&B and MLflow the mp4 already written at ``path``. CSV loggers
+    keep the mp4 on disk, beside their ``metrics.csv``."""
+    from lightning.pytorch.loggers import MLFlowLogger, TensorBoardLogger, WandbLogger
+
+    for logger in loggers:
+        if isinstance(logger, TensorBoardLogger):
+            _tensorboard_gif(logger, key, frames, step, fps)
+        elif isinstance(logger, WandbLogger):
+            logger.log_video(key, [str(path)], step=step)
+        elif isinstance(logger, MLFlowLogger):
+            logger.experiment.log_artifact(logger.run_id, str(path), _artifact_folder(key, step))
+
+
+@rank_zero_only
+def log_figure(
+    loggers: Iterable[Logger], key: str, path: str | os.PathLike[str], step: int | None = None
+) -> None:
+    """A figure written as a PNG at ``path`` to each logger that shows images (TensorBoard, W&B;
+    MLflow as an artifact)."""
+    from lightning.pytorch.loggers import MLFlowLogger, TensorBoardLogger, WandbLogger
+
+    for logger in loggers:
+        if isinstance(logger, TensorBoardLogger):
+            import imageio.v2 as imageio
+
+            image = imageio.imread(path)[..., :3]  # RGBA from matplotlib: TensorBoard takes RGB
+            logger.experiment.add_image(key, image, global_step=step, dataformats="HWC")
+        elif isinstance(logger, WandbLogger):
+            logger.log_image(key, [str(path)], step=step)
+        elif isinstance(logger, MLFlowLogger):
+            logger.experiment.log_artifact(logger.run_id, str(path), _artifact_folder(key, step))
+
+
+def _tensorboard_gif(
+    logger: Logger, key: str, frames: Sequence[np.ndarray], step: int | None, fps: int
+) -> None:
+    """What ``SummaryWriter.add_video`` writes (an image summary holding an animated GIF, which
+    TensorBoard's image tab plays), encoded by imageio: ``add_video`` needs moviepy 1.x."""
+    import imageio.v2 as imageio
+    from torch.utils.tensorboard.summary import Summary
+
+    video = np.stack([np.asarray(f, dtype=np.uint8) for f in frames])
+    buffer = io.BytesIO()
+    imageio.mimsave(buffer, list(video), format="GIF", duration=1000 / fps, loop=0)
+    image = Summary.Image(
+        height=video.shape[1], width=video.shape[2], colorspace=3,
+        encoded_image_string=buffer.getvalue(),
+    )  # fmt: skip
+    summary = Summary(value=[Summary.Value(tag=key, image=image)])
+    logger.experiment._get_file_writer().add_summary(summary, step)  # as add_video does
+
+
+def _artifact_folder(key: str, step: int | None) -> str:
+    return str(Path(key.replace("/", "_")) / ("" if step is None else f"step{step:06d}"))
+
+
+__all__ = ["CSVLogger", "log_figure", "log_video"]

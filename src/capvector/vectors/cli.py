@@ -1,7 +1,8 @@
-"""Entry points of ``capvector extract|merge|compose|inspect`` (wired in ``capvector.cli``).
+"""Entry points of ``capvector extract|merge|compose`` (wired in ``capvector.cli``; ``inspect``'s,
+which may send its plot to a Lightning logger, is ``capvector.workflows.inspection``).
 
 Each ``*_main(argv)`` takes its options from the signature of the function that does the work
-(``capvector.tool_cli``: ``extract``, ``compose`` and ``inspect_vector`` themselves, ``merge_cli``
+(``capvector.tool_cli``: ``extract`` and ``compose`` themselves, ``merge_cli``
 for merge's ``--vector DIR:λ``), runs it with a progress bar and prints a short summary. Bad input
 raises ``CapVectorError``, which ``capvector.cli.main`` prints as one line (exit code 2), as for
 every command.
@@ -142,26 +143,4 @@ def compose_main(argv: list[str] | None = None) -> int:
         f"wrote {options['out']}: {how} of {len(options['vectors'])} vectors, "
         f"{meta['num_tensors']} tensors, ‖c‖ = {meta['norm']:.4g}"
     )
-    return 0
-
-
-def inspect_main(argv: list[str] | None = None) -> int:
-    """``capvector inspect DIR``: its options are ``inspect_vector``'s parameters."""
-    from capvector.vectors.inspect import inspect_vector
-
-    tool = Tool(inspect_vector, "inspect", skip=["progress"])
-    options = tool.parse(argv)
-    report = tool.call(options, progress=True)
-    print(report.table())
-    print(
-        f"\n{report.num_tensors} tensors ({report.lowrank_tensors} low-rank), ‖c‖ = {report.norm:.4g}"
-    )
-    if against := options["against"]:
-        cosine = "undefined (a zero vector)" if report.cosine is None else f"{report.cosine:.4f}"
-        print(
-            f"cosine with {against}: {cosine} over {report.shared_tensors} shared "
-            f"tensors ({len(report.only_here)} only here, {len(report.only_against)} only there)"
-        )
-    if options["plot"]:
-        print(f"plot: {options['plot']}")
     return 0

@@ -5,9 +5,12 @@ sweep-scale``)."""
 from __future__ import annotations
 
 import os
+import signal
 import sys
 
 from capvector.errors import CapVectorError, config_error
+
+CSV_LOGGER = "capvector.training.loggers.CSVLogger"
 
 
 def run_lightning_cli(args: list[str] | None, run: bool = True) -> object:
@@ -19,6 +22,7 @@ def run_lightning_cli(args: list[str] | None, run: bool = True) -> object:
 
     from jsonargparse import Namespace
     from lightning.pytorch.cli import LightningCLI, SaveConfigCallback
+    from lightning.pytorch.utilities.exceptions import SIGTERMException
     from omegaconf.errors import OmegaConfBaseException
 
     from capvector.data.datamodule import RobotDataModule
@@ -45,11 +49,13 @@ def run_lightning_cli(args: list[str] | None, run: bool = True) -> object:
             trainer = config.trainer
             if trainer.logger in (None, True):
                 trainer.logger = Namespace(
-                    class_path="capvector.training.loggers.CSVLogger",
+                    class_path=CSV_LOGGER,
                     init_args=Namespace(
                         save_dir=trainer.default_root_dir or os.getcwd(), name="lightning_logs"
                     ),
                 )
+            elif isinstance(trainer.logger, list):
+                trainer.logger = csv_logger_first(trainer.logger)
             if config.data.get("generate"):
                 _check_before_recording(config)
 
@@ -101,6 +107,12 @@ def run_lightning_cli(args: list[str] | None, run: bool = True) -> object:
         raise CapVectorError(f"{err} (see capvector {subcommand} --help)") from err
     except OmegaConfBaseException as err:  # an interpolation in a config file
         raise config_error(f"a {subcommand} config", err) from err
+    except SIGTERMException as stop:
+        # Lightning ends a SIGTERMed run (a `kill`, a scheduler's preemption or time limit) by a
+        # bare SystemExit, i.e. exit status 0, as if it had finished: a recipe stage would count
+        # as done. It ends here as a process killed by SIGTERM does.
+        print(f"capvector {subcommand}: stopped by SIGTERM before its end", file=sys.stderr)
+        raise SystemExit(128 + signal.SIGTERM) from stop
 
 
 def _check_before_recording(config: object) -> None:
@@ -121,3 +133,16 @@ def _check_before_recording(config: object) -> None:
             paths.append((f"the logger's save_dir ({logger.class_path})", save_dir))
     for what, path in paths:
         check_writable(path, f"into {what}", inside=True)
+
+
+def csv_logger_first(loggers: list) -> list:
+    """The fit's loggers with capvector's CSV logger first, and only the last one given of it.
+
+    Lightning puts checkpoints, and this project the export, rollout videos and ``episodes.csv``,
+    into the first logger's folder, so they land beside ``metrics.csv`` whatever the order of the
+    loggers. A CSV logger given later (``--trainer.logger+=``, as ``capvector recipe`` adds its
+    own to a config's loggers) replaces a config's: a fit keeps one ``metrics.csv``."""
+    ours = [logger for logger in loggers if logger and logger.class_path == CSV_LOGGER]
+    if not ours:
+        return loggers
+    return [ours[-1], *(logger for logger in loggers if logger not in ours)]

@@ -19,6 +19,11 @@ A stage waits for the stage before it, or for the stages in its ``after:`` list,
 the stages whose outputs it names. With ``jobs: N`` (or ``--jobs N``) up to N stages whose waits
 are over run at once, e.g. the seeds of a downstream comparison.
 
+``launcher: local`` (the default) runs each stage as a child process, each of ``jobs`` stages with
+its own GPUs; ``launcher: slurm`` submits each stage as a SLURM job through submitit, with the
+recipe's and the stage's ``resources:`` (``capvector.workflows.launchers``). A fit stage's loggers
+are its config's, and the recipe's CSV logger beside them (``metrics.csv``, read by ``report``).
+
 Every stage's process gets ``threads: T`` (or ``--threads T``, default 1) torch threads, whatever
 ``jobs``, the machine's core count or its load: a float reduction split over another number of
 threads rounds differently, so weights and rollout outcomes would follow them. A seeded recipe
@@ -35,24 +40,28 @@ name stands for all of its seeds), e.g. one report of a large recipe.
 
 from __future__ import annotations
 
+import functools
 import json
-import os
 import re
-import subprocess
 import sys
 import time
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from capvector.errors import CapVectorError, config_error, did_you_mean
 from capvector.eval.results import SuccessRow, format_success_table
-from capvector.io.names import STAGE_CORES
-from capvector.io.outputs import atomic_write_bytes
 from capvector.tool_cli import run_tool
+from capvector.workflows.launchers import (
+    DONE,
+    LAUNCHERS,
+    REQUEUE_SIGNAL,
+    Resources,
+    Started,
+    make_launcher,
+)
 
-DONE = ".done"
 OUT_REFERENCE = re.compile(r"\$\{out\.([A-Za-z0-9_]+)\.([A-Za-z0-9_]*)")
 """``${out.<stage>.<output>`` (groups: the stage, the output)."""
 FIT_VERSION = "version_0"
@@ -69,6 +78,7 @@ class Stage:
     command: str
     args: list[str]
     directory: Path
+    resources: Resources = field(default_factory=Resources)
 
     @property
     def done_marker(self) -> Path:
@@ -178,17 +188,23 @@ def resolve_stage(raw: Any, index: int, run_dir: Path, path: str | Path) -> Stag
     if "command" not in entry:
         raise CapVectorError(f"stage {entry.get('name')!r} in {path} has no `command`")
     args = [str(a) for a in entry.get("args", [])]
-    return Stage(entry["name"], entry["command"], args, run_dir / entry["name"])
+    resources = Resources.merged(
+        f"stage {entry['name']!r} in {path}", raw.get("resources"), entry.get("resources")
+    )
+    return Stage(entry["name"], entry["command"], args, run_dir / entry["name"], resources)
 
 
-def command_line(stage: Stage) -> list[str]:
-    """The ``capvector`` command of a stage; fit stages get their folder, logger and resume point."""
+def command_line(stage: Stage, launcher: str = "local") -> list[str]:
+    """The ``capvector`` command of a stage; fit stages get their folder, their CSV logger (beside
+    the config's loggers) and the checkpoint to resume from, if any; on SLURM, Lightning's
+    auto-requeue on the signal submitit asks SLURM for."""
     args = [stage.command, *stage.args]
     if stage.command == "fit":
-        outputs = stage_outputs(stage.directory.parent, stage.name)
         args += [
             f"--trainer.default_root_dir={stage.directory}",
-            "--trainer.logger=capvector.training.loggers.CSVLogger",
+            # Appended to the config's loggers (`capvector fit` puts this one first: Lightning
+            # writes checkpoints, the export and rollout videos into the first logger's folder).
+            "--trainer.logger+=capvector.training.loggers.CSVLogger",
             f"--trainer.logger.init_args.save_dir={stage.directory}",
             "--trainer.logger.init_args.name=fit",
             f"--trainer.logger.init_args.version={FIT_VERSION}",
@@ -196,9 +212,23 @@ def command_line(stage: Stage) -> list[str]:
             "--trainer.callbacks.save_last=true",
             "--trainer.callbacks.every_n_train_steps=50",
         ]
-        if Path(outputs["ckpt"]).is_file():
-            args.append(f"--ckpt_path={outputs['ckpt']}")  # resume the interrupted stage
+        if launcher == "slurm":
+            args += [
+                "--trainer.plugins+=lightning.pytorch.plugins.environments.SLURMEnvironment",
+                f"--trainer.plugins.init_args.requeue_signal={REQUEUE_SIGNAL.name}",
+            ]
+        resume = resume_point(stage)
+        if resume is not None:
+            args.append(f"--ckpt_path={resume}")  # resume the interrupted stage
     return [sys.executable, "-m", "capvector.cli", *args]
+
+
+def resume_point(stage: Stage) -> Path | None:
+    """The newest checkpoint of an interrupted fit stage: its ``last.ckpt``, or one Lightning's
+    SLURM auto-requeue saved into the stage folder (``hpc_ckpt_<n>.ckpt``)."""
+    last = Path(stage_outputs(stage.directory.parent, stage.name)["ckpt"])
+    found = [p for p in [last, *stage.directory.glob("hpc_ckpt_*.ckpt")] if p.is_file()]
+    return max(found, key=lambda p: p.stat().st_mtime) if found else None
 
 
 def dependencies(raw: Any, index: int) -> set[str]:
@@ -283,15 +313,6 @@ def required_stages(waits_for: dict[str, set[str]], targets: list[str]) -> set[s
     return required
 
 
-def stage_environment(threads: int, jobs: int) -> dict[str, str]:
-    """A stage process's environment: ``threads`` torch (OpenMP, MKL) threads, fixed so the
-    numbers do not depend on how many stages run at once; its share of the cores for simulator
-    workers, whose number does not change outcomes (``capvector.eval.rollout.default_workers``)."""
-    cores = max(1, (os.cpu_count() or 1) // jobs)
-    fixed = {"OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
-    return {**os.environ, **fixed, STAGE_CORES: str(cores)}
-
-
 def run(
     recipe: str | Path,
     overrides: list[str] | None = None,
@@ -299,99 +320,103 @@ def run(
     jobs: int | None = None,
     only: list[str] | None = None,
     threads: int | None = None,
+    launcher: str | None = None,
 ) -> list[dict]:
     """Run the stages, up to ``jobs`` at a time once their dependencies have finished, each with
-    ``threads`` torch threads; with ``only``, just those stages and what they wait for.
+    ``threads`` torch threads, through ``launcher`` (default: the recipe's, ``local``); with
+    ``only``, just those stages and what they wait for.
 
-    With ``jobs > 1`` each stage's output goes to ``<stage>/log.txt``.
+    Locally with ``jobs > 1``, and always through submitit, each stage's output goes to
+    ``<stage>/log.txt``.
     """
     run_dir, raw = _load_raw(recipe, overrides)
     threads = int(raw.get("threads", DEFAULT_THREADS) if threads is None else threads)
     if threads < 1:
         raise CapVectorError(f"threads (torch threads per stage) must be at least 1, got {threads}")
-    jobs = int(jobs or raw.get("jobs", 1))
-    if jobs < 1:
+    launcher = str(launcher or raw.get("launcher", "local"))
+    if launcher not in LAUNCHERS:
+        raise CapVectorError(
+            f"launcher must be one of {', '.join(LAUNCHERS)}, got {launcher!r}"
+            f"{did_you_mean(launcher, LAUNCHERS)}"
+        )
+    jobs = jobs or raw.get("jobs")  # submitit: no limit unless given; SLURM queues the jobs
+    if jobs is not None and int(jobs) < 1:
         raise CapVectorError(f"jobs must be at least 1, got {jobs}")
     names = [str(s.name) for s in raw.stages]
     waits_for = {names[i]: dependencies(raw, i) for i in range(len(names))}
     check_order(waits_for, recipe)
+    runner = make_launcher(launcher, None if jobs is None else int(jobs), threads)
     for i in range(len(names)):  # every interpolation resolves: a typo fails now, not hours in
-        resolve_stage(raw, i, run_dir, recipe)
+        runner.check(names[i], resolve_stage(raw, i, run_dir, recipe).resources)
     run_dir.mkdir(parents=True, exist_ok=True)
     if only:
         required = required_stages(waits_for, only)
         names = [n for n in names if n in required]
     stages: dict[str, Stage] = {}
     finished: set[str] = set()
-    running: dict[str, tuple[subprocess.Popen, float, Any]] = {}
+    running: dict[str, Started] = {}
     failed: list[str] = []
-    env = stage_environment(threads, jobs)
     index = {str(s.name): i for i, s in enumerate(raw.stages)}
+    quiet = launcher == "local" and (jobs or 1) == 1  # the stage's output is this one's
 
     def status(name: str) -> str:
         return f"[recipe {names.index(name) + 1}/{len(names)}] {name} ({stages[name].command})"
 
     def start(name: str) -> None:
         stage = stages[name]
-        cmd = command_line(stage)
         left = [n for n in names if n not in finished and n not in running and n != name
                 and not (run_dir / n / DONE).is_file()]  # fmt: skip
         more = f": {', '.join(left[:3])}{', ...' if len(left) > 3 else ''}" if left else ""
         print(f"{status(name)} started; {len(left)} more to run{more}", flush=True)
         if dry_run:
-            print("  " + " ".join(cmd[2:]))
+            print("  " + " ".join(command_line(stage, launcher)[2:]))
             finished.add(name)
             return
-        stage.directory.mkdir(parents=True, exist_ok=True)
-        if jobs == 1:
-            running[name] = (subprocess.Popen(cmd, env=env), time.time(), None)
-            return
-        log = open(stage.directory / "log.txt", "ab")  # noqa: SIM115 (closed when it ends)
-        process = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
-        print(f"  log: {stage.directory / 'log.txt'}", flush=True)
-        running[name] = (process, time.time(), log)
+        command = functools.partial(command_line, stage, launcher)
+        running[name] = runner.start(name, stage.directory, command, stage.resources,
+                                     stage.command == "fit")  # fmt: skip
+        if not quiet:
+            print(f"  {running[name].where()}", flush=True)
 
-    def reap(name: str, returncode: int) -> None:
-        process, began, log = running.pop(name)
-        if log is not None:
-            log.close()
-        stage = stages[name]
-        if returncode != 0:
+    def reap(name: str, code: int) -> None:
+        started = running.pop(name)
+        if code != 0:
             failed.append(name)
-            print(f"{status(name)} failed (exit {returncode})", flush=True)
-            if log is not None:
-                tail = (stage.directory / "log.txt").read_bytes()[-3000:].decode(errors="replace")
-                print(tail, flush=True)
+            print(f"{status(name)} failed: {started.failure()}", flush=True)
             return
-        marker = {"command": process.args[2:], "threads": threads,
-                  "seconds": round(time.time() - began, 1), "finished": time.ctime()}  # fmt: skip
-        atomic_write_bytes(stage.done_marker, json.dumps(marker, indent=2).encode())
         finished.add(name)
-        if jobs > 1:
-            print(f"{status(name)} finished in {marker['seconds']:.0f} s", flush=True)
+        if not quiet:
+            seconds = json.loads(stages[name].done_marker.read_text())["seconds"]
+            print(f"{status(name)} finished in {seconds:.0f} s", flush=True)
 
-    while len(finished) < len(names) and not failed:
-        for name in names:
-            if name in finished or name in running or len(running) >= jobs:
+    try:
+        while len(finished) < len(names) and not failed:
+            for name in names:
+                if name in finished or name in running or not waits_for[name] <= finished:
+                    continue
+                # Resolved only now, so the arguments can use what earlier stages produced.
+                stages[name] = resolve_stage(raw, index[name], run_dir, recipe)
+                if stages[name].done_marker.is_file():
+                    print(f"{status(name)}: done earlier, skipped", flush=True)
+                    finished.add(name)
+                elif runner.has_room(stages[name].resources):
+                    start(name)
+            if not running:
                 continue
-            if not waits_for[name] <= finished:
-                continue
-            # Resolved only now, so the arguments can use what earlier stages produced.
-            stages[name] = resolve_stage(raw, index[name], run_dir, recipe)
-            if stages[name].done_marker.is_file():
-                print(f"{status(name)}: done earlier, skipped", flush=True)
-                finished.add(name)
-            else:
-                start(name)
-        if not running:
-            continue
-        time.sleep(0.2)
-        for name in list(running):
-            returncode = running[name][0].poll()
-            if returncode is not None:
-                reap(name, returncode)
+            time.sleep(runner.poll_seconds)
+            for name in list(running):
+                code = running[name].poll()
+                if code is not None:
+                    reap(name, code)
+    except KeyboardInterrupt:
+        if launcher != "local" and running:  # jobs outlive the recipe: say which
+            jobs_left = ", ".join(
+                f"{name} ({started.where()})" for name, started in running.items()
+            )
+            print(f"capvector recipe: stopped waiting; still queued or running: {jobs_left}")
+        raise
     for name in list(running):  # a stage failed: let the others finish their work, then stop
-        reap(name, running[name][0].wait())
+        reap(name, running[name].wait())
     if failed:
         raise CapVectorError(
             f"stage(s) {failed} failed; fix and rerun the same command: finished stages are "
@@ -425,6 +450,7 @@ def recipe_cli(
     jobs: int | None = None,
     threads: int | None = None,
     only: list[str] | None = None,
+    launcher: str | None = None,
 ) -> None:
     """Run the whole recipe, or the stages some need, as resumable stages.
 
@@ -437,7 +463,10 @@ def recipe_cli(
         threads: torch threads of every stage (default: the recipe's `threads`, 1); results
             depend on it, not on --jobs
         only: run only these stages and the stages they wait for
+        launcher: local (child processes), slurm (a SLURM job per stage, through submitit) or
+            submitit-local (the slurm path, jobs as local processes); default: the recipe's
+            `launcher`, local
     """
-    rows = run(config, list(overrides), dry_run, jobs, only, threads)
+    rows = run(config, list(overrides), dry_run, jobs, only, threads, launcher)
     if rows:
         print("\nResults\n" + format_success_table(rows))

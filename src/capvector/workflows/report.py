@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
+from lightning.pytorch.loggers import Logger
 
 from capvector.errors import CapVectorError
 from capvector.eval.comparison import (
@@ -33,6 +34,7 @@ from capvector.eval.comparison import (
 from capvector.eval.results import metric_key
 from capvector.io.outputs import atomic_write_bytes, check_output
 from capvector.tool_cli import run_tool
+from capvector.training.loggers import log_figure
 
 SUCCESS = "val/success_rate"
 EPISODES = "val/episodes"
@@ -485,6 +487,7 @@ def report_cli(
     compare_to: list[str] | None = None,
     zero_shot: list[ZeroShotArm] | None = None,
     resamples: int = 10_000,
+    logger: Logger | None = None,
 ) -> None:
     """The downstream comparison of a recipe run as a table and a plot.
 
@@ -503,6 +506,9 @@ def report_cli(
         zero_shot: an arm's evaluate stages (one per seed, run with --variant ...): success per
             scene variant, compared like --compare-to; repeatable
         resamples: bootstrap resamples
+        logger: a Lightning logger to show the plot in as well, given as in a fit config's
+            trainer.logger, e.g. --logger lightning.pytorch.loggers.WandbLogger
+            --logger.project P (TensorBoard, W&B and MLflow show it)
     """
     if from_results is not None:
         run_options = {"--run-dir": run_dir, "--arm": arm, "--reference": reference,
@@ -523,3 +529,6 @@ def report_cli(
         )
     print(table)
     print(f"\nplot: {out / 'success_vs_steps.png'}")
+    if logger is not None:
+        log_figure([logger], "report/success_vs_steps", out / "success_vs_steps.png")
+        logger.finalize("success")

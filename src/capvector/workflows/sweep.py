@@ -19,6 +19,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from lightning.pytorch.loggers import Logger
 from tqdm import tqdm
 
 from capvector.data.episodes import EpisodeDataset, EvalTask
@@ -31,6 +32,7 @@ from capvector.io.loading import read_json
 from capvector.io.names import DATA_SPEC_FILE
 from capvector.io.outputs import atomic_write_bytes, atomic_write_file, check_output
 from capvector.tool_cli import run_tool
+from capvector.training.loggers import log_figure
 
 
 def fit_settings(
@@ -313,6 +315,7 @@ def sweep_cli(
     orth_weight: float = 1.0,
     allow_large_scale: bool = False,
     fit_config: list[str] | None = None,
+    logger: Logger | None = None,
 ) -> None:
     """Choose the merge scale λ by the validation loop: rollouts on validation seeds and the
     held-out L1.
@@ -329,6 +332,8 @@ def sweep_cli(
         orth_weight: weight of the orthogonal regularization while fine-tuning
         allow_large_scale: accept |λ| > 100 in --scales
         fit_config: `capvector fit` configs: their trainer, data and model settings
+        logger: a Lightning logger to show the plot in as well, given as in a fit config's
+            trainer.logger (TensorBoard, W&B and MLflow show it)
     """
     try:
         values = [float(s) for s in scales.split(",")]
@@ -337,5 +342,8 @@ def sweep_cli(
     rows = sweep(base, vector, values, out, task, episodes, robot, demos, finetune_steps,
                  orth_weight, allow_large_scale, fit_config or [])  # fmt: skip
     plot(rows, Path(out) / "sweep.png")
+    if logger is not None:
+        log_figure([logger], "sweep/scale", Path(out) / "sweep.png")
+        logger.finalize("success")
     print(format_table(rows))
     print(f"\nbest λ = {best_scale(rows):g}  (plot: {Path(out) / 'sweep.png'})")

@@ -1,0 +1,354 @@
+"""Where ``capvector recipe`` runs its stages: child processes of the recipe, or SLURM jobs.
+
+``local``: each stage is a child process; with ``jobs: N`` up to N at once, each with its own GPUs
+(``CUDA_VISIBLE_DEVICES``, from those this process sees) and its share of the CPUs this process may
+use (``capvector.io.cpus``: affinity and cgroup quota, not the machine's core count).
+
+``slurm``: each stage is a SLURM job, submitted by submitit (https://github.com/facebookincubator/
+submitit) with the stage's ``resources``; the recipe waits on the jobs as it waits on processes.
+The job itself runs the stage's command, appends its output to ``<stage>/log.txt`` and writes the
+``.done`` marker, so a stage that finished is skipped on rerun even when the recipe stopped
+waiting. Preemption and time limits: SLURM signals the job (submitit asks for ``USR2`` 90 s
+ahead); a ``fit`` stage's Lightning (its ``SLURMEnvironment`` with auto-requeue, on that signal)
+saves a checkpoint and requeues the job, which resumes from it; any other stage is requeued by
+submitit and runs again.
+
+``submitit-local``: the ``slurm`` path with each job a local process (submitit's
+``LocalExecutor``), to try a cluster recipe, resources, pickling and all, without a cluster.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any, Protocol
+
+from capvector.errors import CapVectorError
+from capvector.io.cpus import usable_cpus
+from capvector.io.names import STAGE_CORES
+from capvector.io.outputs import atomic_write_bytes
+
+LAUNCHERS = ("local", "slurm", "submitit-local")
+DONE = ".done"
+LOG = "log.txt"
+REQUEUE_SIGNAL = signal.SIGUSR2
+"""What submitit has SLURM send a job before its time limit (``--signal=USR2@90``) and, where the
+cluster sends it on preemption, before that."""
+
+
+@dataclass(frozen=True)
+class Resources:
+    """What a stage asks for: the recipe's ``resources:``, with a stage's own ``resources:`` over
+    it. Locally only ``gpus`` and ``cpus`` count."""
+
+    gpus: int | None = None
+    """GPUs of the stage (local default: an equal share of the GPUs among ``jobs``; SLURM: 0)."""
+    cpus: int | None = None
+    """CPUs (SLURM ``--cpus-per-task``; locally the stage's simulator workers; default: a share
+    of the CPUs this process may use, or SLURM's default)."""
+    mem_gb: float | None = None
+    time_min: int | None = None
+    """The job's time limit in minutes; SLURM jobs need one."""
+    partition: str | None = None
+    tasks: int | None = None
+    """Processes the job starts (default: a ``fit`` stage one per GPU, as Lightning runs under
+    SLURM, whose ``trainer.devices`` must match; other stages 1)."""
+    slurm: Mapping[str, Any] = field(default_factory=dict)
+    """Further sbatch options, e.g. ``{account: a, qos: high, constraint: a100}``."""
+
+    @classmethod
+    def merged(cls, where: str, *entries: Mapping[str, Any] | None) -> Resources:
+        """Resources from ``entries`` (later ones over earlier ones); unknown keys fail."""
+        known = [f.name for f in fields(cls)]
+        values: dict[str, Any] = {}
+        for entry in entries:
+            unknown = sorted(set(entry or {}) - set(known))
+            if unknown:
+                raise CapVectorError(
+                    f"{where}: unknown `resources` key(s) {unknown}; known: {', '.join(known)}"
+                )
+            values.update({k: v for k, v in (entry or {}).items() if v is not None})
+        kinds = {"mem_gb": ((int, float), "a number"), "partition": (str, "a name"),
+                 "slurm": (Mapping, "a mapping of sbatch options")}  # fmt: skip
+        for name, value in values.items():
+            kind, what = kinds.get(name, (int, "a whole number"))
+            if not isinstance(value, kind) or isinstance(value, bool):
+                raise CapVectorError(f"{where}: `resources.{name}` must be {what}, got {value!r}")
+        return cls(**values)
+
+
+class Started(Protocol):
+    """A stage that was started."""
+
+    def poll(self) -> int | None:
+        """None while it runs, then 0 (done, its marker written) or a failure code."""
+
+    def wait(self) -> int:
+        """Wait for it to end; ``poll``'s code."""
+
+    def where(self) -> str:
+        """Where to follow it: its log (and job)."""
+
+    def failure(self) -> str:
+        """What went wrong, for the recipe to print."""
+
+
+def stage_environment(threads: int, cores: int, gpus: list[str] | None = None) -> dict[str, str]:
+    """A stage process's environment: ``threads`` torch (OpenMP, MKL) threads, fixed so results do
+    not depend on how many stages run at once; ``cores`` for simulator workers, whose number does
+    not change outcomes (``capvector.eval.rollout.default_workers``); ``gpus`` (ids as this process
+    sees them) as its ``CUDA_VISIBLE_DEVICES`` when given."""
+    fixed = {"OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
+    env = {**os.environ, **fixed, STAGE_CORES: str(cores)}
+    if gpus is not None:
+        env["CUDA_VISIBLE_DEVICES"] = ",".join(gpus)
+    return env
+
+
+def write_done(directory: Path, command: list[str], began: float, **facts: Any) -> None:
+    """The ``.done`` marker: what ran, how long, where."""
+    marker = {"command": command[2:], **facts, "seconds": round(time.time() - began, 1),
+              "finished": time.ctime()}  # fmt: skip
+    atomic_write_bytes(directory / DONE, json.dumps(marker, indent=2).encode())
+
+
+def log_tail(path: Path, size: int = 3000) -> str:
+    return path.read_bytes()[-size:].decode(errors="replace") if path.is_file() else ""
+
+
+def visible_gpus() -> list[str]:
+    """The GPUs this process may hand out: ``CUDA_VISIBLE_DEVICES`` (ids, UUIDs or MIG names) when
+    set, else every GPU CUDA finds."""
+    if "CUDA_VISIBLE_DEVICES" in os.environ:
+        return [g.strip() for g in os.environ["CUDA_VISIBLE_DEVICES"].split(",") if g.strip()]
+    import torch
+
+    return [str(i) for i in range(torch.cuda.device_count())]
+
+
+def make_launcher(
+    launcher: str, jobs: int | None, threads: int
+) -> LocalLauncher | SubmititLauncher:
+    """The runner of ``launcher`` (one of ``LAUNCHERS``), starting at most ``jobs`` stages at once
+    (default: locally 1; through submitit no limit, SLURM queues them)."""
+    if launcher == "local":
+        return LocalLauncher(jobs or 1, threads)
+    return SubmititLauncher("slurm" if launcher == "slurm" else "local", threads, jobs)
+
+
+class LocalLauncher:
+    """Stages as child processes, up to ``jobs`` at once, sharing the GPUs and CPUs."""
+
+    poll_seconds = 0.2
+
+    def __init__(self, jobs: int, threads: int, gpus: list[str] | None = None) -> None:
+        self.jobs, self.threads = jobs, threads
+        self.free_gpus = visible_gpus() if gpus is None else list(gpus)
+        self.total_gpus = len(self.free_gpus)
+        self.running = 0
+
+    def gpus_of(self, resources: Resources) -> int:
+        """A stage's GPUs; unless it says, an equal share among ``jobs`` (at least one)."""
+        if resources.gpus is not None:
+            return resources.gpus
+        return max(1, self.total_gpus // self.jobs) if self.total_gpus else 0
+
+    def has_room(self, resources: Resources) -> bool:
+        return self.running < self.jobs and self.gpus_of(resources) <= len(self.free_gpus)
+
+    def check(self, name: str, resources: Resources) -> None:
+        if self.gpus_of(resources) > self.total_gpus:
+            raise CapVectorError(
+                f"stage {name!r} asks for {resources.gpus} GPUs; this machine shows "
+                f"{self.total_gpus} (CUDA_VISIBLE_DEVICES, else CUDA's count)"
+            )
+
+    def start(
+        self, name: str, directory: Path, command: Callable[[], list[str]], resources: Resources,
+        fit: bool,
+    ) -> LocalStage:  # fmt: skip
+        count = self.gpus_of(resources)
+        gpus, self.free_gpus = self.free_gpus[:count], self.free_gpus[count:]
+        cores = resources.cpus or max(1, usable_cpus() // self.jobs)
+        # Without GPUs to hand out, CUDA_VISIBLE_DEVICES stays as it was (unset: every GPU).
+        env = stage_environment(self.threads, cores, gpus if gpus or count == 0 else None)
+        directory.mkdir(parents=True, exist_ok=True)
+        log = None if self.jobs == 1 else directory / LOG
+        self.running += 1
+        return LocalStage(self, directory, command(), env, log, gpus, cores)
+
+
+class LocalStage:
+    def __init__(
+        self, launcher: LocalLauncher, directory: Path, command: list[str], env: dict[str, str],
+        log: Path | None, gpus: list[str], cores: int,
+    ) -> None:  # fmt: skip
+        self.launcher, self.directory, self.command, self.log = launcher, directory, command, log
+        self.gpus, self.cores, self.began = gpus, cores, time.time()
+        out = None if log is None else log.open("ab")
+        try:
+            self.process = subprocess.Popen(
+                command, env=env, stdout=out, stderr=None if out is None else subprocess.STDOUT
+            )
+        finally:
+            if out is not None:
+                out.close()  # the child holds its own copy
+        self.code: int | None = None
+
+    def poll(self) -> int | None:
+        if self.code is None and (code := self.process.poll()) is not None:
+            self.code = code
+            self.launcher.running -= 1
+            self.launcher.free_gpus += self.gpus
+            if code == 0:
+                write_done(self.directory, self.command, self.began, launcher="local",
+                           threads=self.launcher.threads, gpus=self.gpus, cores=self.cores)  # fmt: skip
+        return self.code
+
+    def wait(self) -> int:
+        self.process.wait()
+        return self.poll()  # type: ignore[return-value]
+
+    def where(self) -> str:
+        return f"log: {self.log}"
+
+    def failure(self) -> str:
+        return f"exit {self.code}" + ("" if self.log is None else "\n" + log_tail(self.log))
+
+
+class SubmititLauncher:
+    """Stages as jobs through submitit: SLURM's (``cluster="slurm"``) or local processes."""
+
+    poll_seconds = 1.0
+
+    def __init__(self, cluster: str, threads: int, jobs: int | None) -> None:
+        self.cluster, self.threads, self.jobs = cluster, threads, jobs
+        self.running = 0
+
+    def has_room(self, resources: Resources) -> bool:
+        return self.jobs is None or self.running < self.jobs
+
+    def check(self, name: str, resources: Resources) -> None:
+        if resources.time_min is None:
+            raise CapVectorError(
+                f"stage {name!r}: a SLURM job needs a time limit: set `resources: {{time_min: M}}` "
+                "in the recipe (every stage) or the stage (a fit requeues itself at the limit "
+                "and goes on)"
+            )
+
+    def start(
+        self, name: str, directory: Path, command: Callable[[], list[str]], resources: Resources,
+        fit: bool,
+    ) -> SubmititStage:  # fmt: skip
+        import submitit
+
+        directory.mkdir(parents=True, exist_ok=True)
+        executor = submitit.AutoExecutor(folder=directory / "submitit", cluster=self.cluster)
+        gpus = resources.gpus or 0
+        tasks = resources.tasks or (max(gpus, 1) if fit else 1)
+        executor.update_parameters(
+            name=name, timeout_min=resources.time_min, gpus_per_node=gpus or None,
+            tasks_per_node=tasks, cpus_per_task=resources.cpus, mem_gb=resources.mem_gb,
+            slurm_partition=resources.partition,
+            slurm_additional_parameters=dict(resources.slurm) or None,
+        )  # fmt: skip
+        launcher = "slurm" if self.cluster == "slurm" else "submitit-local"
+        job = executor.submit(StageJob(directory, command, self.threads, launcher, fit))
+        self.running += 1
+        return SubmititStage(self, directory, job)
+
+
+class SubmititStage:
+    def __init__(self, launcher: SubmititLauncher, directory: Path, job: Any) -> None:
+        self.launcher, self.directory, self.job = launcher, directory, job
+        self.code: int | None = None
+        self.error = ""
+
+    def poll(self) -> int | None:
+        if self.code is None and self.job.done():
+            self.launcher.running -= 1
+            error = self.job.exception()
+            self.error = "" if error is None else str(error)
+            self.code = 0 if error is None and (self.directory / DONE).is_file() else 1
+        return self.code
+
+    def wait(self) -> int:
+        while self.poll() is None:
+            time.sleep(self.launcher.poll_seconds)
+        return self.code  # type: ignore[return-value]
+
+    def where(self) -> str:
+        return f"job {self.job.job_id}; log: {self.directory / LOG}"
+
+    def failure(self) -> str:
+        tail = log_tail(self.directory / LOG) or self.error
+        return f"job {self.job.job_id}; submitit's logs in {self.directory / 'submitit'}\n{tail}"
+
+
+class StageJob:
+    """What a submitit job runs: the stage's command, built when the job starts (a requeued fit
+    resumes from the checkpoint its first run left), its output appended to ``<stage>/log.txt``,
+    and the ``.done`` marker when it succeeds.
+
+    submitit calls ``checkpoint`` on its requeue signal: the job is requeued as it is, and the
+    stage runs again. A ``fit`` stage on SLURM leaves that signal to the fit: its Lightning saves a
+    checkpoint and requeues the job itself (``SLURMEnvironment`` with auto-requeue). A job ended
+    from outside (that signal, or SIGTERM: a requeue, a preemption, a cancel) leaves no result, so
+    the recipe waits for a requeued job and takes a cancelled one as failed."""
+
+    def __init__(
+        self, directory: Path, command: Callable[[], list[str]], threads: int, launcher: str,
+        fit: bool,
+    ) -> None:  # fmt: skip
+        self.directory, self.command, self.threads = directory, command, threads
+        self.launcher, self.fit = launcher, fit
+
+    def __call__(self) -> None:
+        import submitit
+
+        if (self.directory / DONE).is_file():  # requeued after its stage had finished
+            return
+        rank = submitit.JobEnvironment().global_rank
+        log = self.directory / (LOG if rank == 0 else f"log_rank{rank}.txt")
+        command = self.command()
+        cores = usable_cpus()
+        env = stage_environment(self.threads, cores)
+        stopped: list[int] = []  # signals that end this job from outside; the stage gets them too
+
+        def note(signum: int, _frame: object) -> None:
+            stopped.append(signum)
+
+        signal.signal(signal.SIGTERM, note)  # a cancel, a preemption, a requeue
+        if self.fit and self.launcher == "slurm":
+            signal.signal(REQUEUE_SIGNAL, note)  # the fit's Lightning saves and requeues
+        began = time.time()
+        with log.open("ab") as out:
+            process = subprocess.Popen(command, env=env, stdout=out, stderr=subprocess.STDOUT)
+            try:
+                code = process.wait()
+            finally:  # submitit's requeue ends this process by an exception: stop the stage too
+                if process.poll() is None:
+                    process.terminate()
+                    process.wait()
+        if code == 0:
+            if rank == 0:
+                job = submitit.JobEnvironment().job_id
+                write_done(self.directory, command, began, launcher=self.launcher, job=job,
+                           threads=self.threads, cores=cores)  # fmt: skip
+            return
+        if stopped:  # no result: a requeued job writes its own, a cancelled one has none
+            sys.exit(f"stopped by signal {stopped[0]} (the stage exited with {code})")
+        raise CapVectorError(f"capvector {command[3]} exited with {code}\n{log_tail(log)}")
+
+    def checkpoint(self) -> Any:
+        """submitit's hook on the requeue signal: requeue the stage as it is."""
+        import submitit
+
+        return submitit.helpers.DelayedSubmission(self)

@@ -1,0 +1,192 @@
+"""Where recipe stages run: local processes sharing GPUs and the CPUs this process may use, and
+jobs through submitit (its LocalExecutor here; real SLURM in tests/test_slurm.py)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from capvector.errors import CapVectorError
+from capvector.io.cpus import cgroup_cpu_quota, usable_cpus
+from capvector.workflows.launchers import LocalLauncher, Resources
+from capvector.workflows.recipe import run
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def write_recipe(path: Path, stages: list[dict], **settings: object) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"run_dir": str(path.parent / "run"), **settings, "stages": stages}))
+    return path
+
+
+def fit_stage(data: Path, name: str = "fit", steps: int = 2) -> dict:
+    """A short fit of the tiny preset, no rollouts."""
+    args = [
+        "--config", str(REPO / "configs/debug.yaml"), f"--data.train_files=[{data}]",
+        "--data.batch_size=4", "--data.eval_tasks=null", f"--trainer.max_steps={steps}",
+        "--trainer.log_every_n_steps=1", "--trainer.enable_progress_bar=false",
+    ]  # fmt: skip
+    return {"name": name, "command": "fit", "args": args}
+
+
+def two_stage_recipe(tmp_path: Path, data: Path, launcher: str) -> Path:
+    """backbone-info, then a 2-step fit, each a job of ``launcher``."""
+    stages = [
+        {"name": "info", "command": "backbone-info", "args": ["openvla-oft-tiny"]},
+        fit_stage(data),
+    ]
+    return write_recipe(
+        tmp_path / "recipe.yaml", stages, launcher=launcher, resources={"time_min": 10}
+    )
+
+
+def check_two_stage_run(recipe: Path, launcher: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """Both stages ran as jobs, left logs and markers, and a rerun skips them."""
+    run(recipe)
+    out = capsys.readouterr().out
+    runs = recipe.parent / "run"
+    for stage in ("info", "fit"):
+        marker = json.loads((runs / stage / ".done").read_text())
+        assert marker["launcher"] == launcher and marker["job"]
+        assert f"[recipe {1 + (stage == 'fit')}/2] {stage} " in out
+        assert (runs / stage / "submitit").is_dir()
+    assert "openvla-oft-tiny" in (runs / "info/log.txt").read_text()
+    assert "`Trainer.fit` stopped: `max_steps=2` reached" in (runs / "fit/log.txt").read_text()
+    assert (runs / "fit/fit/version_0/export/model.safetensors").is_file()
+    assert (runs / "fit/fit/version_0/checkpoints/last.ckpt").is_file()
+    run(recipe)
+    assert capsys.readouterr().out.count("done earlier, skipped") == 2
+
+
+def test_a_recipe_runs_through_submitits_local_executor(
+    tmp_path: Path, demo_file: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    recipe = two_stage_recipe(tmp_path, demo_file, "submitit-local")
+    check_two_stage_run(recipe, "submitit-local", capsys)
+
+    # A failing stage: its log's tail is printed, and no marker is written.
+    stages = [{"name": "bad", "command": "backbone-info", "args": ["no-such-preset"]}]
+    bad = write_recipe(tmp_path / "bad" / "recipe.yaml", stages, launcher="submitit-local",
+                       resources={"time_min": 5})  # fmt: skip
+    with pytest.raises(CapVectorError, match=r"stage\(s\) \['bad'\] failed"):
+        run(bad)
+    assert "unknown backbone preset 'no-such-preset'" in capsys.readouterr().out
+    assert not (tmp_path / "bad/run/bad/.done").exists()
+
+
+def test_jobs_2_on_two_gpus_gives_each_stage_its_own(tmp_path: Path) -> None:
+    """``jobs: 2`` on a machine showing two (fake) GPUs: each stage gets one of them and half of
+    the CPUs this process may use; the markers record what each stage was given."""
+    info = ["openvla-oft-tiny"]
+    stages = [
+        {"name": "a", "command": "backbone-info", "args": info},
+        {"name": "b", "command": "backbone-info", "after": [], "args": info},
+    ]
+    recipe = write_recipe(tmp_path / "recipe.yaml", stages, jobs=2)
+    env = {**os.environ, "CUDA_VISIBLE_DEVICES": "0,1"}
+    done = subprocess.run([sys.executable, "-m", "capvector.cli", "recipe", "--config", str(recipe)],
+                          env=env, capture_output=True, text=True, cwd=REPO)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    markers = [json.loads((tmp_path / f"run/{s}/.done").read_text()) for s in "ab"]
+    assert sorted(m["gpus"][0] for m in markers) == ["0", "1"]
+    assert all(len(m["gpus"]) == 1 and m["cores"] == max(1, usable_cpus() // 2) for m in markers)
+
+
+def test_local_stages_see_their_gpus_and_wait_for_free_ones(tmp_path: Path) -> None:
+    launcher = LocalLauncher(jobs=2, threads=1, gpus=["GPU-a", "GPU-b", "GPU-c"])
+    show = "import os, time; time.sleep(0.5); print(os.environ['CUDA_VISIBLE_DEVICES'], os.environ['CAPVECTOR_CORES'], os.environ['OMP_NUM_THREADS'])"  # noqa: E501
+    command = [sys.executable, "-c", show]
+    one, two = Resources(gpus=1), Resources(gpus=2)
+    first = launcher.start("a", tmp_path / "a", lambda: command, two, fit=False)
+    assert not launcher.has_room(two)  # one GPU left
+    second = launcher.start("b", tmp_path / "b", lambda: command, one, fit=False)
+    assert not launcher.has_room(Resources(gpus=0))  # jobs: 2 are running
+    assert first.wait() == 0 and second.wait() == 0
+    cores = max(1, usable_cpus() // 2)
+    assert (tmp_path / "a/log.txt").read_text().split() == ["GPU-a,GPU-b", str(cores), "1"]
+    assert (tmp_path / "b/log.txt").read_text().split() == ["GPU-c", str(cores), "1"]
+    assert launcher.has_room(Resources(gpus=3))  # all returned
+    with pytest.raises(CapVectorError, match="asks for 4 GPUs; this machine shows 3"):
+        launcher.check("big", Resources(gpus=4))
+
+
+def test_usable_cpus_follow_the_affinity_and_the_cgroup_quota(tmp_path: Path) -> None:
+    code = (
+        "from capvector.io.cpus import usable_cpus; import os; print(usable_cpus(), os.cpu_count())"
+    )
+    done = subprocess.run(["taskset", "-c", "0", sys.executable, "-c", code],
+                          capture_output=True, text=True, check=True)  # fmt: skip
+    assert done.stdout.split()[0] == "1"  # os.cpu_count() says every core of the machine
+
+    # A SLURM job's cgroup (v2) capped at 1.5 CPUs under a parent without a cap; and v1.
+    proc = tmp_path / "v2/proc/self"
+    proc.mkdir(parents=True)
+    (proc / "cgroup").write_text("0::/slurm/job_7\n")
+    (proc / "mountinfo").write_text("30 23 0:26 / /sys/fs/cgroup rw,nosuid - cgroup2 cgroup2 rw\n")
+    job = tmp_path / "v2/sys/fs/cgroup/slurm/job_7"
+    job.mkdir(parents=True)
+    (job / "cpu.max").write_text("150000 100000\n")
+    (job.parent / "cpu.max").write_text("max 100000\n")
+    assert cgroup_cpu_quota(tmp_path / "v2") == 1.5
+    assert usable_cpus(tmp_path / "v2") == min(2, len(os.sched_getaffinity(0)))
+    (job.parent / "cpu.max").write_text("50000 100000\n")  # a parent's smaller cap counts
+    assert usable_cpus(tmp_path / "v2") == 1
+
+    proc = tmp_path / "v1/proc/self"
+    proc.mkdir(parents=True)
+    (proc / "cgroup").write_text("5:memory:/docker/x\n4:cpu,cpuacct:/docker/x\n")
+    (proc / "mountinfo").write_text(
+        "32 31 0:29 / /sys/fs/cgroup/cpu,cpuacct rw - cgroup cgroup rw,cpu,cpuacct\n"
+    )
+    group = tmp_path / "v1/sys/fs/cgroup/cpu,cpuacct/docker/x"
+    group.mkdir(parents=True)
+    (group / "cpu.cfs_quota_us").write_text("100000\n")
+    (group / "cpu.cfs_period_us").write_text("100000\n")
+    assert usable_cpus(tmp_path / "v1") == 1
+    assert cgroup_cpu_quota(tmp_path / "none") is None
+
+
+def test_resources_and_launcher_errors_are_clear(tmp_path: Path) -> None:
+    stages = [{"name": "a", "command": "backbone-info", "resources": {"gpu": 1}}]
+    with pytest.raises(
+        CapVectorError, match=r"unknown `resources` key\(s\) \['gpu'\]; known: gpus"
+    ):
+        run(write_recipe(tmp_path / "r1.yaml", stages), dry_run=True)
+    stages[0]["resources"] = {"gpus": "two"}
+    with pytest.raises(CapVectorError, match="`resources.gpus` must be a whole number, got 'two'"):
+        run(write_recipe(tmp_path / "r1.yaml", stages), dry_run=True)
+    stages = [{"name": "a", "command": "backbone-info"}]
+    with pytest.raises(CapVectorError, match="a SLURM job needs a time limit"):
+        run(write_recipe(tmp_path / "r2.yaml", stages, launcher="slurm"), dry_run=True)
+    with pytest.raises(CapVectorError, match="launcher must be one of .*did you mean slurm"):
+        run(write_recipe(tmp_path / "r3.yaml", stages, launcher="slrum"), dry_run=True)
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_sigtermed_fit_does_not_exit_as_finished(tmp_path: Path, demo_file: Path) -> None:
+    """Lightning ends a fit stopped by SIGTERM (a kill, a preemption) with exit status 0, as if
+    it had finished, which a recipe took for done; `capvector fit` exits 143 instead."""
+    args = fit_stage(demo_file, steps=10_000)["args"]
+    log = tmp_path / "fit" / "version_0" / "metrics.csv"
+    fit = subprocess.Popen(
+        [sys.executable, "-m", "capvector.cli", "fit", *args, f"--trainer.default_root_dir={tmp_path}",
+         f"--trainer.logger.init_args.save_dir={tmp_path}", "--trainer.log_every_n_steps=1",
+         "--trainer.logger.init_args.flush_logs_every_n_steps=1"],
+        stderr=subprocess.PIPE, text=True, cwd=REPO,
+    )  # fmt: skip
+    deadline = time.time() + 300
+    while not (log.is_file() and len(log.read_text().splitlines()) > 2):
+        assert fit.poll() is None and time.time() < deadline
+        time.sleep(0.5)
+    fit.send_signal(signal.SIGTERM)
+    _, stderr = fit.communicate(timeout=120)
+    assert fit.returncode == 128 + signal.SIGTERM
+    assert "capvector fit: stopped by SIGTERM before its end" in stderr

@@ -1,0 +1,89 @@
+"""`launcher: slurm` on a real one-node SLURM cluster (slurmctld, slurmd, munge) that
+tools/slurm/single_node.sh starts in a temporary folder. Skipped, with the reason, where SLURM is
+not installed or cannot run (it needs root); `make test` installs it where apt-get can."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from test_launchers import REPO, check_two_stage_run, fit_stage, two_stage_recipe, write_recipe
+
+SCRIPT = REPO / "tools/slurm/single_node.sh"
+
+
+@pytest.fixture(scope="module")
+def slurm(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """The cluster's folder; ``SLURM_CONF`` points the SLURM commands (and submitit) at it."""
+    folder = tmp_path_factory.mktemp("slurm")
+    started = subprocess.run([SCRIPT, "start", folder], capture_output=True, text=True)
+    if started.returncode == 3:  # not installed, or not root
+        pytest.skip(started.stderr.strip())
+    assert started.returncode == 0, started.stderr
+    try:
+        with pytest.MonkeyPatch.context() as env:
+            env.setenv("SLURM_CONF", str(folder / "slurm.conf"))
+            yield folder
+    finally:
+        subprocess.run([SCRIPT, "stop", folder], check=True)
+
+
+def test_a_recipe_runs_on_a_slurm_cluster(
+    slurm: Path, tmp_path: Path, demo_file: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    recipe = two_stage_recipe(tmp_path, demo_file, "slurm")
+    check_two_stage_run(recipe, "slurm", capsys)
+    # The jobs were SLURM's: submitit's batch script asked for the stage's time limit.
+    script = next((tmp_path / "run/fit/submitit").glob("*_submission.sh")).read_text()
+    assert "#SBATCH --time=10" in script and "#SBATCH --signal=USR2@90" in script
+
+
+def slurm_command(*args: str) -> str:
+    return subprocess.run(args, capture_output=True, text=True, check=True).stdout
+
+
+@pytest.mark.slow
+def test_a_preempted_fit_requeues_and_resumes_from_its_checkpoint(
+    slurm: Path, tmp_path: Path, demo_file: Path
+) -> None:
+    """SLURM's warning signal (time limit, or preemption) reaches the fit: Lightning saves a
+    checkpoint and requeues the job, whose second run resumes from it and finishes the stage."""
+    steps = 300
+    recipe = write_recipe(tmp_path / "recipe.yaml", [fit_stage(demo_file, steps=steps)],
+                          launcher="slurm", resources={"time_min": 10})  # fmt: skip
+    driver = subprocess.Popen(
+        [sys.executable, "-m", "capvector.cli", "recipe", "--config", str(recipe)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=REPO,
+    )  # fmt: skip
+    stage = tmp_path / "run/fit"
+    metrics = stage / "fit/version_0/metrics.csv"
+    deadline = time.time() + 600
+    while not (metrics.is_file() and len(metrics.read_text().splitlines()) > 5):
+        assert driver.poll() is None and time.time() < deadline, driver.stdout.read()  # type: ignore[union-attr]
+        time.sleep(0.5)
+    job = slurm_command("squeue", "-h", "-o", "%i").split()[0]
+    slurm_command("scancel", "--signal=USR2", job)
+    while not (stage / "hpc_ckpt_1.ckpt").is_file() or "PD" not in slurm_command(
+        "squeue", "-h", "-j", job, "-o", "%t"
+    ):
+        assert time.time() < deadline
+        time.sleep(0.5)
+    slurm_command("scontrol", "update", f"JobId={job}", "StartTime=now")  # SLURM holds it 2 min
+    out, _ = driver.communicate(timeout=600)
+    assert driver.returncode == 0, out[-3000:]
+    assert "[recipe 1/1] fit (fit) finished" in out
+    log = (stage / "log.txt").read_text()
+    assert "Handling auto-requeue signal" in log and "capvector fit: stopped by SIGTERM" in log
+    assert f"Restored all states from the checkpoint at {stage / 'hpc_ckpt_1.ckpt'}" in log
+    with metrics.open() as f:
+        trained = {int(row["step"]) for row in csv.DictReader(f)}
+    assert set(range(steps)) <= trained  # both runs' steps, in one metrics.csv
+    marker = json.loads((stage / ".done").read_text())
+    assert marker["job"] == job and (stage / "fit/version_0/export/model.safetensors").is_file()
