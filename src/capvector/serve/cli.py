@@ -30,6 +30,7 @@ from capvector.serve.schema import (
 from capvector.serve.server import PolicyServer
 from capvector.tool_cli import run_tool
 
+
 class ServedPolicy:
     """A checkpoint or export loaded once as ``capvector evaluate`` loads it (``load_module`` +
     ``VLAPolicy``: statistics, cameras, crop and tokenizer from the export), on ``device``, each
