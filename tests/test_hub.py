@@ -45,7 +45,9 @@ def hub_cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     return cache
 
 
-def test_a_hub_id_loads_from_the_local_cache_offline(hub_cache: Path, tmp_path: Path) -> None:
+def test_a_hub_id_loads_from_the_local_cache_offline(
+    hub_cache: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     hubbed, local = from_pretrained(REPO), from_pretrained(THETA_PRE)
     for (name, a), (_, b) in zip(
         hubbed.state_dict().items(), local.state_dict().items(), strict=True
@@ -60,13 +62,10 @@ def test_a_hub_id_loads_from_the_local_cache_offline(hub_cache: Path, tmp_path: 
         from_pretrained("capvector-test/missing")
     # A local folder wins over a hub id of the same spelling, as in transformers.
     (tmp_path / "capvector-test").mkdir()
-    os.chdir(tmp_path)
-    try:
-        assert hub_id(REPO) == REPO and hub_id("capvector-test") is None
-        (tmp_path / "capvector-test" / "tiny").mkdir()
-        assert hub_id(REPO) is None
-    finally:
-        os.chdir(ROOT)
+    monkeypatch.chdir(tmp_path)
+    assert hub_id(REPO) == REPO and hub_id("capvector-test") is None
+    (tmp_path / "capvector-test" / "tiny").mkdir()
+    assert hub_id(REPO) is None
 
 
 @pytest.mark.sim
@@ -74,13 +73,14 @@ def test_evaluate_takes_a_hub_id_offline(hub_cache: Path, tmp_path: Path) -> Non
     """``capvector evaluate --ckpt capvector-test/tiny`` as a user runs it: HF_HUB_CACHE and
     HF_HUB_OFFLINE=1 in the environment of a fresh process."""
     out = tmp_path / "eval.json"
-    subprocess.run(
+    done = subprocess.run(
         [sys.executable, "-m", "capvector.cli", "evaluate", "--ckpt", REPO, "--task", "Lift",
          "--episodes", "1", "--max-steps", "8", "--batch-size", "1", "--workers", "0",
          "--device", "cpu", "--json", str(out)],
-        check=True, cwd=tmp_path, env={**os.environ, "MUJOCO_GL": "egl", "OMP_NUM_THREADS": "1"},
-        capture_output=True,
+        cwd=tmp_path, env={**os.environ, "MUJOCO_GL": "egl", "OMP_NUM_THREADS": "1"},
+        capture_output=True, text=True,
     )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
     (row,) = json.loads(out.read_text())
     assert row["episodes"] == 1 and row["per_episode"][0]["steps"] == 8
 
