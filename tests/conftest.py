@@ -1,9 +1,11 @@
 """Shared test helpers: small real HDF5 demo files written with h5py, a quiet CPU ``Trainer``, the
-distributed fit script, and the ``slow``/``sim`` markers."""
+distributed fit script, a local Hugging Face Hub cache, and the ``slow``/``sim`` markers."""
 
 from __future__ import annotations
 
+import hashlib
 import json
+import os
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -146,3 +148,34 @@ def assert_field_changes_the_model(preset: str, overrides: dict, batch: dict) ->
 
     (loss_a, act_a), (loss_b, act_b) = outputs(base), outputs(changed)
     assert not torch.allclose(loss_a, loss_b) or not torch.allclose(act_a, act_b), overrides
+
+
+def cache_snapshot(cache: Path, repo_id: str, folder: Path) -> Path:
+    """``folder``'s files as revision ``main`` of model repo ``repo_id`` in the hub cache
+    ``cache``, stored as ``snapshot_download`` stores a download: ``models--org--name/{blobs/
+    <sha256>, snapshots/<commit>/<file> -> blob, refs/main}``. huggingface_hub has no public API
+    that writes into its cache without a hub, so the layout is written here and
+    ``huggingface_hub.scan_cache_dir`` checks it. Returns the snapshot folder."""
+    from huggingface_hub import scan_cache_dir
+
+    repo = cache / f"models--{repo_id.replace('/', '--')}"
+    files = sorted(p for p in folder.rglob("*") if p.is_file())
+    listing = hashlib.sha1()
+    for path in files:
+        listing.update(path.relative_to(folder).as_posix().encode() + path.read_bytes())
+    commit = listing.hexdigest()  # 40 hex digits, as a git commit hash
+    snapshot = repo / "snapshots" / commit
+    for path in files:
+        data = path.read_bytes()
+        blob = repo / "blobs" / hashlib.sha256(data).hexdigest()  # an LFS file's etag
+        blob.parent.mkdir(parents=True, exist_ok=True)
+        blob.write_bytes(data)
+        link = snapshot / path.relative_to(folder)
+        link.parent.mkdir(parents=True, exist_ok=True)
+        link.symlink_to(os.path.relpath(blob, link.parent))
+    (repo / "refs").mkdir(parents=True)
+    (repo / "refs" / "main").write_text(commit)
+    (cached,) = [r for r in scan_cache_dir(cache).repos if r.repo_id == repo_id]
+    (revision,) = cached.revisions
+    assert revision.refs == {"main"} and revision.nb_files == len(files), "not huggingface_hub's"
+    return snapshot

@@ -10,6 +10,7 @@ import yaml
 
 from capvector.backbones import build_backbone
 from capvector.cli import main
+from capvector.io.modelcard import read_model_card
 
 
 def read_card(folder: Path) -> tuple[dict, str]:
@@ -27,13 +28,16 @@ def test_exports_vectors_and_merges_carry_model_cards(tmp_path: Path) -> None:
     model.save_pretrained(tmp_path / "aux")
     header, body = read_card(tmp_path / "aux")
     assert header["library_name"] == "capvector" and "openvla-oft" in header["tags"]
+    assert read_model_card(tmp_path / "aux").data.pipeline_tag == "robotics"  # checked as well
     assert "openvla-oft-tiny" in body
 
     extract = ["extract", "--aux", str(tmp_path / "aux"), "--sft", str(tmp_path / "sft")]
     assert main([*extract, "--out", str(tmp_path / "vec"), "--rank", "2"]) == 0
     header, body = read_card(tmp_path / "vec")
     meta = json.loads((tmp_path / "vec" / "capability_vector.json").read_text())
-    assert header["base_model"] == [str((tmp_path / n).resolve()) for n in ("aux", "sft")]
+    # base_model holds hub ids only: local sources are named in the body (tests/test_hub.py)
+    assert "base_model" not in header
+    assert all(str((tmp_path / n).resolve()) in body for n in ("aux", "sft"))
     assert {"capability-vector", "peft", "lora"} <= set(header["tags"])
     assert meta["fingerprint"] in body and meta["sources"]["aux"]["preset"] == "openvla-oft-tiny"
     assert meta["command"].startswith("capvector extract --aux") and meta["command"] in body
@@ -41,7 +45,8 @@ def test_exports_vectors_and_merges_carry_model_cards(tmp_path: Path) -> None:
     merge = ["merge", "--base", str(tmp_path / "sft"), "--vector", f"{tmp_path / 'vec'}:0.7"]
     assert main([*merge, "--out", str(tmp_path / "meta")]) == 0
     header, body = read_card(tmp_path / "meta")
-    assert header["base_model"] == [str((tmp_path / "sft").resolve())]
+    assert "base_model" not in header
+    assert f"| base model (local path) | {(tmp_path / 'sft').resolve()} |" in body
     assert "x 0.7" in body and "capvector merge --base" in body
 
 
@@ -62,3 +67,12 @@ def test_written_folders_and_files_follow_the_umask(tmp_path: Path) -> None:
     assert stat.S_IMODE((tmp_path / "export").stat().st_mode) == 0o755
     assert stat.S_IMODE((tmp_path / "export" / "model.safetensors").stat().st_mode) == 0o644
     assert stat.S_IMODE((tmp_path / "results.json").stat().st_mode) == 0o644
+
+
+def test_shipped_cards_hold_hub_ids_only_as_base_model() -> None:
+    """The cards in assets/ are read by the hub as they are: base_model, if any, is a hub id."""
+    assets = Path(__file__).resolve().parents[1] / "assets"
+    cards = sorted(assets.rglob("README.md"))
+    assert len(cards) == 4  # θ_pre, the capability vector and its two task vectors
+    for card in cards:
+        read_model_card(card.parent)

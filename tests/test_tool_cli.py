@@ -48,8 +48,9 @@ CASES: list[tuple[str, list[str], dict[str, Any]]] = [
                "--fovy", "agentview=40", "--image-size", "32"],
      {"cameras": [], "progress": False, "fovy": ["agentview=40"], "image_size": 32}),
     ("evaluate", ["--ckpt", "C", "--task", "Lift", "Stack", "--variant", "lighting", "--start-seed",
-                  "5", "--json", "r.json"],
-     {"task": ["Lift", "Stack"], "variant": ["lighting"], "start_seed": 5, "json": "r.json"}),
+                  "5", "--json", "r.json", "--device", "cpu", "--precision", "bf16-mixed"],
+     {"task": ["Lift", "Stack"], "variant": ["lighting"], "start_seed": 5, "json": "r.json",
+      "device": "cpu", "precision": "bf16-mixed"}),
     ("evaluate", ["--ckpt", "C", "--suite", "libero_spatial", "--tasks", "0", "3", "--trials", "5",
                   "--rendering", "official"],
      {"suite": "libero_spatial", "tasks": [0, 3], "trials": 5, "rendering": "official"}),
@@ -72,6 +73,8 @@ CASES: list[tuple[str, list[str], dict[str, Any]]] = [
      {"port": 0, "precision": "bf16-mixed", "max_batch": 4, "device": None}),
     ("import-original", ["--preset", "openvla-oft-tiny", "--folder", "F", "--out", "O",
                          "--apply-lora-adapter"], {"apply_lora_adapter": True, "override": "{}"}),
+    ("push", ["F", "org/name", "--dry-run", "--revision", "dev"],
+     {"folder": "F", "repo_id": "org/name", "dry_run": True, "revision": "dev", "private": False}),
 ]  # fmt: skip
 IDS = [f"{command} {' '.join(argv)}"[:60] for command, argv, _ in CASES]
 

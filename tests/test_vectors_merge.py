@@ -89,7 +89,8 @@ def test_merge_equals_state_dict_arithmetic(setup) -> None:
     ]
     assert config == json.loads((paths["pre"] / "config.json").read_text())
     card = (tmp / "meta" / "README.md").read_text()
-    assert card.startswith("---\nlibrary_name: capvector\n") and "base_model:" in card
+    assert card.startswith("---\nlibrary_name: capvector\n")  # a local base: named in the body
+    assert "base_model:" not in card and f"| {paths['pre'].resolve()} |" in card
     assert all(v["fingerprint"][:27] in card for v in record["vectors"])
     index = json.loads((tmp / "meta" / "model.safetensors.index.json").read_text())
     assert (

@@ -20,12 +20,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from capvector.errors import CapVectorError
+from capvector.eval.device import Precision, precision_context, resolve_device, resolve_precision
 from capvector.io.outputs import check_output
 from capvector.profiling.settings import TrainingSettings
 from capvector.tool_cli import Tool, run_tool
 from capvector.workflows.fit import run_lightning_cli
 
 if TYPE_CHECKING:
+    import torch
     from jsonargparse import ArgumentParser
 
     from capvector.backbones import VLABackbone
@@ -46,6 +48,7 @@ TOOLS: dict[str, tuple[str, str]] = {  # name: ("module:function", help), import
     "inspect": ("capvector.workflows.inspection:main", "norms, cosines and plots of vectors"),
     "report": ("capvector.workflows.report:main", "success vs steps of a recipe's arms"),
     "serve": ("capvector.serve.cli:main", "answer observations over openpi's websocket protocol"),
+    "push": ("capvector.workflows.push:main", "upload an export or vector to the Hugging Face Hub"),
 }
 
 
@@ -242,6 +245,9 @@ def import_original_cli(
     out: str,
     override: str = "{}",
     overwrite: bool = False,
+    device: str | None = None,
+    precision: Precision | None = None,
+    check: bool = True,
     *,
     command: str,
     **options: Any,
@@ -258,6 +264,11 @@ def import_original_cli(
         override: JSON of config fields to change, e.g. '{"featurizer": {"depth": 2}}' (a nested
             object changes only the fields it names)
         overwrite: replace an existing --out
+        device: where the imported model runs its check forward, e.g. cpu, cuda, cuda:1
+            (default: cuda when there is one)
+        precision: the check forward's precision: 32-true, bf16-mixed or 16-mixed (default:
+            bf16-mixed on a GPU, 32-true elsewhere); the weights are written as imported
+        check: run one forward on a blank observation before writing (--no-check: skip it)
         command: the command line, for the model card
         options: the family's ``import_options``
     """
@@ -271,12 +282,16 @@ def import_original_cli(
         raise CapVectorError(f"--override is not JSON ({exc}): {override!r}") from exc
     if not isinstance(overrides, dict):
         raise CapVectorError(f"--override must be a JSON object, got {override!r}")
+    torch_device = resolve_device(device)
+    precision = resolve_precision(torch_device, precision)  # refused before the checkpoint is read
     family = preset_config(preset).family
     cls = backbone_class(family)
     # The family's Path options name files the import reads: the output must stay clear of them.
     inputs = [folder, *(options.get(o.name) for o in cls.import_options if o.type is Path)]
     check_output(out, overwrite, inputs)  # before reading the checkpoint
     imported = cls.from_original(folder, preset=preset, overrides=overrides, **options)
+    if check:
+        check_forward(imported.model, torch_device, precision, what=f"the import of {folder}")
     imported.model.save_pretrained(
         out,
         extra_json={"dataset_statistics.json": imported.statistics},
@@ -287,6 +302,31 @@ def import_original_cli(
     )
     n_params = sum(p.numel() for p in imported.model.parameters())
     print(f"wrote {out} ({family}, {n_params:,} parameters)")
+
+
+def check_forward(
+    model: VLABackbone, device: torch.device, precision: Precision, what: str
+) -> None:
+    """One forward of ``model`` on a blank observation (zero images and proprio, shaped by its
+    config) on ``device`` under ``precision``: a conversion, device or dtype problem shows here,
+    before anything is written, instead of in the first rollout."""
+    import torch
+
+    config = model.config
+    size = config.image_size
+    batch = {
+        "images": torch.zeros(1, config.num_images, 3, size, size, device=device),
+        "proprio": torch.zeros(1, config.proprio_dim, device=device),
+        "instruction": ["pick up the object"],
+    }
+    model.eval().to(device)
+    with torch.no_grad(), precision_context(device, precision)():
+        actions = model.predict_action(batch)  # type: ignore[arg-type]  # a Batch's keys
+    if not bool(torch.isfinite(actions).all()):
+        raise CapVectorError(
+            f"{what} gives non-finite actions on {device} ({precision}): the checkpoint or its "
+            "conversion is broken, or the precision overflows; try --precision 32-true"
+        )
 
 
 def _add_import_options(parser: ArgumentParser, families: Mapping[str, type[VLABackbone]]) -> None:

@@ -33,6 +33,7 @@ from capvector.eval.episodes import AnyEpisodeSpec
 from capvector.eval.metrics import SuccessRate
 from capvector.eval.policy import VLAPolicy
 from capvector.eval.results import metric_key
+from capvector.io.hub import local_folder
 from capvector.io.loading import load_torch, read_json
 from capvector.io.lora_layers import constant_scaling, merge_lora
 from capvector.io.names import (
@@ -455,7 +456,7 @@ def held_out_action_l1(backbone: VLABackbone, batch: Batch) -> Tensor:
 
 def _export_data_spec(folder: str) -> dict[str, Any] | None:
     """The data spec an export was trained with (None for one without, e.g. an import)."""
-    path = Path(folder) / DATA_SPEC_FILE
+    path = local_folder(folder, "model.pretrained") / DATA_SPEC_FILE
     return read_json(path) if path.is_file() else None
 
 
@@ -491,10 +492,11 @@ def _schedule(settings: OptimizerSettings, total_steps: int | None) -> Any:
 
 
 def load_module(checkpoint: str | Path, map_location: str = "cpu") -> VLAModule:
-    """A trained module from a Lightning checkpoint or an export folder (objectives, which are
-    training-only, are dropped)."""
-    if Path(checkpoint).is_dir():
-        spec_file = Path(checkpoint) / DATA_SPEC_FILE
+    """A trained module from a Lightning checkpoint or an export folder (a local one, or a hub
+    id's snapshot; objectives, which are training-only, are dropped)."""
+    folder = local_folder(checkpoint, "checkpoint")
+    if folder.is_dir():  # a hub id stays the module's `pretrained`: its exports name it as base
+        spec_file = folder / DATA_SPEC_FILE
         if not spec_file.is_file():
             raise BackboneError(f"{checkpoint} has no {DATA_SPEC_FILE}: export it with capvector")
         return VLAModule(pretrained=str(checkpoint), data_spec=read_json(spec_file))

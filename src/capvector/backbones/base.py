@@ -30,6 +30,7 @@ from torch import Tensor, nn
 
 from capvector.data.batch import Batch
 from capvector.errors import CapVectorError
+from capvector.io.hub import local_folder
 from capvector.io.loading import COPY_AGAIN, load_safetensors, read_json
 from capvector.io.modelcard import render_model_card, write_model_card
 from capvector.io.names import EXPORT_CONFIG, EXPORT_FORMAT, EXPORT_INDEX, EXPORT_WEIGHTS
@@ -353,6 +354,7 @@ class VLABackbone(nn.Module, ABC):
                 f"{cls.__name__}.from_original has no option(s) {unknown}; its options: {declared}"
             )
         loader = importlib.import_module(cls.original_loader)
+        source = local_folder(source, "original checkpoint")  # a hub id: its snapshot
         return loader.load_original(cls, source, preset, overrides, **options)
 
     @classmethod
@@ -489,7 +491,8 @@ def registered_families() -> dict[str, type[VLABackbone]]:
 
 
 def load_export_config(folder: str | Path) -> dict[str, Any]:
-    path = Path(folder) / EXPORT_CONFIG
+    """The ``config.json`` of an export folder: a local one, or a hub id's snapshot."""
+    path = local_folder(folder, "export folder") / EXPORT_CONFIG
     if not path.is_file():
         raise BackboneError(f"{folder} has no {EXPORT_CONFIG}: it is not a capvector export folder")
     config = read_json(path)
@@ -502,7 +505,10 @@ def load_export_config(folder: str | Path) -> dict[str, Any]:
 
 
 def from_pretrained(folder: str | Path, **overrides: Any) -> VLABackbone:
-    """Load a capvector export folder (what ``save_pretrained`` / ``capvector merge`` write)."""
+    """Load a capvector export folder (what ``save_pretrained`` / ``capvector merge`` write): a
+    local folder, or a hub id (``org/name[@revision]``) read through the hub cache
+    (``capvector.io.hub``)."""
+    folder = local_folder(folder, "export folder")
     config = load_export_config(folder)
     cls = backbone_class(config["family"], config["backbone_config"].get("preset"))
     model = cls.from_config_dict(merge_nested(config["backbone_config"], overrides))

@@ -17,23 +17,34 @@ from capvector.data.batch import Batch
 from capvector.data.spec import DataSpec
 from capvector.data.statistics import Normalizer
 from capvector.data.transforms import ImageTransform
+from capvector.eval.device import Precision, precision_context
 
 
 class VLAPolicy:
     """Callable ``policy(observation) -> (T, A) float32`` in the simulator's raw action units.
 
     ``observation``: ``images`` {camera: uint8 (H, W, 3) upright}, ``proprio`` raw (P,),
-    ``instruction`` str — the format ``capvector.eval.rollout.run_episode`` passes.
+    ``instruction`` str — the format ``capvector.eval.rollout.run_episode`` passes. Each forward
+    runs where the backbone's parameters are, under ``precision`` (``32-true``: as it is; inside
+    Lightning's loops the Trainer's own precision already applies).
     """
 
-    def __init__(self, backbone: VLABackbone, data_spec: DataSpec) -> None:
+    def __init__(
+        self, backbone: VLABackbone, data_spec: DataSpec, precision: Precision = "32-true"
+    ) -> None:
         self.backbone = backbone
         self.spec = data_spec
+        self.precision = precision
+        self._autocast = precision_context(self.device, precision)
         self.normalizer = Normalizer(data_spec.stats_entry)
         self.transform = ImageTransform(augment=False, center_crop=data_spec.center_crop)
 
+    @property
+    def device(self) -> torch.device:
+        return next(self.backbone.parameters()).device
+
     def observations_to_batch(self, observations: Sequence[Mapping[str, Any]]) -> Batch:
-        device = next(self.backbone.parameters()).device
+        device = self.device
         images, proprio = [], []
         for observation in observations:
             views = []
@@ -56,5 +67,7 @@ class VLAPolicy:
     @torch.no_grad()
     def act_batch(self, observations: Sequence[Mapping[str, Any]]) -> list[np.ndarray]:
         """One forward for many episodes' observations (batched evaluation); a chunk each."""
-        actions = self.backbone.predict_action(self.observations_to_batch(observations))
+        batch = self.observations_to_batch(observations)
+        with self._autocast():  # autocast is per thread: entered in the thread that runs it
+            actions = self.backbone.predict_action(batch)
         return [self.normalizer.unnormalize("action", a) for a in actions.float().cpu().numpy()]

@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 
 from capvector.errors import CapVectorError  # noqa: F401 (re-exported: the vector tools' error)
+from capvector.io.hub import hub_id, local_folder
 from capvector.io.loading import read_json
 from capvector.io.lora_layers import LoraFormatError, LoraLayer, split_lora
 from capvector.io.names import (  # noqa: F401 (re-exported: the vector modules' names)
@@ -251,6 +252,8 @@ class WeightSource(ABC):
     path: Path
     kind: str
     config: dict[str, Any]
+    hub_id: str | None = None
+    """The hub repository the source was read from (``io.hub``), when it was named by one."""
 
     @abstractmethod
     def keys(self) -> list[str]:
@@ -292,6 +295,8 @@ class WeightSource(ABC):
         (vectors, what the merge record compares, are fingerprinted by content).
         """
         out: dict[str, Any] = {"path": str(self.path.resolve()), "kind": self.kind}
+        if self.hub_id is not None:
+            out["hub_id"] = self.hub_id
         preset = self.config.get("preset") or (self.config.get("backbone_config") or {}).get(
             "preset"
         )
@@ -510,8 +515,14 @@ class CheckpointSource(WeightSource):
 
 
 def open_weights(path: str | Path) -> WeightSource:
-    """An export folder, a bare ``.safetensors`` file's folder, or a Lightning ``.ckpt``."""
-    p = Path(path)
+    """An export folder (a local one, or a hub id's snapshot), a bare ``.safetensors`` file's
+    folder, or a Lightning ``.ckpt``."""
+    source = _open_weights(local_folder(path))
+    source.hub_id = hub_id(path)
+    return source
+
+
+def _open_weights(p: Path) -> WeightSource:
     if p.is_dir():
         if (p / VECTOR_META).is_file() or (p / ADAPTER_CONFIG).is_file():
             raise CapVectorError(f"{p} is a vector folder, not model weights")

@@ -9,14 +9,15 @@ import logging
 import signal
 import socket
 import sys
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import AbstractContextManager, contextmanager, nullcontext
-from typing import Any, Literal, get_args
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from typing import Any
 
 import numpy as np
 import torch
 
 from capvector.errors import CapVectorError
+from capvector.eval.device import Precision, resolve_device, resolve_precision
 from capvector.eval.policy import VLAPolicy
 from capvector.module import load_module
 from capvector.serve.schema import (
@@ -29,50 +30,17 @@ from capvector.serve.schema import (
 from capvector.serve.server import PolicyServer
 from capvector.tool_cli import run_tool
 
-Precision = Literal["32-true", "bf16-mixed", "16-mixed"]
-"""Lightning's spellings: float32, or the weights in float32 under autocast to bf16 / fp16."""
-PRECISIONS: tuple[str, ...] = get_args(Precision)
-_AUTOCAST = {"bf16-mixed": torch.bfloat16, "16-mixed": torch.float16}
-
-
-def resolve_device(device: str | None) -> torch.device:
-    """``device``, or CUDA when there is one and the CPU otherwise; refused when unusable."""
-    if device is None:
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        resolved = torch.device(device)
-        torch.empty(0, device=resolved)
-    except (RuntimeError, AssertionError) as err:
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise CapVectorError(f"--device {device} is not usable here ({first}); e.g. cpu") from err
-    return resolved
-
-
-def precision_context(device: torch.device, precision: str) -> Callable[[], AbstractContextManager]:
-    """What each forward runs under: nothing for ``32-true``, else ``torch.autocast``."""
-    if precision not in PRECISIONS:
-        raise CapVectorError(f"--precision {precision!r} is none of {', '.join(PRECISIONS)}")
-    if precision == "16-mixed" and device.type == "cpu":  # Lightning refuses it on CPU too
-        raise CapVectorError(
-            "--precision 16-mixed needs a GPU (no fp16 autocast on CPU); use bf16-mixed"
-        )
-    dtype = _AUTOCAST.get(precision)
-    if dtype is None:
-        return nullcontext
-    return lambda: torch.autocast(device.type, dtype=dtype)
-
 
 class ServedPolicy:
     """A checkpoint or export loaded once as ``capvector evaluate`` loads it (``load_module`` +
     ``VLAPolicy``: statistics, cameras, crop and tokenizer from the export), on ``device``, each
     forward under ``precision``."""
 
-    def __init__(self, ckpt: str, device: torch.device, precision: str) -> None:
+    def __init__(self, ckpt: str, device: torch.device, precision: Precision) -> None:
         self.precision = precision
-        self._context = precision_context(device, precision)
         module = load_module(ckpt).eval().to(device)
         self.spec = module.data_spec
-        self.policy = VLAPolicy(module.backbone, self.spec)
+        self.policy = VLAPolicy(module.backbone, self.spec, precision)
         self.device = device
         self.describe = {
             "family": module.backbone.config_class.family,
@@ -80,8 +48,7 @@ class ServedPolicy:
         }
 
     def act_batch(self, observations: Sequence[Observation]) -> list[np.ndarray]:
-        with self._context():  # autocast is per thread: entered in the thread that runs it
-            return self.policy.act_batch(observations)
+        return self.policy.act_batch(observations)
 
     def warm_up(self) -> None:
         """One forward before the first client: a device or dtype problem shows at start."""
@@ -118,7 +85,7 @@ def serve(
     ckpt: str,
     *,
     device: str | None = None,
-    precision: Precision = "32-true",
+    precision: Precision | None = None,
     host: str = "127.0.0.1",
     port: int = 8000,
     max_batch: int = 16,
@@ -133,7 +100,8 @@ def serve(
     Args:
         ckpt: Lightning checkpoint or export folder.
         device: where the model runs, e.g. cpu, cuda, cuda:1 (default: cuda when there is one).
-        precision: 32-true, or bf16-mixed / 16-mixed (autocast; 16-mixed needs a GPU).
+        precision: 32-true, or bf16-mixed / 16-mixed (autocast; 16-mixed needs a GPU); default
+            bf16-mixed on a GPU, 32-true elsewhere.
         host: address to listen on (0.0.0.0: every interface).
         port: port to listen on (0: one the system picks, printed at start).
         max_batch: most observations in one forward.
@@ -146,7 +114,7 @@ def serve(
             f"{batch_window_ms}"
         )
     torch_device = resolve_device(device)
-    precision_context(torch_device, precision)  # refused before the load
+    precision = resolve_precision(torch_device, precision)  # refused before the load
     with _bound(host, port) as sock:  # a taken port fails before minutes of loading
         policy = ServedPolicy(ckpt, torch_device, precision)
         policy.warm_up()

@@ -258,7 +258,6 @@ def _merged_card(source: SafetensorsFolder, provenance: Mapping[str, Any]) -> st
     facts: dict[str, Any] = {
         "family": source.config.get("family"),
         "preset": (source.config.get("backbone_config") or {}).get("preset"),
-        "base": str(source.path.resolve()),
     }
     for i, v in enumerate(provenance["vectors"], 1):
         facts[f"vector {i}"] = (
@@ -269,7 +268,7 @@ def _merged_card(source: SafetensorsFolder, provenance: Mapping[str, Any]) -> st
         f"θ_meta = θ_pre + {terms}, written by `capvector merge` in capvector's export layout; "
         "use it as `--model.pretrained` for downstream fine-tuning.",
         facts,
-        base_model=str(source.path.resolve()),
+        base_model=source.hub_id or str(source.path.resolve()),
         tags=["capability-vector", "merge", *[t for t in [source.config.get("family")] if t]],
         command=provenance.get("command"),
     )

@@ -29,6 +29,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from capvector.io.hub import hub_id, local_folder
 from capvector.io.modelcard import render_model_card, write_model_card
 from capvector.io.weights import (
     ADAPTER_CONFIG,
@@ -82,7 +83,9 @@ class VectorFolder:
     """Streaming access to a vector folder: ``read(key, rows)`` gives rows of the dense delta."""
 
     def __init__(self, path: str | Path) -> None:
-        self.path = Path(path)
+        """``path``: a local vector folder, or a hub id (``io.hub``)."""
+        self.path = local_folder(path, "vector folder")
+        self.hub_id = hub_id(path)
         if not self.path.is_dir():
             raise CapVectorError(f"vector folder {self.path} does not exist")
         self.metadata: dict[str, Any] = {}
@@ -255,6 +258,8 @@ class VectorFolder:
             "kind": "vector",
             "fingerprint": self.fingerprint(),
         }
+        if self.hub_id is not None:
+            out["hub_id"] = self.hub_id
         if "sources" in self.metadata:
             out["sources"] = self.metadata["sources"]
         return out
@@ -476,7 +481,12 @@ def vector_card(meta: Mapping[str, Any]) -> str:
         title,
         summary,
         facts,
-        base_model=[str(src.get("path")) for src in sources.values() if isinstance(src, Mapping)],
+        # Sources named by hub id link to them; local paths are in the "source" rows above.
+        base_model=[
+            src["hub_id"]
+            for src in sources.values()
+            if isinstance(src, Mapping) and "hub_id" in src
+        ],
         tags=[
             "capability-vector",
             *(f for f in families if f),

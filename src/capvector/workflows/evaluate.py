@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 from capvector.data.episodes import EpisodeDataset, EvalTask, LiberoEvalTask
 from capvector.errors import CapVectorError
+from capvector.eval.device import Precision, resolve_device, resolve_precision
 from capvector.eval.episodes import LIBERO_TRIALS, AnyEpisodeSpec, Rendering
 from capvector.eval.policy import VLAPolicy
 from capvector.eval.results import SuccessRow, format_success_table, pooled_row, success_rows
@@ -31,15 +32,20 @@ def evaluate(
     batch_size: int = 8,
     workers: int | None = None,
     image_size: int | None = None,
+    device: str | None = None,
+    precision: Precision | None = None,
 ) -> list[EpisodeResult]:
     """Every episode's result, in the order of ``EpisodeDataset(tasks).specs``. ``batch_size``
     episodes run at once, their simulators in ``workers`` processes (see ``RolloutEvaluator``);
     cameras render at ``image_size`` (default: the policy's own; the backbone resizes what it
-    gets to its input size)."""
+    gets to its input size). The policy runs on ``device`` under ``precision`` (defaults: CUDA
+    with bf16 autocast when there is a GPU, else the CPU in float32)."""
     from capvector.eval.rollout import RolloutEvaluator
 
     specs = EpisodeDataset(tasks).specs  # an unknown task or variant fails before the load
-    module = load_module(checkpoint).eval()
+    torch_device = resolve_device(device)
+    precision = resolve_precision(torch_device, precision)  # refused before the load
+    module = load_module(checkpoint).eval().to(torch_device)
     spec = module.data_spec
     evaluator = RolloutEvaluator(
         cameras=spec.cameras, image_size=image_size or spec.image_size,
@@ -47,7 +53,7 @@ def evaluate(
         video_dir=None if video_dir is None else Path(video_dir), batch_size=batch_size,
         workers=workers,
     )  # fmt: skip
-    policy = VLAPolicy(module.backbone, spec)
+    policy = VLAPolicy(module.backbone, spec, precision)
     return evaluator.run(policy, specs, progress=True)
 
 
@@ -75,6 +81,8 @@ def evaluate_cli(
     batch_size: int | None = None,
     workers: int | None = None,
     json: str | None = None,
+    device: str | None = None,
+    precision: Precision | None = None,
 ) -> None:
     """MuJoCo rollouts of a checkpoint: robosuite tasks, or a LIBERO suite (--suite) under the
     official protocol.
@@ -102,6 +110,9 @@ def evaluate_cli(
             time; default 8, for LIBERO one per usable core: each holds an env of ~1.2 GB)
         workers: processes stepping the simulators (0: this one; default: one per core)
         json: also write the rows as JSON, with every episode's outcome
+        device: where the policy runs, e.g. cpu, cuda, cuda:1 (default: cuda when there is one)
+        precision: 32-true, or bf16-mixed / 16-mixed (autocast; 16-mixed needs a GPU); default
+            bf16-mixed on a GPU, 32-true elsewhere
     """
     for what, path in (("--json", json), ("--video", video)):
         if path is not None:  # before minutes of rollouts
@@ -114,8 +125,9 @@ def evaluate_cli(
     if batch_size is None:
         batch_size = 8 if suite is None else _libero_batch_size(workers)
     results = evaluate(
-        ckpt, eval_tasks, video, videos, execute_steps, batch_size, workers, image_size
-    )
+        ckpt, eval_tasks, video, videos, execute_steps, batch_size, workers, image_size, device,
+        precision,
+    )  # fmt: skip
     # success_rows makes a row per (task, robot, variant), in order of appearance: as here
     by_row: dict[tuple[Any, ...], list[tuple[AnyEpisodeSpec, EpisodeResult]]] = {}
     for s, r in zip(specs, results, strict=True):

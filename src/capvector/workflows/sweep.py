@@ -26,8 +26,10 @@ from capvector.data.episodes import EpisodeDataset, EvalTask
 from capvector.data.spec import DataSpec
 from capvector.data.statistics import BOUNDS_Q99
 from capvector.errors import CapVectorError
+from capvector.eval.device import Precision, resolve_device, resolve_precision
 from capvector.eval.episodes import VALIDATION_SEED_START
 from capvector.eval.results import success_cell, wilson_interval
+from capvector.io.hub import local_folder
 from capvector.io.loading import read_json
 from capvector.io.names import DATA_SPEC_FILE
 from capvector.io.outputs import atomic_write_bytes, atomic_write_file, check_output
@@ -42,14 +44,17 @@ def fit_settings(
     episodes: int = 0,
     robot: str = "Panda",
     demos: str | None = None,
+    device: str | None = None,
+    precision: Precision | None = None,
 ) -> Any:
     """The sweep's model, data and trainer settings, parsed by ``capvector fit``'s LightningCLI
     (``trainer:``, ``data:`` and ``model:`` mean what they mean there), with θ_pre as
     ``model.pretrained``. Without ``fit_configs``: a quiet trainer (accelerator auto, one device)
     and a data module of ``demos`` (training and held-out) shaped as θ_pre's data.
     ``task``/``episodes`` replace ``data.eval_tasks``, ``demos`` sets ``data.val_files``; every
-    rollout task starts at ``VALIDATION_SEED_START`` or above, never on evaluation seeds. Returns
-    the CLI (``parser``, ``config``) without building anything."""
+    rollout task starts at ``VALIDATION_SEED_START`` or above, never on evaluation seeds.
+    ``device``/``precision`` set the trainer's (``trainer_placement``). Returns the CLI
+    (``parser``, ``config``) without building anything."""
     from jsonargparse import Namespace
 
     from capvector.backbones.base import load_export_config
@@ -84,16 +89,35 @@ def fit_settings(
     if not fit_configs:
         for key, value in quiet_defaults(base_data_spec(base), demos).items():
             config[key] = value
+    for key, value in trainer_placement(device, precision, defaults=not fit_configs).items():
+        config[key] = value
     return cli
 
 
+def trainer_placement(
+    device: str | None, precision: Precision | None, defaults: bool
+) -> dict[str, Any]:
+    """``--device``/``--precision`` as the trainer's accelerator, devices and precision, which
+    every λ's fine-tuning and validation run on (``device`` ``cuda:1``: accelerator ``cuda``,
+    devices ``[1]``). What is not given stays the fit config's; with ``defaults`` (no fit
+    config) it is the tools' default: CUDA with bf16 autocast when there is a GPU, else the CPU
+    in float32."""
+    torch_device = resolve_device(device)
+    settings: dict[str, Any] = {}
+    if device is not None or defaults:
+        settings["trainer.accelerator"] = torch_device.type  # cpu, cuda, mps: Lightning's names
+        settings["trainer.devices"] = 1 if torch_device.index is None else [torch_device.index]
+    if precision is not None or defaults:
+        settings["trainer.precision"] = resolve_precision(torch_device, precision)
+    return settings
+
+
 def quiet_defaults(spec: DataSpec, demos: str | None) -> dict[str, Any]:
-    """The settings of a sweep without ``--fit-config``: one device of any accelerator, no progress
-    bars, checkpoints or videos, and ``demos`` (if any) as training data shaped as θ_pre's."""
+    """The settings of a sweep without ``--fit-config``: no progress bars, checkpoints or videos,
+    and ``demos`` (if any) as training data shaped as θ_pre's (the device: ``trainer_placement``).
+    """
     return {
         "seed_everything": 0,
-        "trainer.accelerator": "auto",
-        "trainer.devices": 1,
         "trainer.enable_progress_bar": False,
         "trainer.enable_model_summary": False,
         "trainer.enable_checkpointing": False,
@@ -110,7 +134,7 @@ def quiet_defaults(spec: DataSpec, demos: str | None) -> dict[str, Any]:
 
 def base_data_spec(base: str) -> DataSpec:
     """θ_pre's data spec, which shapes the data module of a sweep without ``--fit-config``."""
-    path = Path(base) / DATA_SPEC_FILE
+    path = local_folder(base, "--base") / DATA_SPEC_FILE
     if not path.is_file():
         raise CapVectorError(
             f"--base {base} has no {DATA_SPEC_FILE} (an import, or not a capvector export): "
@@ -217,13 +241,15 @@ def sweep(
     orth_weight: float = 1.0,
     allow_large_scale: bool = False,
     fit_configs: Sequence[str] = (),
+    device: str | None = None,
+    precision: Precision | None = None,
 ) -> list[dict[str, Any]]:
     from capvector.vectors import load_vector
     from capvector.vectors.merge import check_scale
 
     for scale in scales:  # all of them before the first (minutes-long) λ
         check_scale(scale, vector, allow_large_scale)
-    cli = fit_settings(base, fit_configs, task, episodes, robot, demos)
+    cli = fit_settings(base, fit_configs, task, episodes, robot, demos, device, precision)
     data = cli.config.data
     if finetune_steps and not (data.train_files or data.lerobot_root):
         raise CapVectorError(
@@ -316,6 +342,8 @@ def sweep_cli(
     allow_large_scale: bool = False,
     fit_config: list[str] | None = None,
     logger: Logger | None = None,
+    device: str | None = None,
+    precision: Precision | None = None,
 ) -> None:
     """Choose the merge scale λ by the validation loop: rollouts on validation seeds and the
     held-out L1.
@@ -334,13 +362,18 @@ def sweep_cli(
         fit_config: `capvector fit` configs: their trainer, data and model settings
         logger: a Lightning logger to show the plot in as well, given as in a fit config's
             trainer.logger (TensorBoard, W&B and MLflow show it)
+        device: where each λ is fine-tuned and validated (the trainer's accelerator and
+            devices), e.g. cpu, cuda, cuda:1 (default: the fit config's; without one, cuda when
+            there is one)
+        precision: the trainer's precision, 32-true, bf16-mixed or 16-mixed (default: the fit
+            config's; without one, bf16-mixed on a GPU, 32-true elsewhere)
     """
     try:
         values = [float(s) for s in scales.split(",")]
     except ValueError:
         raise CapVectorError(f"--scales takes numbers like 0,0.5,1, got {scales!r}") from None
     rows = sweep(base, vector, values, out, task, episodes, robot, demos, finetune_steps,
-                 orth_weight, allow_large_scale, fit_config or [])  # fmt: skip
+                 orth_weight, allow_large_scale, fit_config or [], device, precision)  # fmt: skip
     plot(rows, Path(out) / "sweep.png")
     if logger is not None:
         log_figure([logger], "sweep/scale", Path(out) / "sweep.png")

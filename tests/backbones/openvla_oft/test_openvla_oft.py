@@ -21,6 +21,7 @@ from capvector.backbones import (
 from capvector.backbones.openvla_oft import OpenVLAOFT
 from capvector.cli import main
 from capvector.data import keys
+from capvector.errors import CapVectorError
 from conftest import UPSTREAM_FIXTURES, assert_field_changes_the_model
 
 
@@ -301,7 +302,7 @@ def test_from_original_merges_a_peft_lora_adapter(upstream_folder: Path) -> None
 
 
 def test_from_original_reports_an_unreachable_hub_id() -> None:
-    with pytest.raises(BackboneError, match="could not be downloaded"):
+    with pytest.raises(CapVectorError, match="could not be downloaded"):
         OpenVLAOFT.from_original(
             "nonexistent-org-capvector/nonexistent-model", preset="openvla-oft-tiny"
         )

@@ -304,20 +304,11 @@ def _head_sizes(state: Mapping[str, Tensor], llm_dim: int) -> dict[str, Any]:
 
 
 def resolve_folder(folder: str | Path) -> Path:
+    """The run folder (a hub id was resolved to its snapshot by ``VLABackbone.from_original``)."""
     path = Path(folder)
-    if path.is_dir():
-        return path
-    if str(folder).count("/") == 1 and not path.exists():
-        try:
-            from huggingface_hub import snapshot_download
-
-            return Path(snapshot_download(str(folder)))
-        except Exception as exc:  # no network, private repo, unknown id
-            raise BackboneError(
-                f"{folder} is not a local folder and could not be downloaded from the hub ({exc}); "
-                "download it where the network allows and pass the local path"
-            ) from exc
-    raise BackboneError(f"checkpoint folder {folder} does not exist")
+    if not path.is_dir():
+        raise BackboneError(f"checkpoint folder {folder} does not exist")
+    return path
 
 
 def _rename_layer_scale(key: str) -> str:
