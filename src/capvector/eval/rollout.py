@@ -245,7 +245,7 @@ class Episode:
             log.warning("%s seed %d (%s): %s", spec.task, spec.seed, spec.robot, reason)
         return EpisodeResult(
             success, self.sim.steps, reason, self.frames, spec.seed, spec.task, spec.robot,
-            spec.variant,
+            spec.variant, tuple(self.sim.proprio().tolist()),
         )  # fmt: skip
 
 

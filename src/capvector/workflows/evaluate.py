@@ -101,7 +101,7 @@ def evaluate_cli(
         batch_size: episodes in flight at once, one batched policy forward for all (1: one at a
             time; default 8, for LIBERO one per usable core: each holds an env of ~1.2 GB)
         workers: processes stepping the simulators (0: this one; default: one per core)
-        json: also write the rows as JSON, with every episode's outcome
+        json: also write the rows as JSON, with every episode's outcome and final proprio
     """
     for what, path in (("--json", json), ("--video", video)):
         if path is not None:  # before minutes of rollouts
@@ -135,7 +135,8 @@ def evaluate_cli(
     if json:
         payload = [
             {**row.to_dict(), "per_episode": [
-                {**s.describe(), "success": r.success, "steps": r.steps, "reason": r.reason}
+                {**s.describe(), "success": r.success, "steps": r.steps, "reason": r.reason,
+                 "final_proprio": r.final_proprio}
                 for s, r in by_row[row.task, row.robot, row.variant]
             ]}
             for row in rows
