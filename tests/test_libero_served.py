@@ -42,7 +42,7 @@ def run_differences() -> list[dict[str, Any]]:
     assert client.keys() == ours.keys()
     out = []
     for key, c in client.items():
-        final_c, final_o = np.array(c["final_state"]), np.array(ours[key]["final_proprio"])
+        final_c, final_o = np.array(c["final_proprio"]), np.array(ours[key]["final_proprio"])
         out.append({
             "trial": key,
             "success": (c["success"], ours[key]["success"]),

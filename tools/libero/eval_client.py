@@ -34,8 +34,9 @@ this one and `capvector evaluate --suite` on our robosuite 1.5 port, differ only
   counts it as a failed trial).
 
 It prints a per-task table and `--json` writes rows in the shape of `capvector evaluate --json`,
-each episode with its first action chunk, the state of every request and the final state besides
-success, steps and reason; `--observations` writes the first observation of every trial as sent (npz).
+each episode with its first action chunk and the state of every request besides success, steps,
+reason and the final state (`final_proprio`); `--observations` writes the first request of every
+trial as sent (npz).
 """
 
 from __future__ import annotations
@@ -147,7 +148,7 @@ def run_trial(
             first_chunk = chunk
         for action in chunk[:replan_steps]:
             command = action.copy()
-            command[-1] = 1.0 if command[-1] > 0 else -1.0
+            command[-1] = 1.0 if command[-1] > 0 else -1.0  # binarised: module docstring
             try:
                 obs, _, done, _ = env.step(command.tolist())
             except Exception as e:  # as openpi: the trial fails, the evaluation goes on
@@ -167,7 +168,7 @@ def run_trial(
         "reason": reason,
         "first_chunk": first_chunk.tolist(),
         "states": states,
-        "final_state": state_of(obs).tolist(),
+        "final_proprio": state_of(obs).tolist(),  # as capvector evaluate --json names it
     }
     return episode, first_request
 
