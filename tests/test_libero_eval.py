@@ -67,12 +67,21 @@ def test_evaluate_runs_the_protocol_in_workers_and_here_alike(
     assert "| 0% (0/2; 0%–66%) | 3.0 |" in table and f"| {SUITE} (all) |" in table
     (row,) = json.loads((runs["0"][0] / "eval.json").read_text())
     assert row["instruction"] == instruction and row["episodes"] == 2
+    final = [episode.pop("final_proprio") for episode in row["per_episode"]]
     assert row["per_episode"] == [
         {"suite": SUITE, "task": 0, "trial": trial, "success": False, "steps": 3,
          "reason": "step limit (3) reached"}
         for trial in (0, 1)
     ]  # fmt: skip
-    assert json.loads((runs["2"][0] / "eval.json").read_text()) == [row]
+    # where each trial left the robot: 8 finite values, the eef above LIBERO's table (z ~ 0.9 m)
+    assert np.isfinite(final).all() and np.shape(final) == (2, 8)
+    assert all(1.0 < f[2] < 1.3 for f in final) and final[0] != final[1]
+    (batched,) = json.loads((runs["2"][0] / "eval.json").read_text())
+    # a forward of two observations rounds differently from two of one: the same steps, the
+    # final states a float32 rounding apart
+    batched_final = [episode.pop("final_proprio") for episode in batched["per_episode"]]
+    np.testing.assert_allclose(batched_final, final, atol=1e-5)
+    assert batched == row
     # The same images, frame for frame: the same trajectories, whichever process stepped them.
     videos = {w: sorted((out / "videos").glob("*.mp4")) for w, (out, _) in runs.items()}
     assert [v.name for v in videos["0"]] == [f"{SUITE}_0_Panda_seed{t}.mp4" for t in (0, 1)]

@@ -97,6 +97,9 @@ def test_zero_policy_fails_at_the_step_limit(demos, envs) -> None:
     result = _run(lambda obs: np.zeros((8, 7)), EpisodeSpec("Lift", demos[0]["seed"]), envs)
     assert not result.success
     assert result.steps == 150 and result.reason == "step limit (150) reached"
+    # where the episode left the robot: the arm's proprio, the end effector above the table
+    assert result.final_proprio is not None and len(result.final_proprio) == 8
+    assert 0.8 < result.final_proprio[2] < 1.2
 
 
 @pytest.mark.sim
@@ -131,6 +134,7 @@ def test_bad_actions_and_sim_faults_fail_only_their_episode(
     fault = _run(kick, spec, envs)
     assert not fault.success and fault.steps == 8
     assert "simulation fault" in fault.reason and "mjWARN_BAD" in fault.reason
+    assert fault.final_proprio is None or np.isfinite(fault.final_proprio).all()
     # ... and the same env runs the next episode normally.
     demo = demos[1]
     again = _run(Replay(demo["executed"]), EpisodeSpec("Lift", demo["seed"]), envs)

@@ -34,6 +34,7 @@ from capvector.sim.libero import (
     flip_image,
     initial_states,
     libero_observation,
+    libero_proprio,
     libero_task,
     make_libero_env,
     to_libero_action,
@@ -161,8 +162,9 @@ class LiberoEpisode:
         if reason is not None and not reason.startswith("step limit"):
             log.warning("%s trial %d: %s", spec.task, spec.trial, reason)
         return EpisodeResult(
-            success, self.steps, reason, self.frames, spec.trial, spec.task, spec.robot
-        )
+            success, self.steps, reason, self.frames, spec.trial, spec.task, spec.robot,
+            final_proprio=tuple(libero_proprio(self.obs).tolist()),
+        )  # fmt: skip
 
 
 def _check_fovy(env: Any, camera_fovy: Mapping[str, float]) -> None:

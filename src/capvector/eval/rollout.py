@@ -243,9 +243,10 @@ class Episode:
         spec = self.spec
         if reason is not None and not reason.startswith("step limit"):
             log.warning("%s seed %d (%s): %s", spec.task, spec.seed, spec.robot, reason)
+        final = self.sim.proprio()  # after a simulation fault it may hold NaN: not a position
         return EpisodeResult(
             success, self.sim.steps, reason, self.frames, spec.seed, spec.task, spec.robot,
-            spec.variant,
+            spec.variant, tuple(final.tolist()) if np.isfinite(final).all() else None,
         )  # fmt: skip
 
 

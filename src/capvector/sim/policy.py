@@ -47,6 +47,9 @@ class EpisodeResult:
     robot: str
     variant: str | None = None
     """The scene variant the episode ran in (``capvector.sim.variants``); None: as trained."""
+    final_proprio: tuple[float, ...] | None = None
+    """The robot's raw proprio after the last step (eef pos, axis-angle, fingers): where it ended,
+    comparable across simulators (``capvector evaluate --json``)."""
 
 
 def as_chunk(actions: Any) -> np.ndarray:

@@ -109,7 +109,7 @@ def evaluate_cli(
         batch_size: episodes in flight at once, one batched policy forward for all (1: one at a
             time; default 8, for LIBERO one per usable core: each holds an env of ~1.2 GB)
         workers: processes stepping the simulators (0: this one; default: one per core)
-        json: also write the rows as JSON, with every episode's outcome
+        json: also write the rows as JSON, with every episode's outcome and final proprio
         device: where the policy runs, e.g. cpu, cuda, cuda:1 (default: cuda when there is one)
         precision: 32-true, or bf16-mixed / 16-mixed (autocast; 16-mixed needs a GPU); default
             bf16-mixed on a GPU, 32-true elsewhere
@@ -147,7 +147,8 @@ def evaluate_cli(
     if json:
         payload = [
             {**row.to_dict(), "per_episode": [
-                {**s.describe(), "success": r.success, "steps": r.steps, "reason": r.reason}
+                {**s.describe(), "success": r.success, "steps": r.steps, "reason": r.reason,
+                 "final_proprio": r.final_proprio}
                 for s, r in by_row[row.task, row.robot, row.variant]
             ]}
             for row in rows
