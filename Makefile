@@ -29,7 +29,7 @@ demo: $(VENV)/.installed
 # installed here when missing, where apt-get runs as root; elsewhere that test says why it skips.
 test: $(VENV)/.installed
 	tools/slurm/install.sh
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 --dist loadgroup
 
 lint: $(VENV)/.installed
 	$(VENV)/bin/ruff check . && $(VENV)/bin/ruff format --check .

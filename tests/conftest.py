@@ -179,3 +179,14 @@ def cache_snapshot(cache: Path, repo_id: str, folder: Path) -> Path:
     (revision,) = cached.revisions
     assert revision.refs == {"main"} and revision.nb_files == len(files), "not huggingface_hub's"
     return snapshot
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """`make test` runs the suite on two workers (pytest-xdist, ``--dist loadgroup``): a file's
+    tests stay on one worker (its module fixtures are built once), and every test that starts
+    processes of its own (``distributed``: 2 ranks; the SLURM cluster) queues on one worker, so at
+    most one such test runs beside one single-threaded test."""
+    for item in items:
+        own_processes = item.get_closest_marker("distributed") or item.path.name == "test_slurm.py"
+        group = "own-processes" if own_processes else item.path.name
+        item.add_marker(pytest.mark.xdist_group(group))
