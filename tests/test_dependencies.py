@@ -121,3 +121,26 @@ def test_every_import_of_the_tests_and_benchmarks_is_declared() -> None:
         if top not in local and _distribution(top) not in declared
     )
     assert not wrong, "declared in no dependency list of pyproject.toml:\n" + "\n".join(wrong)
+
+
+def test_rollout_validation_without_the_simulator_stops_before_the_run(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
+) -> None:
+    from capvector.cli import main
+    from conftest import write_demo_file
+
+    data = write_demo_file(tmp_path / "demos.hdf5")
+    for simulator in ("mujoco", "robosuite"):  # what an environment without the sim extra sees
+        monkeypatch.setitem(sys.modules, simulator, None)
+    out = tmp_path / "runs"
+    code = main([
+        "fit", "--trainer.accelerator=cpu", "--trainer.max_steps=1", f"--trainer.default_root_dir={out}",
+        "--model.backbone=openvla-oft-tiny", f"--data.train_files=[{data}]",
+        "--data.eval_tasks=[{task: Lift, episodes: 1}]",
+    ])  # fmt: skip
+    assert code == 2
+    assert capfd.readouterr().err.splitlines()[-1] == (
+        "capvector fit: error: rollout validation (data.eval_tasks) needs the sim extra: "
+        "pip install 'capvector[sim]' (No module named 'mujoco')"
+    )
+    assert not out.exists()

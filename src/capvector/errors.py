@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import difflib
+import importlib.util
 from collections.abc import Iterable
 
 
@@ -50,3 +51,12 @@ def missing_extra(needed_for: str, extra: str, err: ImportError) -> MissingExtra
     return MissingExtraError(
         f"{needed_for} needs the {extra} extra: pip install 'capvector[{extra}]' ({reason})"
     )
+
+
+def require_extra(needed_for: str, extra: str, *modules: str) -> None:
+    """Stop before any work when ``extra``'s ``modules`` are not installed (looked up, not imported,
+    so checking the simulator is there loads none of it)."""
+    for module in modules:
+        if importlib.util.find_spec(module) is None:
+            missing = ModuleNotFoundError(f"No module named {module!r}", name=module)
+            raise missing_extra(needed_for, extra, missing)
