@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from conftest import write_demo_file
 from test_lerobot import CAMERAS, write_lerobot_v3
 
 pytestmark = pytest.mark.install
@@ -76,3 +77,20 @@ def test_the_simulators_commands_name_the_sim_extra(venv: Path, tmp_path: Path) 
     assert done.returncode == 2
     assert re.fullmatch(f"capvector demos: error: {SIM_MISSING}\n", done.stderr), done.stderr
     assert not (tmp_path / "lift.hdf5").exists()
+
+
+def test_rollout_validation_names_the_sim_extra_before_the_run(venv: Path, tmp_path: Path) -> None:
+    write_demo_file(tmp_path / "demos.hdf5")
+    out = tmp_path / "runs"
+    done = _run(
+        venv / "bin/capvector", "fit", "--trainer.accelerator=cpu", "--trainer.max_steps=1",
+        f"--trainer.default_root_dir={out}", "--model.backbone=openvla-oft-tiny",
+        f"--data.train_files=[{tmp_path / 'demos.hdf5'}]", "--data.eval_tasks=[{task: Lift}]",
+        ok=False,
+    )  # fmt: skip
+    assert done.returncode == 2
+    assert done.stderr.splitlines()[-1] == (
+        "capvector fit: error: rollout validation (data.eval_tasks) needs the sim extra: "
+        "pip install 'capvector[sim]' (No module named 'mujoco')"
+    )
+    assert not out.exists()
