@@ -7,14 +7,18 @@ export MUJOCO_GL ?= egl
 
 .PHONY: demo test lint format clean
 
-# The libero extra brings LIBERO's environments and assets (~650 MB) so its tests run too.
-# DeepSpeed (only its configs are checked here; it needs GPUs to run) imports torch in its
-# setup.py, so it is built against the installed torch, without build isolation.
-$(VENV)/.installed: pyproject.toml
+# pip installs within pyproject.toml's ranges, held to the versions verified here (constraints.txt).
+INSTALL := $(PY) -m pip install --quiet -c constraints.txt
+
+# The sim extra is the simulator; the libero extra brings LIBERO's environments and assets
+# (~650 MB) so its tests run too. DeepSpeed (only its configs are checked here; it needs GPUs to
+# run) imports torch in its setup.py, so it is built against the installed torch, without build
+# isolation.
+$(VENV)/.installed: pyproject.toml constraints.txt
 	test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[dev,libero,tensorboard,wandb]"
-	$(PY) -m pip install --quiet --no-build-isolation "deepspeed==0.19.8"
+	$(INSTALL) -e ".[dev,sim,libero,tensorboard,wandb]"
+	$(INSTALL) --no-build-isolation "deepspeed==0.19.8"
 	touch $@
 
 # One seed of the powered experiment from its shipped θ_pre and capability vector (assets/): plain
@@ -27,9 +31,12 @@ demo: $(VENV)/.installed
 
 # SLURM (Debian's slurm-wlm and munge) for tests/test_slurm.py, which starts a one-node cluster:
 # installed here when missing, where apt-get runs as root; elsewhere that test says why it skips.
+# Two pytest-xdist workers (tests/conftest.py groups them); `-m "install or not install"` adds the
+# install tests, left out of a plain run: a fresh `pip install capvector[lerobot]` without the
+# simulator, on numpy 2, trains from a LeRobot folder (minutes, beside the other tests).
 test: $(VENV)/.installed
 	tools/slurm/install.sh
-	$(PY) -m pytest -q -n 2 --dist loadgroup
+	$(PY) -m pytest -q -n 2 --dist loadgroup -m "install or not install"
 
 lint: $(VENV)/.installed
 	$(VENV)/bin/ruff check . && $(VENV)/bin/ruff format --check .

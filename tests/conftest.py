@@ -27,6 +27,17 @@ UPSTREAM_FIXTURES = Path(__file__).parent / "fixtures" / "upstream"
 its PROVENANCE; read by the family tests in tests/backbones/<family>/."""
 
 
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """The install tests build a fresh environment (minutes): they run only when ``-m`` names them,
+    as `make test`'s own step does (``-m install``), not in a plain or a ``-m "not sim"`` run."""
+    if "install" in config.getoption("markexpr"):
+        return
+    kept = [item for item in items if item.get_closest_marker("install") is None]
+    if len(kept) < len(items):
+        config.hook.pytest_deselected(items=[i for i in items if i not in kept])
+        items[:] = kept
+
+
 def write_demo_file(
     path: Path,
     lengths: tuple[int, ...] = (12, 10),

@@ -437,6 +437,6 @@ def test_missing_extra_names_the_install_command(
     monkeypatch.setitem(sys.modules, "pyarrow.parquet", None)
     with pytest.raises(
         ImportError,
-        match=r"^LeRobot datasets need the lerobot extra: pip install 'capvector\[lerobot\]'",
+        match=r"^reading LeRobot datasets needs the lerobot extra: pip install 'capvector\[lerobot\]'",
     ):
         dataset(tmp_path)  # raised before the folder is looked at

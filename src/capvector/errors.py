@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import difflib
+import importlib.util
 from collections.abc import Iterable
 
 
@@ -37,3 +38,25 @@ def config_error(where: str, err: Exception) -> CapVectorError:
     message = str(getattr(err, "msg", None) or err).strip().splitlines()[0]
     key = getattr(err, "full_key", None)
     return CapVectorError(f"{where}: {message}" + (f" (at {key})" if key else ""))
+
+
+class MissingExtraError(CapVectorError, ImportError):
+    """An optional extra is not installed; an ``ImportError`` too, as the import it reports."""
+
+
+def missing_extra(needed_for: str, extra: str, err: ImportError) -> MissingExtraError:
+    """``the simulator needs the sim extra: pip install 'capvector[sim]' (No module named
+    'mujoco')``: one line, as LeRobot names the extra of a missing environment package."""
+    reason = (str(err).strip().splitlines() or [type(err).__name__])[0]
+    return MissingExtraError(
+        f"{needed_for} needs the {extra} extra: pip install 'capvector[{extra}]' ({reason})"
+    )
+
+
+def require_extra(needed_for: str, extra: str, *modules: str) -> None:
+    """Stop before any work when ``extra``'s ``modules`` are not installed (looked up, not imported,
+    so checking the simulator is there loads none of it)."""
+    for module in modules:
+        if importlib.util.find_spec(module) is None:
+            missing = ModuleNotFoundError(f"No module named {module!r}", name=module)
+            raise missing_extra(needed_for, extra, missing)

@@ -27,6 +27,7 @@ from capvector.data.lerobot import LeRobotV3Dataset
 from capvector.data.spec import DataSpec
 from capvector.data.statistics import BOUNDS_Q99, check_normalization
 from capvector.data.transforms import ImageTransform
+from capvector.errors import require_extra
 
 DEFAULT_CAMERAS = ("agentview", "robot0_eye_in_hand")
 DEFAULT_PROPRIO = ("robot0_eef_pos", "robot0_eef_axis_angle", "robot0_gripper_qpos")
@@ -112,6 +113,8 @@ class RobotDataModule(L.LightningDataModule):
         super().__init__()
         self.save_hyperparameters()
         self.eval_tasks = [eval_task(t) for t in eval_tasks or []]
+        if self.eval_tasks:  # rollouts need the simulator: say so before the run starts
+            require_extra("rollout validation (data.eval_tasks)", "sim", "mujoco", "robosuite")
         # Plain data in checkpoints, so they load with torch.load(weights_only=True).
         self.hparams["eval_tasks"] = [dataclasses.asdict(t) for t in self.eval_tasks] or None
         self.generate = DemoGeneration(**generate) if isinstance(generate, Mapping) else generate

@@ -45,6 +45,7 @@ from capvector.data.statistics import (
     compute_statistics,
 )
 from capvector.data.transforms import ImageTransform
+from capvector.errors import missing_extra
 
 if TYPE_CHECKING:
     import av.container
@@ -52,7 +53,6 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-EXTRA_HINT = "LeRobot datasets need the lerobot extra: pip install 'capvector[lerobot]'"
 CODEBASE_VERSION = "v3.0"
 
 # LeRobot's defaults (``utils.py``); v3 info.json files carry the same templates.
@@ -73,7 +73,7 @@ def _pyarrow() -> tuple[Any, Any]:
         import pyarrow
         import pyarrow.parquet
     except ImportError as e:  # also a pyarrow built against another numpy major version
-        raise ImportError(f"{EXTRA_HINT} (importing pyarrow failed: {e})") from e
+        raise missing_extra("reading LeRobot datasets", "lerobot", e) from e
     return pyarrow, pyarrow.parquet
 
 
@@ -81,7 +81,7 @@ def _av() -> Any:
     try:
         import av
     except ImportError as e:
-        raise ImportError(f"{EXTRA_HINT} (importing av failed: {e})") from e
+        raise missing_extra("reading LeRobot datasets", "lerobot", e) from e
     return av
 
 

@@ -39,10 +39,14 @@ from typing import Any
 # builds a simulator changes the process environment.
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-from capvector.errors import CapVectorError, unknown_name  # noqa: E402
+from capvector.errors import CapVectorError, missing_extra, unknown_name  # noqa: E402
+
+try:
+    import mujoco
+except ImportError as err:  # training from files needs no simulator; this module does
+    raise missing_extra("the simulator", "sim", err) from err
 from capvector.sim.tasks import TASKS, TaskSpec, get_task  # noqa: E402,F401 (re-exported)
 
 # robosuite logs five notices at import and one per controller load; none applies to us (no
@@ -67,7 +71,10 @@ def _import_robosuite() -> ModuleType:
     logger = logging.getLogger("robosuite_logs")
     if not any(isinstance(f, _DropRobosuiteNoise) for f in logger.filters):
         logger.addFilter(_DropRobosuiteNoise())
-    import robosuite
+    try:
+        import robosuite
+    except ImportError as err:
+        raise missing_extra("the simulator", "sim", err) from err
 
     return robosuite
 

@@ -39,9 +39,14 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
-from robosuite.utils import transform_utils as T
 
+from capvector.errors import missing_extra
 from capvector.sim.envs import SimEnv
+
+try:
+    from robosuite.utils import transform_utils as T
+except ImportError as err:
+    raise missing_extra("the simulator", "sim", err) from err
 
 GRIPPER_OPEN = -1.0
 GRIPPER_CLOSED = 1.0

@@ -28,12 +28,18 @@ from __future__ import annotations
 
 from typing import Any
 
-import mujoco
 import numpy as np
-from robosuite.controllers.parts.arm.osc import OperationalSpaceController
-from robosuite.controllers.parts.gripper.simple_grip import SimpleGripController
-from robosuite.robots.fixed_base_robot import FixedBaseRobot
-from robosuite.utils.control_utils import nullspace_torques, opspace_matrices, orientation_error
+
+from capvector.errors import missing_extra
+
+try:
+    import mujoco
+    from robosuite.controllers.parts.arm.osc import OperationalSpaceController
+    from robosuite.controllers.parts.gripper.simple_grip import SimpleGripController
+    from robosuite.robots.fixed_base_robot import FixedBaseRobot
+    from robosuite.utils.control_utils import nullspace_torques, opspace_matrices, orientation_error
+except ImportError as err:
+    raise missing_extra("the simulator", "sim", err) from err
 
 __all__ = ["install", "supported"]
 

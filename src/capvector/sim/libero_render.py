@@ -44,13 +44,17 @@ import os
 from collections.abc import Sequence
 from typing import Any
 
-import mujoco
 import numpy as np
-import robosuite.macros as macros
-from robosuite.environments.robot_env import IMAGE_CONVENTION_MAPPING
 
-from capvector.errors import CapVectorError
+from capvector.errors import CapVectorError, missing_extra
 from capvector.sim.envs import CameraRenderer, _gl_context_class
+
+try:
+    import mujoco
+    import robosuite.macros as macros
+    from robosuite.environments.robot_env import IMAGE_CONVENTION_MAPPING
+except ImportError as err:
+    raise missing_extra("the simulator", "sim", err) from err
 
 __all__ = [
     "FAST_CELLS",
