@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -46,3 +47,9 @@ class ShareCores(L.Callback):
         share = threads.fair_threads(self.registry)
         if share != torch.get_num_threads():
             torch.set_num_threads(share)
+            # Results depend on the thread count (a sum's order), so say when it changes.
+            print(
+                f"capvector fit: {share} torch thread(s), this fit's share of the CPUs beside the "
+                "other fits running; set OMP_NUM_THREADS to fix the number",
+                file=sys.stderr,
+            )
