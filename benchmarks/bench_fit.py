@@ -38,13 +38,20 @@ from capvector.module import VLAModule
 
 
 class WallClock(L.Callback):
-    """The training loop's wall time: from the start of training to its end."""
+    """Wall and process CPU time of the training loop from its first batch's start to its end: the
+    steady state of a longer fit (each step also fetches a batch ahead, as the first one did before
+    the clock started)."""
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        self.began = time.perf_counter()
+        self.first_step = trainer.global_step
+
+    def on_train_batch_start(self, trainer: L.Trainer, *args: Any) -> None:
+        if trainer.global_step == self.first_step:
+            self.began = time.perf_counter(), time.process_time()
 
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        self.seconds = time.perf_counter() - self.began
+        self.wall = time.perf_counter() - self.began[0]
+        self.cpu = time.process_time() - self.began[1]
 
 
 def record(out: Path, episodes: int) -> Path:
@@ -56,8 +63,9 @@ def record(out: Path, episodes: int) -> Path:
 
 def fit_steps(
     module: VLAModule, data: RobotDataModule, steps: int, root: Path
-) -> tuple[float, float]:
-    """(wall seconds per step, the fit's last ``perf/step_seconds``) over ``steps`` fit steps."""
+) -> tuple[float, float, float]:
+    """(wall seconds, CPU seconds per step, the fit's last ``perf/step_seconds``) over ``steps``
+    fit steps."""
     from capvector.training.loggers import CSVLogger
 
     clock = WallClock()
@@ -68,20 +76,21 @@ def fit_steps(
         default_root_dir=root,
     )  # fmt: skip
     trainer.fit(module, data)
-    return clock.seconds / steps, float(trainer.callback_metrics["perf/step_seconds"])
+    logged = float(trainer.callback_metrics["perf/step_seconds"])
+    return clock.wall / steps, clock.cpu / steps, logged
 
 
 def bare_steps(
     module: VLAModule, optimizer: torch.optim.Optimizer, batch: dict, steps: int
-) -> float:
-    """Seconds per step of the plain loop on one batch."""
-    began = time.perf_counter()
+) -> tuple[float, float]:
+    """(wall seconds, CPU seconds) per step of the plain loop on one batch."""
+    began = time.perf_counter(), time.process_time()
     for _ in range(steps):
         losses = module.compute_losses(batch)
         optimizer.zero_grad(set_to_none=True)
         losses["action"].backward()
         optimizer.step()
-    return (time.perf_counter() - began) / steps
+    return (time.perf_counter() - began[0]) / steps, (time.process_time() - began[1]) / steps
 
 
 def in_process(args: argparse.Namespace, data_file: Path, root: Path) -> None:
@@ -96,22 +105,25 @@ def in_process(args: argparse.Namespace, data_file: Path, root: Path) -> None:
     fit_steps(module, data, 3, root / "warmup")
     fit, bare, reported = [], [], []
     for r in range(args.rounds):
-        wall, logged = fit_steps(module, data, args.steps, root / f"round{r}")
-        fit.append(wall)
-        reported.append(logged / wall)
+        *fit_times, logged = fit_steps(module, data, args.steps, root / f"round{r}")
+        fit.append(fit_times)
+        reported.append(logged / fit_times[0])
         bare.append(bare_steps(module, optimizer, batch, args.steps))
-    ratios = [f / b for f, b in zip(fit, bare, strict=True)]
     print(
         f"{args.preset}, batch {args.batch}, {args.rounds} interleaved rounds of {args.steps} "
-        f"steps, {args.threads} thread(s), {len(os.sched_getaffinity(0))} CPUs\n"
+        f"steps, {args.threads} thread(s), {len(os.sched_getaffinity(0))} CPUs, load average "
+        f"{os.getloadavg()[0]:.1f}\n"
     )
-    print("| arm | step (ms, median) | × bare loop (median of rounds) |")
-    print("|---|---|---|")
-    print(f"| bare PyTorch loop, one batch | {statistics.median(bare) * 1e3:.1f} | 1.000 |")
-    print(
-        f"| capvector fit | {statistics.median(fit) * 1e3:.1f} | {statistics.median(ratios):.3f} |"
-    )
-    print(f"\nratios per round: {', '.join(f'{r:.3f}' for r in ratios)}")
+    print("| arm | wall ms/step | × bare loop | CPU ms/step | × bare loop |")
+    print("|---|---|---|---|---|")
+    for name, times in (("bare PyTorch loop, one batch", bare), ("capvector fit", fit)):
+        cells = []
+        for kind in (0, 1):
+            ratio = statistics.median(t[kind] / b[kind] for t, b in zip(times, bare, strict=True))
+            cells += [f"{statistics.median(t[kind] for t in times) * 1e3:.1f}", f"{ratio:.3f}"]
+        print(f"| {name} | {' | '.join(cells)} |")
+    walls = [f[0] / b[0] for f, b in zip(fit, bare, strict=True)]
+    print(f"\nwall ratios per round: {', '.join(f'{r:.3f}' for r in walls)}")
     print(
         "perf/step_seconds / wall-clock step, per round: "
         f"{', '.join(f'{r:.3f}' for r in reported)} (median {statistics.median(reported):.3f})"

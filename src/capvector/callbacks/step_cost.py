@@ -58,7 +58,11 @@ class StepCost(L.Callback):
     def on_train_batch_end(
         self, trainer: L.Trainer, pl_module: L.LightningModule, *args: Any
     ) -> None:
-        # Logged every step; Lightning writes the latest value at its logging interval.
+        # Only where Lightning writes logs (its rule: every log_every_n_steps optimizer steps, and
+        # when stopping): a value logged in between is overwritten unread, and costs a step time.
+        every = trainer.log_every_n_steps
+        if not every or (trainer.global_step % every and not trainer.should_stop):
+            return
         if self._seconds:
             pl_module.log("perf/step_seconds", sum(self._seconds) / len(self._seconds))
         pl_module.log("perf/peak_memory_mib", peak_memory_mib(pl_module.device))

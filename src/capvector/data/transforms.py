@@ -29,8 +29,9 @@ HUE = (-0.05, 0.05)
 """A shift of the hue, in turns of the colour wheel."""
 
 # ITU-R 601-2 luma, as torchvision's rgb_to_grayscale (and its contrast and saturation) use.
-_LUMA = (0.2989, 0.587, 0.114)
-_RGB_OFFSETS = torch.tensor([5.0, 3.0, 1.0]).view(3, 1, 1)  # see _hsv_to_rgb
+_LUMA = torch.tensor([0.2989, 0.587, 0.114]).view(3, 1, 1)
+_RGB_OFFSETS = torch.tensor([5.0, 3.0, 1.0]).view(3, 1, 1)  # see _shift_hue
+_NEXT, _AFTER_NEXT = [1, 2, 0], [2, 0, 1]  # channel indices: (g, b, r) and (b, r, g)
 
 
 @dataclass
@@ -119,51 +120,45 @@ def color_jitter(
     """images (N, 3, H, W) float in [0, 1], each with its own factors (N,), in OFT's order.
 
     Image by image this is ``(image + brightness).clamp(0, 1)`` then torchvision's
-    ``adjust_contrast``, ``adjust_saturation`` and ``adjust_hue`` (its HSV round trip, after Pillow)
-    with those factors. Unlike ``torchvision.transforms.ColorJitter`` the order is fixed and
-    brightness adds instead of multiplying: OFT's ``tf.image`` augmentation does both."""
+    ``adjust_contrast``, ``adjust_saturation`` and ``adjust_hue`` with those factors (the same
+    numbers to float rounding; ``tests/test_transforms.py``). Unlike
+    ``torchvision.transforms.ColorJitter`` the order is fixed and brightness adds instead of
+    multiplying: OFT's ``tf.image`` augmentation does both."""
 
     def per_image(factor: Tensor) -> Tensor:
         return factor.to(images.dtype).view(-1, 1, 1, 1)
 
-    def blend(image: Tensor, other: Tensor, ratio: Tensor) -> Tensor:  # torchvision's _blend
-        return (image * ratio + other * (1 - ratio)).clamp_(0, 1)
-
     images = (images + per_image(brightness)).clamp_(0, 1)
+    # torchvision's _blend(image, other, ratio) = image·ratio + other·(1 - ratio), clamped
     mean = _grayscale(images).mean(dim=(-3, -2, -1), keepdim=True)
-    images = blend(images, mean, per_image(contrast))
-    images = blend(images, _grayscale(images), per_image(saturation))
-    h, s, v = _rgb_to_hsv(images)
-    return _hsv_to_rgb((h + per_image(hue)[:, 0]).remainder_(1.0), s, v).clamp_(0, 1)
+    images = torch.lerp(mean, images, per_image(contrast)).clamp_(0, 1)
+    images = torch.lerp(_grayscale(images), images, per_image(saturation)).clamp_(0, 1)
+    return _shift_hue(images, per_image(hue)).clamp_(0, 1)
 
 
 def _grayscale(images: Tensor) -> Tensor:
+    """(N, 1, H, W) luma, as torchvision's rgb_to_grayscale."""
+    return (images * _LUMA.to(images)).sum(dim=-3, keepdim=True)
+
+
+def _shift_hue(images: Tensor, shift: Tensor) -> Tensor:
+    """Hue moved by ``shift`` (N, 1, 1, 1) turns: torchvision's ``adjust_hue``, an RGB -> HSV ->
+    RGB round trip (after Pillow's ``Convert.c``), in closed form. A hue shift keeps each pixel's
+    largest and smallest channel values; with h the hue in sixths of a turn (from the channels'
+    differences, as ``_rgb_to_hsv``) each channel becomes max - (max - min)·ramp(k), where
+    ramp(k) = clamp(min(k, 4 - k), 0, 1) and k = (n + h + 6·shift) mod 6 for n = 5, 3, 1 (R, G, B):
+    ``_hsv_to_rgb``'s choice among (v, p, q, t) written as one expression."""
     r, g, b = images.unbind(dim=-3)
-    return (r * _LUMA[0] + g * _LUMA[1] + b * _LUMA[2]).unsqueeze(-3)
-
-
-def _rgb_to_hsv(images: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """(N, 3, H, W) RGB -> hue, saturation, value (N, H, W), each in [0, 1]: torchvision's
-    ``_rgb_to_hsv`` (after Pillow's ``Convert.c``) in fewer tensor operations; where max == min
-    the hue and saturation are 0 (no division by zero)."""
-    r, g, b = images.unbind(dim=-3)
-    # maximum/minimum of the three planes: aminmax over the channel dimension is strided, ~10x slower
-    high, low = torch.maximum(torch.maximum(r, g), b), torch.minimum(torch.minimum(r, g), b)
-    spread = high - low
-    flat = spread == 0
-    saturation = spread / torch.where(flat, 1.0, high)
-    # (max - channel) / spread, for r, g, b at once
-    rc, gc, bc = (
-        (high.unsqueeze(-3) - images) / torch.where(flat, 1.0, spread).unsqueeze(-3)
-    ).unbind(-3)
-    hue = torch.where(high == r, bc - gc, torch.where(high == g, 2.0 + rc - bc, 4.0 + gc - rc))
-    return (hue / 6.0 + 1.0).fmod_(1.0), saturation, high
-
-
-def _hsv_to_rgb(hue: Tensor, saturation: Tensor, value: Tensor) -> Tensor:
-    """Hue, saturation, value (N, H, W) -> (N, 3, H, W) RGB. torchvision's ``_hsv_to_rgb`` picks
-    each channel from (v, p, q, t) by the hue's sector; this is the same function in closed form,
-    channel = v - v·s·clamp(min(k, 4 - k), 0, 1) with k = (n + 6·hue) mod 6, n = 5, 3, 1 for R, G, B."""
-    k = (_RGB_OFFSETS.to(hue.device) + 6.0 * hue.unsqueeze(-3)).remainder_(6.0)
+    high = torch.maximum(torch.maximum(r, g), b).unsqueeze_(-3)
+    spread = high - torch.minimum(torch.minimum(r, g), b).unsqueeze_(-3)
+    divisor = torch.where(spread == 0, 1.0, spread)  # grey: no hue, and every channel is max
+    # (g - b, b - r, r - g) / spread: the hue within the sector of the largest channel
+    sector_hue = (images[:, _NEXT] - images[:, _AFTER_NEXT]) / divisor
+    is_r = high == images[:, :1]
+    is_g = high == images[:, 1:2]
+    sixths = torch.where(
+        is_r, sector_hue[:, :1], torch.where(is_g, sector_hue[:, 1:2] + 2, sector_hue[:, 2:] + 4)
+    )
+    k = (sixths + 6.0 * shift + _RGB_OFFSETS.to(images)).remainder_(6.0)
     ramp = torch.minimum(k, 4.0 - k).clamp_(0.0, 1.0)
-    return value.unsqueeze(-3) - (value * saturation).unsqueeze(-3) * ramp
+    return high - spread * ramp
