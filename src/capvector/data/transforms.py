@@ -27,6 +27,8 @@ CONTRAST = (0.8, 1.2)
 SATURATION = (0.8, 1.2)
 HUE = (-0.05, 0.05)
 """A shift of the hue, in turns of the colour wheel."""
+JITTER_PIXELS = 2**14
+"""Pixels jittered at once: 192 KiB of float RGB, which a core's L2 cache holds."""
 
 # ITU-R 601-2 luma, as torchvision's rgb_to_grayscale (and its contrast and saturation) use.
 _LUMA = torch.tensor([0.2989, 0.587, 0.114]).view(3, 1, 1)
@@ -83,7 +85,15 @@ class ImageTransform:
         if self.augment:
             low, high = torch.tensor([BRIGHTNESS, CONTRAST, SATURATION, HUE]).T
             factors = low + (high - low) * torch.rand((count, 4), generator=self.generator)
-            floats = color_jitter(floats, *factors.unbind(-1))
+            # A few images at a time: each pass over them stays in the CPU's cache (the jitter is
+            # ~30 passes; 3.7 against 4.5-5.3 ms of CPU for 16 images at 64 px here).
+            step = max(1, JITTER_PIXELS // (height * width))
+            floats = torch.cat(
+                [
+                    color_jitter(floats[i : i + step], *factors[i : i + step].unbind(-1))
+                    for i in range(0, count, step)
+                ]
+            )
         return floats, depth, intrinsics
 
     def _crop_boxes(
