@@ -58,8 +58,8 @@ class ThreadProbe(L.Callback):
 def test_a_fit_started_by_hand_takes_its_share_of_the_cores(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """`capvector fit` without OMP_NUM_THREADS: all usable CPUs alone, half beside another fit;
-    torch's threads restored after it."""
+    """`capvector fit` without OMP_NUM_THREADS: all usable CPUs alone, half beside another fit,
+    never more than the process had; torch's threads restored after it."""
     for variable in ("OMP_NUM_THREADS", "CAPVECTOR_CORES"):
         monkeypatch.delenv(variable, raising=False)
     monkeypatch.setattr(threads, "REGISTRY", tmp_path / "registry")
@@ -72,12 +72,18 @@ def test_a_fit_started_by_hand_takes_its_share_of_the_cores(
         f"--trainer.callbacks+={__name__}.ThreadProbe",
     ]  # fmt: skip
     before = torch.get_num_threads()
+    torch.set_num_threads(usable_cpus())  # a fresh process's torch default: one thread per core
     threads_seen.clear()
     assert main(args) == 0
     assert threads_seen == [usable_cpus()] * 2
-    assert torch.get_num_threads() == before
+    assert torch.get_num_threads() == usable_cpus()  # restored
     other = other_fit(tmp_path / "registry")
     threads_seen.clear()
     assert main(args) == 0
-    other.communicate(b"")
     assert threads_seen == [max(1, usable_cpus() // 2)] * 2
+    torch.set_num_threads(1)
+    threads_seen.clear()
+    assert main(args) == 0  # a process that chose fewer threads keeps them
+    other.communicate(b"")
+    assert threads_seen == [1, 1]
+    torch.set_num_threads(before)

@@ -16,8 +16,10 @@ from capvector.training import threads
 class ShareCores(L.Callback):
     """Registers the fit as running (``capvector.training.threads``) and sets torch's threads to
     its share of the usable CPUs: at setup, then every ``every_seconds`` at a batch start, so a fit
-    started alone gives cores up when another starts and takes them back when it ends.
-    ``capvector fit`` adds it unless ``OMP_NUM_THREADS`` or a recipe stage fixed the threads."""
+    started alone gives cores up when another starts and takes them back when it ends. It never
+    goes above the threads torch had at setup (torch's default: one per core), so a process that
+    chose fewer keeps its choice. ``capvector fit`` adds it unless ``OMP_NUM_THREADS`` or a recipe
+    stage fixed the threads."""
 
     def __init__(self, every_seconds: float = 10.0, registry: str | None = None) -> None:
         self.every_seconds = every_seconds
@@ -44,7 +46,7 @@ class ShareCores(L.Callback):
 
     def _share(self) -> None:
         self._checked = time.monotonic()
-        share = threads.fair_threads(self.registry)
+        share = min(self._threads_before, threads.fair_threads(self.registry))
         if share != torch.get_num_threads():
             torch.set_num_threads(share)
             # Results depend on the thread count (a sum's order), so say when it changes.

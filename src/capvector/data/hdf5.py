@@ -326,9 +326,8 @@ class HDF5RobotDataset(Dataset):
         pixels = np.concatenate([f.images for f in frames]).reshape(-1, height, width, 3)
         depth = intrinsics = None
         if self.load_depth:  # (B·N_cam, H, W) and (B·N_cam, 3, 3), as the images
-            depth = torch.from_numpy(
-                np.concatenate([f.depth for f in frames]).reshape(-1, height, width)
-            )  # type: ignore[misc]
+            stacked = np.concatenate([f.depth for f in frames])  # type: ignore[misc]
+            depth = torch.from_numpy(stacked.reshape(-1, height, width))
             intrinsics = torch.cat([self.intrinsics[f.file] for f in frames])
         images, depth, intrinsics = self.transform.batch(
             torch.from_numpy(pixels).permute(0, 3, 1, 2).contiguous(), depth, intrinsics
@@ -371,7 +370,7 @@ class HDF5RobotDataset(Dataset):
         return per_step * episode.length
 
     def _read_frames(self, episode: EpisodeRef, steps: slice) -> Frames:
-        """Images (S·N_cam, H, W, 3) and depth of ``steps`` of one episode, camera-major per step."""
+        """The frames (images, depth, annotations the config loads) at ``steps`` of one episode."""
         demo = self._file(episode.file)["data"][episode.demo]
         obs = demo["obs"]
         images = np.stack([obs[f"{c}_image"][steps] for c in self.cameras], axis=1)
@@ -390,13 +389,14 @@ class Frames:
 
     file: int
     images: np.ndarray
-    """(S, N_cam, H, W, 3) uint8, as stored; ``Frames.at`` flattens one step to (N_cam, ...)."""
+    """(S, N_cam, H, W, 3) uint8, as stored."""
     depth: np.ndarray | None
     """(S, N_cam, H, W) float32 metres, or None."""
     annotations: np.ndarray | None
     """(S,) text (bytes or str), or None."""
 
     def at(self, t: int) -> Frames:
+        """Step ``t`` alone (S = 1), as views."""
         return Frames(
             self.file,
             self.images[t : t + 1],
@@ -413,8 +413,9 @@ class Frames:
 class FrameCache:
     """Episodes' frames kept in memory after their first read, up to ``limit_mb``.
 
-    Reading a frame from a demo file costs an HDF5 lookup and a gzip decode per key, several times
-    what a tiny model's step spends per sample; once cached, a sample is an array slice. Episodes
+    Reading a frame from a demo file costs HDF5 lookups and a gzip decode per key (``capvector
+    demos`` compresses images and depth), a share of a tiny model's step; once cached, a sample is
+    an array slice. Episodes
     are kept as they are first read until the limit is reached; the others are then read frame by
     frame from the file, as without a cache (no eviction: with samples drawn at random, evicting
     would read whole episodes for single frames). The limit is per process: each DataLoader
