@@ -12,8 +12,10 @@ fit's training time over its steps).
     python benchmarks/bench_fit.py [--preset openvla-oft-tiny] [--rounds 7] [--steps 20]
 
 ``--side-by-side`` instead starts ``capvector fit`` twice at once (as two users would, by hand) and
-reports each fit's step time against one fit alone, with the fits' default threads and with
+reports each fit's step time (its ``perf/step_seconds``) with the fits' default threads and with
 ``OMP_NUM_THREADS=2`` (what torch takes on a 2-core machine when nothing divides the cores).
+``--data-only [--depth]`` times loading batches alone (CPU time), as the recipe's fits load them
+with ``--depth --batch 16``.
 """
 
 from __future__ import annotations
@@ -57,7 +59,7 @@ class WallClock(L.Callback):
 def record(out: Path, episodes: int) -> Path:
     from capvector.sim.demos import record_demos
 
-    record_demos("Lift", episodes, out, depth=False, progress=False)
+    record_demos("Lift", episodes, out, depth=True, progress=False)
     return out
 
 
@@ -130,8 +132,34 @@ def in_process(args: argparse.Namespace, data_file: Path, root: Path) -> None:
     )
 
 
+def data_only(args: argparse.Namespace, data_file: Path, root: Path) -> None:
+    """CPU time to load one training batch (as the recipe's fits read it with ``--depth``: depth
+    and annotations too), the median over two epochs after the first batch."""
+    torch.set_num_threads(args.threads)
+    data = RobotDataModule(
+        train_files=[str(data_file)], batch_size=args.batch, load_depth=args.depth,
+        load_annotations=args.depth,
+    )  # fmt: skip
+    loader = data.train_dataloader()
+    times = []
+    for _ in range(2):
+        batches = iter(loader)
+        next(batches)
+        while True:
+            began = time.process_time()
+            if next(batches, None) is None:
+                break
+            times.append(time.process_time() - began)
+    what = "images, depth and annotations" if args.depth else "images"
+    print(
+        f"{statistics.median(times) * 1e3:.1f} ms of CPU per batch of {args.batch} ({what}), "
+        f"median of {len(times)}"
+    )
+
+
 def side_by_side(args: argparse.Namespace, data_file: Path, root: Path) -> None:
-    """Per-fit step time of two hand-started ``capvector fit`` beside each other, against one."""
+    """Per-fit step time of two ``capvector fit`` started by hand at once: with their default
+    threads (``ShareCores``: one each on 2 CPUs) and with two each."""
 
     def launch(name: str, threads: str | None) -> subprocess.Popen:
         env = {
@@ -167,22 +195,22 @@ def side_by_side(args: argparse.Namespace, data_file: Path, root: Path) -> None:
                 raise SystemExit(err.decode()[-2000:])
         return [step_seconds(name) for name in names]
 
-    rows = []
-    for r in range(args.rounds):
-        for threads in (None, "2"):
-            label = "default threads" if threads is None else "OMP_NUM_THREADS=2"
-            (alone,) = run([f"alone-{r}-{threads}"], threads)
-            pair = run([f"a-{r}-{threads}", f"b-{r}-{threads}"], threads)
-            rows.append((label, alone, pair))
+    arms = {"default (ShareCores)": None, "OMP_NUM_THREADS=2 (torch's default before)": "2"}
+    per_fit: dict[str, list[float]] = {label: [] for label in arms}
+    for r in range(args.rounds):  # the arms alternate, so the machine's other load hits both
+        for i, (label, threads) in enumerate(arms.items()):
+            per_fit[label] += run([f"a-{r}-{i}", f"b-{r}-{i}"], threads)
     print(
-        f"{args.preset}, batch {args.batch}, {args.steps} steps per fit, {args.rounds} round(s)\n"
+        f"{args.preset}, batch {args.batch}, two fits at once, {args.steps} steps each, "
+        f"{args.rounds} round(s), {len(os.sched_getaffinity(0))} CPUs, load average "
+        f"{os.getloadavg()[0]:.1f}\n"
     )
-    print("| threads | one fit alone (ms/step) | two fits at once (ms/step, each) | × alone |")
-    print("|---|---|---|---|")
-    for label in ("default threads", "OMP_NUM_THREADS=2"):
-        alone = statistics.median(a for lab, a, _ in rows if lab == label)
-        pair = statistics.median(s for lab, _, p in rows if lab == label for s in p)
-        print(f"| {label} | {alone * 1e3:.1f} | {pair * 1e3:.1f} | {pair / alone:.2f} |")
+    baseline = statistics.median(per_fit[next(iter(arms))])
+    print("| threads of each fit | ms/step per fit (median) | × default |")
+    print("|---|---|---|")
+    for label, seconds in per_fit.items():
+        median = statistics.median(seconds)
+        print(f"| {label} | {median * 1e3:.1f} | {median / baseline:.2f} |")
 
 
 def main() -> None:
@@ -195,11 +223,14 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=10, help="Lift demos to record")
     parser.add_argument("--data", type=Path, help="an HDF5 demo file instead of recording one")
     parser.add_argument("--side-by-side", action="store_true")
+    parser.add_argument("--data-only", action="store_true", help="time loading batches alone")
+    parser.add_argument("--depth", action="store_true", help="--data-only: depth + annotations")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
         data_file = args.data or record(root / "lift.hdf5", args.episodes)
-        (side_by_side if args.side_by_side else in_process)(args, data_file, root)
+        run = side_by_side if args.side_by_side else data_only if args.data_only else in_process
+        run(args, data_file, root)
 
 
 if __name__ == "__main__":
