@@ -35,8 +35,8 @@ from capvector.errors import CapVectorError
 
 DEFAULT_CACHE_MB = 1024.0
 """Memory (MiB) for demo frames kept after their first read (``FrameCache``): 20 generated Lift
-demos at 64 px take 40 MB; a LIBERO suite at 128 px (several GB) fills it and the rest is read from
-the files, frame by frame."""
+demos at 64 px take 26 MB (60 MB with depth); a LIBERO suite at 128 px (several GB) fills it and
+the rest is read from the files, frame by frame."""
 
 
 class DatasetError(CapVectorError):
