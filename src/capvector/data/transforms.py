@@ -9,7 +9,7 @@ Depth maps and camera intrinsics, when present, follow the same crop so geometry
 Everything runs on a batch of images at once (``ImageTransform.batch``), each image with its own
 crop and jitter factors and the numbers of torchvision's per-image kernels: one resize for all the
 crops, the jitter a few images per tensor pass, the hue shift in closed form (torchvision's HSV
-round trip takes twice the passes). Loading a batch of 8 costs 7.8 ms of CPU instead of 44 ms
+round trip takes more passes). Loading a batch of 8 costs 7.8 ms of CPU instead of 44 ms
 (``docs/performance.md``), against a tiny model's step of about 100 ms.
 """
 
