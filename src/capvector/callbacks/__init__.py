@@ -4,11 +4,13 @@ from capvector.callbacks.auxiliary import AuxiliaryObjective
 from capvector.callbacks.capability import MergeCapabilityVector, OrthogonalRegularization
 from capvector.callbacks.export import ExportOnFitEnd
 from capvector.callbacks.step_cost import StepCost
+from capvector.callbacks.threads import ShareCores
 
 __all__ = [
     "AuxiliaryObjective",
     "ExportOnFitEnd",
     "MergeCapabilityVector",
     "OrthogonalRegularization",
+    "ShareCores",
     "StepCost",
 ]

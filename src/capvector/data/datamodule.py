@@ -22,7 +22,7 @@ from capvector.data.episodes import (
     eval_task,
     is_episode_batch,
 )
-from capvector.data.hdf5 import DatasetError, HDF5RobotDataset
+from capvector.data.hdf5 import DEFAULT_CACHE_MB, DatasetError, HDF5RobotDataset
 from capvector.data.lerobot import LeRobotV3Dataset
 from capvector.data.spec import DataSpec
 from capvector.data.statistics import BOUNDS_Q99, check_normalization
@@ -75,6 +75,7 @@ class RobotDataModule(L.LightningDataModule):
         val_episodes: list[int] | None = None,
         normalization: str = BOUNDS_Q99,
         generate: DemoGeneration | None = None,
+        cache_mb: float = DEFAULT_CACHE_MB,
     ) -> None:
         """
         Args:
@@ -108,6 +109,9 @@ class RobotDataModule(L.LightningDataModule):
             generate: record missing HDF5 files with the robosuite experts (``prepare_data``, once
                 per node, with a progress bar) instead of stopping; ``configs/debug.yaml`` turns it
                 on so a fresh checkout trains.
+            cache_mb: memory (MiB) for HDF5 demo frames kept after their first read, shared out
+                among the ``num_workers`` workers (each keeps its own); episodes beyond it are read
+                frame by frame from the files. 0 reads every frame from the files.
         """
         check_normalization(normalization)
         super().__init__()
@@ -233,6 +237,7 @@ class RobotDataModule(L.LightningDataModule):
             load_depth=hp.load_depth,
             load_annotations=hp.load_annotations,
             normalization=hp.normalization,
+            cache_mb=hp.cache_mb / max(1, hp.num_workers),
         )
 
     @property

@@ -33,6 +33,11 @@ from capvector.data.statistics import BOUNDS_Q99, Normalizer, compute_statistics
 from capvector.data.transforms import ImageTransform
 from capvector.errors import CapVectorError
 
+DEFAULT_CACHE_MB = 1024.0
+"""Memory (MiB) for demo frames kept after their first read (``FrameCache``): 20 generated Lift
+demos at 64 px take 26 MB (60 MB with depth); a LIBERO suite at 128 px (several GB) fills it and
+the rest is read from the files, frame by frame."""
+
 
 class DatasetError(CapVectorError):
     """A dataset file that does not have what the config asks for; the message says what to change."""
@@ -124,9 +129,11 @@ class HDF5RobotDataset(Dataset):
         load_depth: bool = False,
         load_annotations: bool = False,
         normalization: str = BOUNDS_Q99,
+        cache_mb: float = DEFAULT_CACHE_MB,
     ) -> None:
         """``normalization`` is the rule of statistics computed here (``capvector.data.statistics``);
-        given ``statistics`` carry their own."""
+        given ``statistics`` carry their own. ``cache_mb``: memory for frames kept after their
+        first read (see ``FrameCache``); 0 reads every frame from the file."""
         if not files:
             raise DatasetError("no dataset files given; set data.train_files")
         self.files = [str(f) for f in files]
@@ -184,6 +191,11 @@ class HDF5RobotDataset(Dataset):
             normalization=normalization,
         )
         self.normalizer = Normalizer(self.statistics)
+        # Actions and proprio are small (a few floats a step): kept normalised for every episode,
+        # a sample slices them instead of reading its keys from the file.
+        self._actions = [self.normalizer.normalize("action", _float32(a)) for a in all_actions]
+        self._proprio = [self.normalizer.normalize("proprio", p) for p in all_proprio]
+        self._cache = FrameCache(cache_mb)
         self._handles: dict[int, h5py.File] = {}
         self.intrinsics = [self._read_intrinsics(path) for path in self.files] if load_depth else []
 
@@ -287,13 +299,6 @@ class HDF5RobotDataset(Dataset):
                 "them separately"
             )
 
-    def _read_proprio(self, demo: h5py.Group, step: int) -> np.ndarray:
-        """(P,) at ``step``."""
-        parts = [
-            np.asarray(demo["obs"][k][step], np.float32).reshape(-1) for k in self.proprio_keys
-        ]
-        return np.concatenate(parts) if parts else np.zeros(0, np.float32)
-
     def __len__(self) -> int:
         return len(self.index)
 
@@ -306,39 +311,130 @@ class HDF5RobotDataset(Dataset):
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()
         state["_handles"] = {}
+        state["_cache"] = FrameCache(self._cache.limit / 2**20)  # a worker fills its own
         return state
 
     def __getitem__(self, i: int) -> Sample:
+        return self.__getitems__([i])[0]
+
+    def __getitems__(self, indices: Sequence[int]) -> list[Sample]:
+        """The samples at ``indices``: the DataLoader asks for a batch's samples at once, so the
+        image transform runs once over all their images (``ImageTransform.batch``)."""
+        frames = [self._frames(i) for i in indices]
+        cameras = len(self.cameras)
+        height, width, _ = self._shapes["image"][0]
+        pixels = np.concatenate([f.images for f in frames]).reshape(-1, height, width, 3)
+        depth = intrinsics = None
+        if self.load_depth:  # (B·N_cam, H, W) and (B·N_cam, 3, 3), as the images
+            stacked = np.concatenate([f.depth for f in frames])  # type: ignore[misc]
+            depth = torch.from_numpy(stacked.reshape(-1, height, width))
+            intrinsics = torch.cat([self.intrinsics[f.file] for f in frames])
+        images, depth, intrinsics = self.transform.batch(
+            torch.from_numpy(pixels).permute(0, 3, 1, 2).contiguous(), depth, intrinsics
+        )
+        samples = []
+        for b, (i, f) in enumerate(zip(indices, frames, strict=True)):
+            ep_index, t = self.index[i]
+            episode = self.episodes[ep_index]
+            views = slice(b * cameras, (b + 1) * cameras)
+            sample: Sample = {
+                "images": images[views],
+                "proprio": torch.from_numpy(self._proprio[ep_index][t]),
+                "actions": torch.from_numpy(self._actions[ep_index][t : t + self.chunk_size]),
+                "instruction": episode.instruction,
+                "index": i,
+            }
+            if self.load_depth:
+                sample["depth"] = depth[views]  # type: ignore[index]
+                sample["intrinsics"] = intrinsics[views]  # type: ignore[index]
+            if self.load_annotations:
+                sample["annotation"] = f.annotation
+            samples.append(sample)
+        return samples
+
+    def _frames(self, i: int) -> Frames:
+        """Sample ``i``'s frames, from the cache, else from the file (whole episode when the cache
+        has room for it)."""
         ep_index, t = self.index[i]
         episode = self.episodes[ep_index]
+        cached = self._cache.get(ep_index)
+        if cached is None and self._cache.has_room(self._episode_bytes(episode)):
+            cached = self._cache.put(ep_index, self._read_frames(episode, slice(None)))
+        if cached is not None:
+            return cached.at(t)
+        return self._read_frames(episode, slice(t, t + 1))
+
+    def _episode_bytes(self, episode: EpisodeRef) -> int:
+        height, width, _ = self._shapes["image"][0]
+        per_step = height * width * (3 + 4 * self.load_depth) * len(self.cameras)
+        return per_step * episode.length
+
+    def _read_frames(self, episode: EpisodeRef, steps: slice) -> Frames:
+        """The frames (images, depth, annotations the config loads) at ``steps`` of one episode."""
         demo = self._file(episode.file)["data"][episode.demo]
-        actions = demo["actions"][t : t + self.chunk_size].astype(np.float32)
-        images, depths, intrinsics = [], [], []
-        for c, camera in enumerate(self.cameras):
-            image = torch.from_numpy(
-                np.ascontiguousarray(demo["obs"][f"{camera}_image"][t])
-            ).permute(2, 0, 1)
-            depth = K = None
-            if self.load_depth:
-                depth = torch.from_numpy(demo["obs"][f"{camera}_depth"][t].astype(np.float32))
-                K = self.intrinsics[episode.file][c]
-            image, depth, K = self.transform(image, depth, K)
-            images.append(image)
-            depths.append(depth)
-            intrinsics.append(K)
-        sample: Sample = {
-            "images": torch.stack(images),
-            "proprio": torch.from_numpy(
-                self.normalizer.normalize("proprio", self._read_proprio(demo, t))
-            ),
-            "actions": torch.from_numpy(self.normalizer.normalize("action", actions)),
-            "instruction": episode.instruction,
-            "index": i,
-        }
-        if self.load_depth:
-            sample["depth"] = torch.stack(depths)
-            sample["intrinsics"] = torch.stack(intrinsics)
-        if self.load_annotations:
-            text = demo["annotations"][t]
-            sample["annotation"] = text.decode() if isinstance(text, bytes) else str(text)
-        return sample
+        obs = demo["obs"]
+        images = np.stack([obs[f"{c}_image"][steps] for c in self.cameras], axis=1)
+        depth = (
+            np.stack([obs[f"{c}_depth"][steps] for c in self.cameras], axis=1).astype(np.float32)
+            if self.load_depth
+            else None
+        )
+        annotations = demo["annotations"][steps] if self.load_annotations else None
+        return Frames(episode.file, images, depth, annotations)
+
+
+@dataclass
+class Frames:
+    """Frames of one episode: S steps of all cameras (S = 1 for one sample)."""
+
+    file: int
+    images: np.ndarray
+    """(S, N_cam, H, W, 3) uint8, as stored."""
+    depth: np.ndarray | None
+    """(S, N_cam, H, W) float32 metres, or None."""
+    annotations: np.ndarray | None
+    """(S,) text (bytes or str), or None."""
+
+    def at(self, t: int) -> Frames:
+        """Step ``t`` alone (S = 1), as views."""
+        return Frames(
+            self.file,
+            self.images[t : t + 1],
+            None if self.depth is None else self.depth[t : t + 1],
+            None if self.annotations is None else self.annotations[t : t + 1],
+        )
+
+    @property
+    def annotation(self) -> str:
+        text = self.annotations[0]  # type: ignore[index]
+        return text.decode() if isinstance(text, bytes) else str(text)
+
+
+class FrameCache:
+    """Episodes' frames kept in memory after their first read, up to ``limit_mb``.
+
+    Reading a frame from a demo file costs HDF5 lookups and a gzip decode per key (``capvector
+    demos`` compresses images and depth), a share of a tiny model's step; once cached, a sample is
+    an array slice. Episodes
+    are kept as they are first read until the limit is reached; the others are then read frame by
+    frame from the file, as without a cache (no eviction: with samples drawn at random, evicting
+    would read whole episodes for single frames). The limit is per process: each DataLoader
+    worker keeps its own cache."""
+
+    def __init__(self, limit_mb: float) -> None:
+        if limit_mb < 0:
+            raise DatasetError(f"data.cache_mb is {limit_mb}; give 0 (no cache) or more")
+        self.limit = int(limit_mb * 2**20)
+        self.used = 0
+        self._episodes: dict[int, Frames] = {}
+
+    def get(self, episode: int) -> Frames | None:
+        return self._episodes.get(episode)
+
+    def has_room(self, nbytes: int) -> bool:
+        return self.used + nbytes <= self.limit
+
+    def put(self, episode: int, frames: Frames) -> Frames:
+        self._episodes[episode] = frames
+        self.used += frames.images.nbytes + (0 if frames.depth is None else frames.depth.nbytes)
+        return frames

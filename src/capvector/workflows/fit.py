@@ -9,6 +9,7 @@ import signal
 import sys
 
 from capvector.errors import CapVectorError, config_error
+from capvector.io.names import STAGE_CORES
 
 CSV_LOGGER = "capvector.training.loggers.CSVLogger"
 
@@ -71,6 +72,12 @@ def run_lightning_cli(args: list[str] | None, run: bool = True) -> object:
             )
 
             check_fit_outputs(self.trainer)
+            if not (os.environ.get("OMP_NUM_THREADS") or os.environ.get(STAGE_CORES)):
+                # Started by hand: share the cores with the other fits running (the callback's
+                # docstring says why); a recipe stage or the user fixed the threads otherwise.
+                from capvector.callbacks import ShareCores
+
+                self.trainer.callbacks.append(ShareCores())
             settings = self.config_init[self.subcommand]
             if settings.get("ckpt_path") == "last":
                 settings["ckpt_path"] = str(resume_latest_run(self.trainer))
