@@ -31,8 +31,8 @@ from capvector.sim.libero_experts import PlaceGoal, place_goal, run_trial  # noq
 # One task per suite: its goal as LIBERO's BDDL parser reads it.
 TASKS = {
     ("libero_spatial", 1): PlaceGoal("on", "akita_black_bowl_1", "plate_1", False),
-    ("libero_object", 2): PlaceGoal("in", "butter_1", "basket_1_contain_region", True),
-    ("libero_goal", 3): PlaceGoal("on", "akita_black_bowl_1", "plate_1", False),
+    ("libero_object", 6): PlaceGoal("in", "butter_1", "basket_1_contain_region", True),
+    ("libero_goal", 8): PlaceGoal("on", "akita_black_bowl_1", "plate_1", False),
 }
 
 

@@ -51,6 +51,8 @@ HAND_HALF_LENGTH, HAND_HALF_WIDTH, HAND_ABOVE_EEF = 0.11, 0.035, 0.03
 """The Panda hand's footprint about the end-effector site (along and across the finger axis) and
 how far above the site it begins: what must not land on a neighbour."""
 MAX_GRASP_WIDTH = 0.075
+REACH_X = 0.08
+"""Table scenes: beyond this x (world, m) the Panda cannot lower its hand to a bowl's rim."""
 FIXTURE_SEED_START = 1_000_000
 """Trial i's fixtures are placed from seed FIXTURE_SEED_START + i, as in ``capvector evaluate``
 (``capvector.eval.episodes.EVAL_SEED_START``; sim/ may not import eval/)."""
@@ -140,6 +142,11 @@ class _Geometry:
             rot = self.data.geom_xmat[g].reshape(3, 3)
             out.append(self.data.geom_xpos[g] + (centre + signs * half) @ rot.T)
         return np.concatenate(out)
+
+    def geom_boxes(self, name: str) -> list[tuple[np.ndarray, np.ndarray]]:
+        """World axis-aligned bounding box (lo, hi) of each collision geom of a body."""
+        corners = self.corners(name).reshape(-1, 8, 3)
+        return [(c.min(axis=0), c.max(axis=0)) for c in corners]
 
     def box(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """World axis-aligned bounding box (lo, hi) of a body's collision geometry."""
@@ -276,23 +283,30 @@ class LiberoPlaceExpert:
     def _rim_grasp(
         self, centre: np.ndarray, lo: np.ndarray, hi: np.ndarray
     ) -> tuple[float, np.ndarray]:
-        """(yaw, point) on a bowl's rim wall farthest from the other objects."""
+        """(yaw, point) on a bowl's rim wall whose fingers land farthest from anything else: the
+        other objects' and the fixtures' (a drawer's walls) collision geoms at the fingers' height."""
         g = self.geometry
-        obstacles = [g.box(n) for n in self._others]
+        z = hi[2] - 0.022
+        names = self._others + list(g.inner.fixtures_dict)
+        boxes = [
+            box for n in names for box in g.geom_boxes(n)
+            if box[1][2] > z - FINGERTIP_BELOW_EEF and box[0][2] < z + 0.15
+        ]  # fmt: skip
         best, best_score = (self._axis0, centre.copy()), -np.inf
         for k in range(-2, 2):
             yaw = self._axis0 + k * math.pi / 4
             for side in (1.0, -1.0):
                 u = side * _unit(yaw)
                 point = centre + RIM_OFFSET * u
-                outer = centre + (RIM_OFFSET + 0.025) * u
+                # the open fingers reach 4 cm either side of the grasp point, plus their width
+                fingers = (point, centre + (RIM_OFFSET + 0.045) * u)
                 clearance = min(
-                    (_distance_xy(p, box) for box in obstacles for p in (point, outer)),
-                    default=1.0,
+                    (_distance_xy(p, box) for box in boxes for p in fingers), default=1.0
                 )
-                # clear of the neighbours by 5 cm is enough; then the side nearer the robot
-                # (its base is at -x: far forward the arm runs out of reach), then less wrist turn
-                score = min(clearance, 0.05) - 0.2 * point[0] - 0.01 * abs(k)
+                # clear by 5 cm is enough; within the arm's reach (its base is at -x; beyond
+                # REACH_X the hand cannot get down to the rim); less wrist turn
+                reach = max(0.0, point[0] - REACH_X)
+                score = min(clearance, 0.05) - 2.0 * reach - 0.01 * abs(k)
                 if score > best_score:
                     best, best_score = (yaw, point.copy()), score
         return best
@@ -324,6 +338,7 @@ class LiberoPlaceExpert:
     def _enter(self, phase: str) -> None:
         self.phase = phase
         self._count = 0
+        self._xy_error_sum = np.zeros(3)
 
     def _rotation_error(self, quat: np.ndarray) -> np.ndarray:
         rot = T.quat2mat(quat)
@@ -332,16 +347,21 @@ class LiberoPlaceExpert:
     def _step(
         self, obs: Mapping[str, np.ndarray], target: np.ndarray, gripper: float
     ) -> ExpertStep:
-        move = np.clip(10.0 * (target - obs["robot0_eef_pos"]), -1.0, 1.0)
+        error = target - np.asarray(obs["robot0_eef_pos"])
+        if self.phase == "descend":
+            # an integral term on xy: stretched far forward the OSC settles ~7 mm short, enough
+            # to put a fingertip on the rim
+            self._xy_error_sum[:2] += error[:2]
+        move = np.clip(10.0 * error + 1.0 * self._xy_error_sum, -1.0, 1.0)
         turn = np.clip(self._rotation_error(obs["robot0_eef_quat"]) / 0.5, -1.0, 1.0)
         return ExpertStep(np.concatenate([move, turn, [gripper]]), self.phase)
 
     def _holding(self, obs: Mapping[str, np.ndarray]) -> bool:
-        fingers = np.abs(np.asarray(obs["robot0_gripper_qpos"])).sum()
-        near = np.linalg.norm(
-            self.geometry.position(self.goal.obj) + self._grasp_offset - obs["robot0_eef_pos"]
-        )
-        return fingers > 0.004 and near < 0.05
+        """The object still moves with the hand: its grasp point within 5 cm of the gripper. (The
+        finger opening says nothing here: a bowl hangs by its 2 mm wall with the fingers as
+        closed as on nothing.)"""
+        grasp = self.geometry.position(self.goal.obj) + self._grasp_offset
+        return bool(np.linalg.norm(grasp - np.asarray(obs["robot0_eef_pos"])) < 0.05)
 
     def act(self, obs: Mapping[str, np.ndarray]) -> ExpertStep:
         eef = np.asarray(obs["robot0_eef_pos"])
@@ -360,15 +380,21 @@ class LiberoPlaceExpert:
                 self._enter("descend")
             return self._step(obs, target, GRIPPER_OPEN)
         if self.phase == "descend":
-            if np.linalg.norm(grasp - eef) < 0.005 or self._count > self.descend_steps:
+            error = grasp - eef
+            lined_up = np.linalg.norm(error[:2]) < 0.005 and abs(error[2]) < 0.008
+            if lined_up or self._count > self.descend_steps:
                 self._enter("grasp")
-            return self._step(obs, grasp, GRIPPER_OPEN)
+            target = grasp.copy()
+            if np.linalg.norm((grasp - eef)[:2]) > 0.004:
+                target[2] = max(grasp[2], eef[2] - 0.01)  # line up before going lower
+            return self._step(obs, target, GRIPPER_OPEN)
         if self.phase == "grasp":
             # lift once the fingers have stopped closing: lifting a bowl by its 2 mm rim wall
             # before they squeeze it lets the wall slip out
             closing = np.abs(np.asarray(obs["robot0_gripper_qvel"])).max() > 0.01
             if (self._count >= self.grasp_steps and not closing) or self._count >= 25:
-                self._held_offset = eef - obj
+                # at least 6 cm up first: off a cabinet or a stove, not dragged across it
+                self._lift_floor = eef[2] + 0.06
                 self._enter("lift")
             return self._step(obs, grasp, GRIPPER_CLOSED)
         if self.phase in ("lift", "carry", "lower") and not self._holding(obs):
@@ -378,6 +404,7 @@ class LiberoPlaceExpert:
         bottom_below_eef = eef[2] - g.box(goal.obj)[0][2]
         xy, surface = self._place_target()
         carry_z = max(self._carry_floor(), surface + self.clearance) + bottom_below_eef
+        carry_z = max(carry_z, self._lift_floor)
         over = np.array([*(eef[:2] + xy - obj[:2]), carry_z])
         if self.phase == "lift":
             target = np.array([eef[0], eef[1], carry_z])
