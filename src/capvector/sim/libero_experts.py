@@ -31,6 +31,7 @@ reproduce with ``python -m capvector.sim.libero_experts --suite libero_spatial``
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -193,7 +194,7 @@ class LiberoPlaceExpert:
     """Pick ``goal.obj`` and put it on or in ``goal.target``; call :meth:`reset` after every
     ``set_init_state`` (and after the wait steps), then :meth:`act` once per step."""
 
-    approach_height = 0.10
+    approach_height = 0.06
     clearance = 0.05
     """Carry height: the object's bottom this far above the top of everything else."""
     release_height = 0.015
@@ -307,6 +308,7 @@ class LiberoPlaceExpert:
                 # REACH_X the hand cannot get down to the rim); less wrist turn
                 reach = max(0.0, point[0] - REACH_X)
                 score = min(clearance, 0.05) - 2.0 * reach - 0.01 * abs(k)
+                score -= 1.0 if self._hand_hits(yaw, np.array([*point[:2], z])) else 0.0
                 if score > best_score:
                     best, best_score = (yaw, point.copy()), score
         return best
@@ -371,6 +373,8 @@ class LiberoPlaceExpert:
         self._count += 1
         if self.phase == "approach":
             target = grasp + np.array([0.0, 0.0, self.approach_height])
+            # the open fingertips above the object's top until lined up over it
+            target[2] = max(target[2], g.box(goal.obj)[1][2] + FINGERTIP_BELOW_EEF + 0.02)
             aligned = np.linalg.norm(self._rotation_error(obs["robot0_eef_quat"])) < 0.08
             if (
                 np.linalg.norm((target - eef)[:2]) < 0.01
@@ -489,8 +493,10 @@ def evaluate_expert(
     trials: int = 50,
     *,
     progress: bool = True,
+    on_task: Any = None,
 ) -> dict[int, list[TrialResult]]:
-    """The expert on the first ``trials`` official initial states of each task."""
+    """The expert on the first ``trials`` official initial states of each task;
+    ``on_task(task_id, results)`` is called as each task finishes."""
     from tqdm import tqdm
 
     from capvector.sim.libero import LIBERO_NUM_TASKS, initial_states, make_libero_env, max_steps
@@ -515,6 +521,8 @@ def evaluate_expert(
                 bar.update(1)
         finally:
             env.close()
+        if on_task is not None:
+            on_task(task_id, results[task_id])
     bar.close()
     return results
 
@@ -547,7 +555,12 @@ def expert_success(
         trials: initial states per task, the first N of the official 50
         progress: show the progress bar
     """
-    results = evaluate_expert(suite, list(tasks) or None, trials, progress=progress)
+
+    def report(task_id: int, results: list[TrialResult]) -> None:  # a long run shows as it goes
+        wins = sum(r.success for r in results)
+        print(f"{suite} task {task_id}: {wins}/{len(results)}", file=sys.stderr, flush=True)
+
+    results = evaluate_expert(suite, list(tasks) or None, trials, progress=progress, on_task=report)
     print(success_table(suite, results))
 
 
@@ -558,6 +571,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    import sys
-
     sys.exit(main())
