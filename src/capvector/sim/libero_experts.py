@@ -350,10 +350,10 @@ class LiberoPlaceExpert:
         self, obs: Mapping[str, np.ndarray], target: np.ndarray, gripper: float
     ) -> ExpertStep:
         error = target - np.asarray(obs["robot0_eef_pos"])
-        if self.phase == "descend":
-            # an integral term on xy: stretched far forward the OSC settles ~7 mm short, enough
-            # to put a fingertip on the rim
-            self._xy_error_sum[:2] += error[:2]
+        if self.phase in ("descend", "carry", "lower"):
+            # an integral term on xy: stretched far forward the OSC settles 7-13 mm short, enough
+            # to put a fingertip on the rim or the bowl off the plate
+            self._xy_error_sum[:2] = np.clip(self._xy_error_sum[:2] + error[:2], -0.3, 0.3)
         move = np.clip(10.0 * error + 1.0 * self._xy_error_sum, -1.0, 1.0)
         turn = np.clip(self._rotation_error(obs["robot0_eef_quat"]) / 0.5, -1.0, 1.0)
         return ExpertStep(np.concatenate([move, turn, [gripper]]), self.phase)
@@ -423,7 +423,7 @@ class LiberoPlaceExpert:
         if self.phase == "lower":
             target = over.copy()
             target[2] = surface + self.release_height + bottom_below_eef
-            if abs(target[2] - eef[2]) < 0.006 or self._count > 30:
+            if abs(target[2] - eef[2]) < 0.006 or self._count > 60:
                 self._enter("release")
             return self._step(obs, target, GRIPPER_CLOSED)
         if self.phase == "release":
