@@ -38,6 +38,7 @@ from typing import Any
 
 import h5py
 import numpy as np
+from robosuite.utils import transform_utils as T
 from tqdm import tqdm
 
 from capvector.errors import CapVectorError
@@ -45,7 +46,6 @@ from capvector.io.outputs import atomic_write_file, check_output
 from capvector.sim.libero import (
     LIBERO_NUM_TASKS,
     initial_states,
-    libero_proprio,
     libero_task,
     make_libero_env,
     max_steps,
@@ -101,10 +101,15 @@ def _object_qpos(env: Any) -> np.ndarray:
 
 def _place(env: Any, seed: int) -> None:
     """LIBERO's placement initializer under ``seed``: its region samplers draw from numpy's
-    global RNG (``regions/base_region_sampler.py``), which the port's ``env.seed`` leaves alone."""
-    np.random.seed(seed)
-    env.seed(seed)
-    env.reset()
+    global RNG (``regions/base_region_sampler.py``), which the port's ``env.seed`` leaves alone.
+    The global state is restored after: nothing else sees the reseeding."""
+    saved = np.random.get_state()
+    try:
+        np.random.seed(seed)
+        env.seed(seed)
+        env.reset()
+    finally:
+        np.random.set_state(saved)
 
 
 def record_episode(env: Any, limit: int, cameras: dict[str, str]) -> dict[str, np.ndarray] | None:
@@ -114,14 +119,17 @@ def record_episode(env: Any, limit: int, cameras: dict[str, str]) -> dict[str, n
     inner = task_env(env)
 
     def record(obs: Any, step: Any, t: int) -> None:
-        proprio = libero_proprio(obs).astype(np.float64)
+        # as create_dataset.py: eef position and robosuite's axis-angle of the eef quaternion
+        ee_states = np.concatenate(
+            [obs["robot0_eef_pos"], T.quat2axisangle(obs["robot0_eef_quat"])]
+        )
         values = {
             "actions": step.action,
             "states": inner.sim.get_state().flatten(),
             "robot_states": inner.get_robot_state_vector(obs),
-            "obs/ee_states": proprio[:6],
-            "obs/ee_pos": proprio[:3],
-            "obs/ee_ori": proprio[3:6],
+            "obs/ee_states": ee_states,
+            "obs/ee_pos": ee_states[:3],
+            "obs/ee_ori": ee_states[3:],
             "obs/gripper_states": np.asarray(obs["robot0_gripper_qpos"]),
             "obs/joint_states": np.asarray(obs["robot0_joint_pos"]),
             **{f"obs/{key}": np.asarray(obs[f"{cam}_image"]) for cam, key in cameras.items()},
