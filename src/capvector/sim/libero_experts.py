@@ -399,6 +399,9 @@ class LiberoPlaceExpert:
             if (self._count >= self.grasp_steps and not closing) or self._count >= 25:
                 # at least 6 cm up first: off a cabinet or a stove, not dragged across it
                 self._lift_floor = eef[2] + 0.06
+                # where the hand did close (a descent stopped by a tall bottle's top closes
+                # higher than planned): what _holding compares against
+                self._grasp_offset = eef - obj
                 self._enter("lift")
             return self._step(obs, grasp, GRIPPER_CLOSED)
         if self.phase in ("lift", "carry", "lower") and not self._holding(obs):
