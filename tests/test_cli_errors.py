@@ -86,6 +86,14 @@ CASES: dict[str, tuple[Callable[[Path, Path], list[str]], str]] = {
         lambda i, o: ["demos", "--task", "Lift", "--episodes", "50", "--out", str(i / "oft_sft")],
         r"is a folder; give a file",
     ),
+    "demos: an unknown LIBERO suite, before simulating": (
+        lambda i, o: ["demos", "--suite", "libero_spatail", "--episodes-per-task", "2", "--out", str(o / "d")],
+        r"unknown LIBERO suite 'libero_spatail' \(did you mean libero_spatial",
+    ),
+    "demos: --suite without --episodes-per-task": (
+        lambda i, o: ["demos", "--suite", "libero_spatial", "--episodes", "2", "--out", str(o / "d")],
+        r"--suite records LIBERO tasks: give --tasks ID ... and --episodes-per-task",
+    ),
     "import-original: --override that is not JSON": (
         lambda i, o: ["import-original", "--preset", "openvla-oft-tiny", "--folder", str(i), "--override", "{depth: 2", "--out", str(o / "x")],
         r"--override is not JSON",

@@ -187,3 +187,42 @@ def test_libero_problem_info_instruction(tmp_path: Path) -> None:
             {"language_instruction": "put the bowl on the plate"}
         )
     assert dataset(path)[0][keys.INSTRUCTION] == "put the bowl on the plate"
+
+
+def test_libero_layout_reads_its_image_keys_upright_and_problem_info(tmp_path: Path) -> None:
+    """LIBERO's released files (scripts/create_dataset.py): `*_rgb` image keys as rendered
+    (OpenGL convention), the instruction in `problem_info`, 8-d proprio from two keys."""
+    path = tmp_path / "task_demo.hdf5"
+    rng = np.random.default_rng(0)
+    frames = rng.integers(0, 255, (6, 16, 16, 3), dtype=np.uint8)
+    with h5py.File(path, "w") as f:
+        data = f.create_group("data")
+        data.attrs["problem_info"] = json.dumps(
+            {"problem_name": "p", "domain_name": "robosuite", "language_instruction": "put it"}
+        )
+        data.attrs["macros_image_convention"] = "opengl"
+        demo = data.create_group("demo_0")
+        demo.create_dataset("actions", data=rng.normal(size=(6, 7)))
+        demo.create_dataset("obs/agentview_rgb", data=frames)
+        demo.create_dataset("obs/eye_in_hand_rgb", data=frames[:, ::-1])
+        demo.create_dataset("obs/ee_states", data=rng.normal(size=(6, 6)))
+        demo.create_dataset("obs/gripper_states", data=rng.normal(size=(6, 2)))
+    ds = HDF5RobotDataset(
+        [path], cameras=["agentview", "robot0_eye_in_hand"],
+        proprio_keys=["ee_states", "gripper_states"], chunk_size=2,
+    )  # fmt: skip
+    sample = ds[1]
+    assert sample[keys.INSTRUCTION] == "put it" and sample[keys.PROPRIO].shape == (8,)
+    # rotated 180 degrees, as the LIBERO evaluation rotates the live images
+    expected = np.rot90(frames[1], 2).transpose(2, 0, 1) / 255.0
+    np.testing.assert_allclose(sample[keys.IMAGES][0].numpy(), expected, atol=1e-6)
+    robomimic = tmp_path / "robomimic.hdf5"  # files without the convention are read as stored
+    with h5py.File(path, "r") as src, h5py.File(robomimic, "w") as dst:
+        src.copy("data", dst)
+        del dst["data"].attrs["macros_image_convention"]
+    upright = HDF5RobotDataset(
+        [robomimic], cameras=["agentview"], proprio_keys=["ee_states"], chunk_size=2
+    )[1]
+    np.testing.assert_allclose(
+        upright[keys.IMAGES][0].numpy(), frames[1].transpose(2, 0, 1) / 255.0, atol=1e-6
+    )

@@ -38,7 +38,7 @@ TOOLS: dict[str, tuple[str, str]] = {  # name: ("module:function", help), import
     "backbone-info": ("capvector.cli:backbone_info_main", "parameter counts of a preset"),
     "export": ("capvector.cli:export_main", "export a checkpoint to a safetensors folder"),
     "import-original": ("capvector.cli:import_original_main", "original checkpoint -> export"),
-    "demos": ("capvector.sim.demos:main", "record scripted robosuite demonstrations"),
+    "demos": ("capvector.sim.demos:main", "record scripted robosuite or LIBERO demonstrations"),
     "evaluate": ("capvector.workflows.evaluate:main", "MuJoCo rollouts of a checkpoint"),
     "recipe": ("capvector.workflows.recipe:main", "run the whole recipe as resumable stages"),
     "sweep-scale": ("capvector.workflows.sweep:main", "choose the merge scale λ"),

@@ -5,10 +5,17 @@ Layout read here (robomimic ``docs/datasets/overview.md``; LIBERO ``scripts/crea
     data/                      attrs: env_args (JSON), language_instruction or problem_info (LIBERO)
       demo_N/                  attrs: num_samples, language_instruction (optional)
         actions                (T, A)
-        obs/<camera>_image     (T, H, W, 3) uint8, upright
+        obs/<camera>_image     (T, H, W, 3) uint8, upright; LIBERO: obs/agentview_rgb,
+                               obs/eye_in_hand_rgb (cameras agentview, robot0_eye_in_hand)
         obs/<camera>_depth     (T, H, W) float32 metres (optional)
         obs/<proprio key>      (T, d) for each key in ``proprio_keys``, concatenated in order
         annotations            (T,) UTF-8 text about the scene (optional)
+
+LIBERO's files (``data`` attr ``macros_image_convention="opengl"``) hold the images as the
+simulator renders them; they are rotated 180 degrees when read, as the LIBERO evaluation rotates
+the live images (``capvector.sim.libero.flip_image``; OpenVLA-OFT's RLDS conversion and
+``get_libero_image``), so training and evaluation see the same orientation. Their 8-d proprio is
+``proprio_keys: [ee_states, gripper_states]`` (eef position, axis-angle, two finger joints).
 
 A sample is the observation at step t and the action chunk t..t+T-1. Chunks never run past the end
 of an episode: as OFT (``chunk_act_obs``), only steps 0..len-T start a sample.
@@ -72,6 +79,22 @@ def _instruction(data: h5py.Group, demo: h5py.Group, fallback: str | None, path:
         f"{path} has no language instruction (attr `language_instruction` on `data` or the demo, "
         "or LIBERO's `problem_info`); set data.instruction in the config"
     )
+
+
+def image_key(obs: h5py.Group, camera: str) -> str:
+    """The key of ``camera``'s images in a demo's ``obs``: ``<camera>_image`` (robomimic, ours)
+    or LIBERO's ``<camera>_rgb`` with robosuite's ``robot0_`` prefix dropped (``eye_in_hand_rgb``);
+    ``<camera>_image`` when neither is there (the error names it)."""
+    for key in (f"{camera}_image", f"{camera}_rgb", f"{camera.removeprefix('robot0_')}_rgb"):
+        if key in obs:
+            return key
+    return f"{camera}_image"
+
+
+def stored_upside_down(data: h5py.Group) -> bool:
+    """LIBERO's ``create_dataset.py`` stores the renderer's OpenGL-convention frames and says so."""
+    convention = data.attrs.get("macros_image_convention", "")
+    return (convention.decode() if isinstance(convention, bytes) else str(convention)) == "opengl"
 
 
 def _open(path: str) -> h5py.File:
@@ -147,6 +170,8 @@ class HDF5RobotDataset(Dataset):
         self.index: list[tuple[int, int]] = []  # (episode, start step)
         # kind ("actions", "image", ...) -> (per-step shape, the key it was first seen at)
         self._shapes: dict[str, tuple[tuple[int, ...], str]] = {}
+        self._image_keys: list[list[str]] = []  # per file: each camera's obs key
+        self._upside_down: list[bool] = []  # per file: rotate its images 180 degrees when read
         all_actions, all_proprio = [], []
         for file_index, path in enumerate(self.files):
             with _open(path) as f:
@@ -154,6 +179,12 @@ class HDF5RobotDataset(Dataset):
                     raise DatasetError(f"{path} has no `data` group: not a robomimic/LIBERO file")
                 data = f["data"]
                 names = _demo_names(data)
+                self._upside_down.append(stored_upside_down(data))
+                self._image_keys.append(
+                    [image_key(data[names[0]].get("obs", {}), c) for c in self.cameras]
+                    if names
+                    else []
+                )
                 if not names:
                     raise DatasetError(
                         f"{path}:data holds no demonstration (no `demo_N` group); re-record the "
@@ -221,11 +252,8 @@ class HDF5RobotDataset(Dataset):
         available = sorted(obs.keys()) if obs is not None else []
         depth = [f"{c}_depth" for c in self.cameras] if self.load_depth else []
         missing_depth = [k for k in depth if k not in available]
-        missing = [
-            k
-            for k in [f"{c}_image" for c in self.cameras] + self.proprio_keys
-            if k not in available
-        ]
+        images = [image_key(obs, c) for c in self.cameras] if obs is not None else []
+        missing = [k for k in images + self.proprio_keys if k not in available]
         if missing_depth and not missing:
             raise DatasetError(
                 f"{where}/obs has no depth ({missing_depth}): the demos were recorded without "
@@ -261,8 +289,8 @@ class HDF5RobotDataset(Dataset):
         self._check_shape("actions", actions.shape[1:], f"{where}/actions")
         obs = demo["obs"]
         for camera in self.cameras:
-            image = obs[f"{camera}_image"]
-            key = f"{where}/obs/{camera}_image"
+            image = obs[image_key(obs, camera)]
+            key = f"{where}/obs/{image_key(obs, camera)}"
             if image.dtype != np.uint8 or image.ndim != 4 or image.shape[-1] != 3:
                 raise DatasetError(
                     f"{key} is {image.dtype} of shape {image.shape}; images must be uint8 "
@@ -373,7 +401,10 @@ class HDF5RobotDataset(Dataset):
         """The frames (images, depth, annotations the config loads) at ``steps`` of one episode."""
         demo = self._file(episode.file)["data"][episode.demo]
         obs = demo["obs"]
-        images = np.stack([obs[f"{c}_image"][steps] for c in self.cameras], axis=1)
+        keys = self._image_keys[episode.file]
+        images = np.stack([obs[key][steps] for key in keys], axis=1)
+        if self._upside_down[episode.file]:  # (S, N_cam, H, W, 3): each image rotated 180°
+            images = np.ascontiguousarray(images[:, :, ::-1, ::-1])
         depth = (
             np.stack([obs[f"{c}_depth"][steps] for c in self.cameras], axis=1).astype(np.float32)
             if self.load_depth

@@ -1,0 +1,328 @@
+"""``capvector demos --suite``: scripted-expert demos of LIBERO tasks in LIBERO's released HDF5 layout.
+
+One file per task, named as LIBERO names its released files (``<bddl name>_demo.hdf5``), with the
+keys and attributes of LIBERO's ``scripts/create_dataset.py`` (the script that made the released
+datasets), so a user's real LIBERO data and these demos load through the same reader::
+
+    data                  attrs: env_name, problem_info (JSON: problem_name, domain_name,
+                          language_instruction), macros_image_convention ("opengl"),
+                          bddl_file_name, bddl_file_content, env_args (JSON: type=1, env_name,
+                          problem_name, bddl_file, env_kwargs), num_demos, total;
+                          ours: expert, suite, task_id, seeds (JSON)
+    data/demo_<i>         attrs: num_samples, model_file (MJCF), init_state; ours: seed
+        actions           (T, 7) float64  gripper -1 open / +1 closed
+        states            (T, D) float64  flattened sim state before step t
+        robot_states      (T, 9)          gripper qpos (2), eef pos (3), eef quat (4, xyzw)
+        rewards, dones    (T,) uint8      1 at the last step only (as create_dataset.py)
+        obs/agentview_rgb, obs/eye_in_hand_rgb   (T, H, W, 3) uint8, as the env renders them
+                          (OpenGL convention: rotated 180 degrees from upright, like LIBERO's)
+        obs/ee_states (T, 6) eef pos + axis-angle, obs/ee_pos (T, 3), obs/ee_ori (T, 3),
+        obs/gripper_states (T, 2), obs/joint_states (T, 7)
+
+Start states: LIBERO's own placement initializer (an ``env.reset()`` after seeding numpy's global
+RNG, which LIBERO's region samplers draw from) with seeds ``seed, seed+1, ...``; a placement
+within :data:`MIN_DISTANCE` of one of the task's official evaluation initial states (in every
+object coordinate) is skipped, so no demo starts where an evaluation trial does. The 10 wait
+steps of the evaluation protocol run first (objects settle) and are not recorded; recording stops
+at the first step LIBERO's success predicate holds, as a released demo ends when the task is done.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+from robosuite.utils import transform_utils as T
+from tqdm import tqdm
+
+from capvector.errors import CapVectorError
+from capvector.io.outputs import atomic_write_file, check_output
+from capvector.sim.libero import (
+    LIBERO_NUM_TASKS,
+    initial_states,
+    libero_task,
+    make_libero_env,
+    max_steps,
+)
+from capvector.sim.libero_experts import LiberoPlaceExpert, run_trial, task_env
+
+LIBERO_IMAGE_SIZE = 128
+"""The released datasets' image size (``create_dataset.py``: ``camera_heights=128``)."""
+MIN_DISTANCE = 1e-3
+"""A demo placement differs from every official init state by more than this (m or rad) in at
+least one object coordinate."""
+CAMERA_KEYS = {"agentview": "agentview_rgb", "robot0_eye_in_hand": "eye_in_hand_rgb"}
+"""Env camera -> the dataset key LIBERO stores its images under."""
+
+
+@dataclass
+class TaskDemos:
+    path: Path
+    task_id: int
+    demos: int = 0
+    attempts: int = 0
+    seeds: list[int] = field(default_factory=list)
+    skipped_seeds: list[int] = field(default_factory=list)
+    """Seeds whose placement was an official init state's (never recorded)."""
+    lengths: list[int] = field(default_factory=list)
+
+
+def demo_file_name(suite: str, task_id: int) -> str:
+    """``<bddl name>_demo.hdf5``, the released dataset's file name for the task."""
+    return libero_task(suite, task_id).bddl_file.stem + "_demo.hdf5"
+
+
+def is_official_state(state: np.ndarray, official: np.ndarray, object_qpos: np.ndarray) -> bool:
+    """True if ``state`` is within :data:`MIN_DISTANCE` of a row of ``official`` in every object
+    coordinate (``object_qpos``: the qpos indices of the scene's free objects)."""
+    cols = 1 + object_qpos  # flattened states start with the time
+    return bool((np.abs(official[:, cols] - state[cols]).max(axis=1) <= MIN_DISTANCE).any())
+
+
+def _object_qpos(env: Any) -> np.ndarray:
+    """qpos indices of the movable objects' joints (the robot's excluded)."""
+    inner = task_env(env)
+    model = inner.sim.model._model
+    out: list[int] = []
+    for obj in inner.objects_dict.values():
+        for joint in obj.joints:
+            jid = inner.sim.model.joint_name2id(joint)
+            start = int(model.jnt_qposadr[jid])
+            width = {0: 7, 1: 4, 2: 1, 3: 1}[int(model.jnt_type[jid])]
+            out.extend(range(start, start + width))
+    return np.asarray(sorted(out), dtype=np.int64)
+
+
+def _place(env: Any, seed: int) -> None:
+    """LIBERO's placement initializer under ``seed``: its region samplers draw from numpy's
+    global RNG (``regions/base_region_sampler.py``), which the port's ``env.seed`` leaves alone.
+    The global state is restored after: nothing else sees the reseeding."""
+    saved = np.random.get_state()
+    try:
+        np.random.seed(seed)
+        env.seed(seed)
+        env.reset()
+    finally:
+        np.random.set_state(saved)
+
+
+def record_episode(env: Any, limit: int, cameras: dict[str, str]) -> dict[str, np.ndarray] | None:
+    """One demo from the env's current (just placed) state, or None if the expert did not
+    succeed in ``limit`` steps."""
+    rows: dict[str, list[np.ndarray]] = {}
+    inner = task_env(env)
+
+    def record(obs: Any, step: Any, t: int) -> None:
+        # as create_dataset.py: eef position and robosuite's axis-angle of the eef quaternion
+        ee_states = np.concatenate(
+            [obs["robot0_eef_pos"], T.quat2axisangle(obs["robot0_eef_quat"])]
+        )
+        values = {
+            "actions": step.action,
+            "states": inner.sim.get_state().flatten(),
+            "robot_states": inner.get_robot_state_vector(obs),
+            "obs/ee_states": ee_states,
+            "obs/ee_pos": ee_states[:3],
+            "obs/ee_ori": ee_states[3:],
+            "obs/gripper_states": np.asarray(obs["robot0_gripper_qpos"]),
+            "obs/joint_states": np.asarray(obs["robot0_joint_pos"]),
+            **{f"obs/{key}": np.asarray(obs[f"{cam}_image"]) for cam, key in cameras.items()},
+        }
+        for key, value in values.items():
+            rows.setdefault(key, []).append(np.array(value))
+
+    result = run_trial(env, None, limit, on_step=record)
+    if not result.success:
+        return None
+    episode = {key: np.stack(values) for key, values in rows.items()}
+    length = len(episode["actions"])
+    last = np.zeros(length, np.uint8)
+    last[-1] = 1
+    episode["rewards"], episode["dones"] = last, last.copy()
+    return episode
+
+
+def _write_demo(
+    group: h5py.Group, episode: dict[str, np.ndarray], seed: int, model_xml: str
+) -> None:
+    for key, value in episode.items():
+        if key.endswith("_rgb"):  # one gzip chunk per frame: loaders read random frames
+            group.create_dataset(
+                key,
+                data=value,
+                chunks=(1, *value.shape[1:]),
+                compression="gzip",
+                compression_opts=4,
+            )
+        else:
+            group.create_dataset(key, data=value)
+    group.attrs["num_samples"] = len(episode["actions"])
+    group.attrs["model_file"] = model_xml
+    group.attrs["init_state"] = episode["states"][0]
+    group.attrs["seed"] = seed
+
+
+def _write_data_attrs(
+    data: h5py.Group, env: Any, suite: str, task_id: int, summary: TaskDemos, image_size: int
+) -> None:
+    task = libero_task(suite, task_id)
+    inner = task_env(env)
+    problem = inner.parsed_problem
+    problem_info = {
+        "problem_name": problem["problem_name"],
+        "domain_name": "robosuite",
+        "language_instruction": task.instruction,
+    }
+    env_name = type(inner).__name__
+    data.attrs["env_name"] = env_name
+    data.attrs["problem_info"] = json.dumps(problem_info)
+    data.attrs["macros_image_convention"] = "opengl"
+    data.attrs["bddl_file_name"] = str(task.bddl_file)
+    data.attrs["bddl_file_content"] = task.bddl_file.read_text()
+    env_kwargs = {
+        "bddl_file_name": str(task.bddl_file),
+        "camera_names": ["robot0_eye_in_hand", "agentview"],
+        "camera_heights": image_size,
+        "camera_widths": image_size,
+        "control_freq": inner.control_freq,
+    }
+    data.attrs["env_args"] = json.dumps(
+        {
+            "type": 1,
+            "env_name": env_name,
+            "problem_name": problem["problem_name"],
+            "bddl_file": str(task.bddl_file),
+            "env_kwargs": env_kwargs,
+        }
+    )
+    data.attrs["num_demos"] = summary.demos
+    data.attrs["total"] = sum(summary.lengths)
+    data.attrs["expert"] = LiberoPlaceExpert.__name__
+    data.attrs["suite"] = suite
+    data.attrs["task_id"] = task_id
+    data.attrs["seeds"] = json.dumps(summary.seeds)
+
+
+def record_task(
+    suite: str,
+    task_id: int,
+    episodes: int,
+    out_dir: Path,
+    *,
+    image_size: int = LIBERO_IMAGE_SIZE,
+    cameras: Sequence[str] = tuple(CAMERA_KEYS),
+    seed: int = 0,
+    max_attempts: int | None = None,
+    bar: Any = None,
+) -> TaskDemos:
+    """``episodes`` successful demos of one task, written atomically to ``out_dir``."""
+    unknown = [c for c in cameras if c not in CAMERA_KEYS]
+    if unknown:
+        raise CapVectorError(f"LIBERO demos record cameras {list(CAMERA_KEYS)}, not {unknown}")
+    max_attempts = max_attempts or max(2 * episodes, episodes + 20)
+    path = out_dir / demo_file_name(suite, task_id)
+    summary = TaskDemos(path, task_id)
+    env = make_libero_env(
+        suite, task_id, cameras=list(cameras), image_size=image_size, render=bool(cameras)
+    )
+    try:
+        official = initial_states(suite, task_id)
+        object_qpos = _object_qpos(env)
+        with atomic_write_file(path, what="demo file") as tmp, h5py.File(tmp, "w") as f:
+            data = f.create_group("data")
+            attempt_seed = seed
+            while summary.demos < episodes:
+                if summary.attempts >= max_attempts:
+                    raise CapVectorError(
+                        f"the LIBERO expert solved {suite} task {task_id} in only {summary.demos} "
+                        f"of {summary.attempts} attempts (seeds from {seed}), short of the "
+                        f"{episodes} demos asked for: raise --max-attempts"
+                    )
+                _place(env, attempt_seed)
+                if is_official_state(
+                    task_env(env).sim.get_state().flatten(), official, object_qpos
+                ):
+                    summary.skipped_seeds.append(attempt_seed)
+                    attempt_seed += 1
+                    continue
+                summary.attempts += 1
+                episode = record_episode(
+                    env, max_steps(suite), {c: CAMERA_KEYS[c] for c in cameras}
+                )
+                if episode is not None:
+                    model_xml = task_env(env).sim.model.get_xml()
+                    _write_demo(
+                        data.create_group(f"demo_{summary.demos}"), episode, attempt_seed, model_xml
+                    )
+                    summary.demos += 1
+                    summary.seeds.append(attempt_seed)
+                    summary.lengths.append(len(episode["actions"]))
+                    if bar is not None:
+                        bar.update(1)
+                attempt_seed += 1
+                if bar is not None:
+                    bar.set_postfix(task=task_id, attempts=summary.attempts)
+            _write_data_attrs(data, env, suite, task_id, summary, image_size)
+    finally:
+        env.close()
+    return summary
+
+
+def record_suite(
+    suite: str,
+    episodes_per_task: int,
+    out: str | os.PathLike[str],
+    *,
+    tasks: Sequence[int] | None = None,
+    image_size: int = LIBERO_IMAGE_SIZE,
+    cameras: Sequence[str] = tuple(CAMERA_KEYS),
+    seed: int = 0,
+    max_attempts: int | None = None,
+    progress: bool = True,
+) -> list[TaskDemos]:
+    """Demos of every task in ``tasks`` (default: the whole suite), one file per task in ``out``."""
+    if suite not in LIBERO_NUM_TASKS:
+        from capvector.errors import unknown_name
+
+        raise unknown_name("LIBERO suite", suite, LIBERO_NUM_TASKS)
+    if episodes_per_task < 1:
+        raise CapVectorError(f"--episodes-per-task must be at least 1, got {episodes_per_task}")
+    task_ids = list(range(LIBERO_NUM_TASKS[suite])) if not tasks else list(tasks)
+    for task_id in task_ids:
+        libero_task(suite, task_id)  # a bad id fails before any simulation
+    out_dir = check_output(out, overwrite=True, what="demo folder")
+    if out_dir.exists() and not out_dir.is_dir():
+        raise CapVectorError(
+            f"--out {out_dir} is a file; with --suite give a folder (one file per task)"
+        )
+    out_dir.mkdir(parents=True, exist_ok=True)
+    bar = tqdm(
+        total=len(task_ids) * episodes_per_task,
+        desc=f"{suite} demos",
+        unit="demo",
+        disable=not progress,
+    )
+    try:
+        summaries = [
+            record_task(
+                suite,
+                task_id,
+                episodes_per_task,
+                out_dir,
+                image_size=image_size,
+                cameras=cameras,
+                seed=seed,
+                max_attempts=max_attempts,
+                bar=bar,
+            )  # fmt: skip
+            for task_id in task_ids
+        ]
+    finally:
+        bar.close()
+    return summaries

@@ -1,0 +1,577 @@
+"""Scripted experts for LIBERO's pick-and-place tasks, judged by LIBERO's own success predicate.
+
+An expert reads what to do from the task's BDDL goal as LIBERO's parser returns it
+(``env.parsed_problem["goal_state"]``, e.g. ``[["on", "akita_black_bowl_1", "plate_1"]]``): the
+first argument is the object to move, the second an object or a region site to put it on or in.
+It then runs the phase machine of :mod:`capvector.sim.experts` (approach, descend, grasp, lift,
+carry, lower, release, retreat) over the simulator's state, with OSC_POSE delta actions:
+translation ``clip(10 * (target - eef), -1, 1)``, the gripper held at its reset orientation turned
+by the chosen grasp yaw, gripper -1 open / +1 closed.
+
+Where and how to grasp comes from the object's collision geometry (its world bounding box and
+its extent along candidate finger axes), not from per-task tables:
+
+- Bowls (an object whose top is open, :data:`RIM_GRASP`) are gripped at the rim wall, the
+  fingers closing across it about 4.7 cm from the bowl's centre (``research/libero_offline.md``,
+  "Scripted experts are feasible"); of the candidate yaws and sides, the one farthest from the
+  other objects.
+- Everything else is gripped at its centre, the fingers closing across its narrowest horizontal
+  side, a little below its top.
+
+LIBERO's ``On(a, b)`` holds when a is in contact with b, above it and within 3 cm of its centre
+in xy; ``In(a, region)`` when a's body origin is inside the region's box. So the expert carries the
+object until the *object's* origin (not the gripper) is over the target, lowers it until its
+bottom is just above the target's top, and lets go.
+
+Measured success, the 50 official initial states of every task, LIBERO's protocol (10 wait
+steps, the suite's step limit; robosuite 1.5.2 through rpent-libero): see docs/evaluation.md;
+reproduce with ``python -m capvector.sim.libero_experts --suite libero_spatial``.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from robosuite.utils import transform_utils as T
+
+from capvector.errors import CapVectorError
+from capvector.sim.experts import GRIPPER_CLOSED, GRIPPER_OPEN
+
+RIM_GRASP = ("bowl",)
+"""Object names containing one of these are grasped at the rim wall, not at the centre."""
+RIM_OFFSET = 0.047
+"""Bowl rim grasp: metres from the bowl's centre along the finger axis."""
+FINGERTIP_BELOW_EEF = 0.013
+"""The Panda fingers reach this far below the end-effector site: the lowest grasp over a surface."""
+HAND_HALF_LENGTH, HAND_HALF_WIDTH, HAND_ABOVE_EEF = 0.11, 0.035, 0.03
+"""The Panda hand's footprint about the end-effector site (along and across the finger axis) and
+how far above the site it begins: what must not land on a neighbour."""
+MAX_GRASP_WIDTH = 0.075
+REACH_X = 0.08
+"""Table scenes: beyond this x (world, m) the Panda cannot lower its hand to a bowl's rim."""
+FIXTURE_SEED_START = 1_000_000
+"""Trial i's fixtures are placed from seed FIXTURE_SEED_START + i, as in ``capvector evaluate``
+(``capvector.eval.episodes.EVAL_SEED_START``; sim/ may not import eval/)."""
+"""The Panda hand opens to 8 cm; wider sides cannot be gripped across."""
+
+
+@dataclass(frozen=True)
+class PlaceGoal:
+    """The one goal predicate an expert serves: put ``obj`` ``relation`` ``target``."""
+
+    relation: str
+    """``on`` or ``in`` (LIBERO's predicate names, lower case as its parser returns them)."""
+    obj: str
+    target: str
+    target_is_site: bool
+
+
+def task_env(env: Any) -> Any:
+    """LIBERO's robosuite env inside the wrappers (``ControlEnv``, the fast renderer's)."""
+    inner = env
+    while not hasattr(inner, "parsed_problem"):
+        inner = inner.env
+    return inner
+
+
+def place_goal(env: Any) -> PlaceGoal:
+    """The task's goal from its parsed BDDL, or a CapVectorError if it is not a single placement."""
+    inner = task_env(env)
+    goal = [list(map(str, p)) for p in inner.parsed_problem["goal_state"]]
+    if len(goal) != 1 or len(goal[0]) != 3 or goal[0][0] not in ("on", "in"):
+        raise CapVectorError(
+            f"no scripted LIBERO expert for the goal {goal} of "
+            f"{inner.parsed_problem['problem_name']}: experts place one object on or in another "
+            "(one `On` or `In` predicate)"
+        )
+    relation, obj, target = goal[0]
+    if obj not in inner.objects_dict:
+        raise CapVectorError(f"goal {goal}: {obj} is not a movable object of the scene")
+    return PlaceGoal(relation, obj, target, target not in inner.objects_dict)
+
+
+def _rot_z(angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _heading(v: np.ndarray) -> float:
+    return math.atan2(float(v[1]), float(v[0]))
+
+
+def _unit(angle: float) -> np.ndarray:
+    return np.array([math.cos(angle), math.sin(angle), 0.0])
+
+
+class _Geometry:
+    """World-frame collision geometry of a LIBERO scene's bodies, read from MuJoCo each call."""
+
+    def __init__(self, env: Any) -> None:
+        self.inner = task_env(env)
+        self.model = self.inner.sim.model._model
+        self.data = self.inner.sim.data._data
+        self._geoms: dict[str, np.ndarray] = {}
+
+    def geoms(self, name: str) -> np.ndarray:
+        """Collision geoms of body ``name`` and its descendants."""
+        if name not in self._geoms:
+            root = self.inner.obj_body_id[name]
+            m = self.model
+            ids = []
+            for g in range(m.ngeom):
+                if m.geom_contype[g] == 0 and m.geom_conaffinity[g] == 0:
+                    continue  # visual only
+                body = m.geom_bodyid[g]
+                while body not in (0, root):
+                    body = m.body_parentid[body]
+                if body == root:
+                    ids.append(g)
+            self._geoms[name] = np.asarray(ids, dtype=np.int64)
+        return self._geoms[name]
+
+    def corners(self, name: str) -> np.ndarray:
+        """(8 * G, 3) world corners of the geoms' local bounding boxes."""
+        signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+        out = []
+        for g in self.geoms(name):
+            centre, half = self.model.geom_aabb[g][:3], self.model.geom_aabb[g][3:]
+            rot = self.data.geom_xmat[g].reshape(3, 3)
+            out.append(self.data.geom_xpos[g] + (centre + signs * half) @ rot.T)
+        return np.concatenate(out)
+
+    def geom_boxes(self, name: str) -> list[tuple[np.ndarray, np.ndarray]]:
+        """World axis-aligned bounding box (lo, hi) of each collision geom of a body."""
+        corners = self.corners(name).reshape(-1, 8, 3)
+        return [(c.min(axis=0), c.max(axis=0)) for c in corners]
+
+    def box(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """World axis-aligned bounding box (lo, hi) of a body's collision geometry."""
+        c = self.corners(name)
+        return c.min(axis=0), c.max(axis=0)
+
+    def bulk_centre(self, name: str) -> np.ndarray:
+        """World centre of the body's largest collision geom (by bounding-box volume)."""
+        geoms = self.geoms(name)
+        volumes = [np.prod(self.model.geom_aabb[g][3:]) for g in geoms]
+        g = geoms[int(np.argmax(volumes))]
+        rot = self.data.geom_xmat[g].reshape(3, 3)
+        return self.data.geom_xpos[g] + rot @ self.model.geom_aabb[g][:3]
+
+    def extent(self, name: str, direction: np.ndarray) -> float:
+        """Width of the body's geometry along a horizontal unit ``direction``."""
+        projected = self.corners(name) @ direction
+        return float(projected.max() - projected.min())
+
+    def position(self, name: str) -> np.ndarray:
+        return np.array(self.data.xpos[self.inner.obj_body_id[name]])
+
+    def site(self, name: str) -> np.ndarray:
+        return np.array(self.inner.sim.data.get_site_xpos(name))
+
+    def finger_axis(self) -> np.ndarray:
+        """(3,) unit vector from the right to the left fingerpad (the direction they close along)."""
+        gripper = self.inner.robots[0].gripper["right"]
+        sim = self.inner.sim
+        pads = [gripper.important_geoms[f"{side}_fingerpad"][0] for side in ("left", "right")]
+        left, right = (sim.data.geom_xpos[sim.model.geom_name2id(n)] for n in pads)
+        axis = np.asarray(left - right, dtype=np.float64)
+        return axis / np.linalg.norm(axis)
+
+
+@dataclass(frozen=True)
+class ExpertStep:
+    action: np.ndarray
+    """(7,) float64 OSC_POSE delta action, gripper -1 open / +1 closed."""
+    phase: str
+
+
+class LiberoPlaceExpert:
+    """Pick ``goal.obj`` and put it on or in ``goal.target``; call :meth:`reset` after every
+    ``set_init_state`` (and after the wait steps), then :meth:`act` once per step."""
+
+    approach_height = 0.06
+    clearance = 0.05
+    """Carry height: the object's bottom this far above the top of everything else."""
+    release_height = 0.015
+    grasp_steps = 6
+    release_steps = 8
+    descend_steps = 40
+
+    def __init__(self, env: Any, goal: PlaceGoal | None = None) -> None:
+        self.env = env
+        self.goal = goal or place_goal(env)
+        self.geometry = _Geometry(env)
+        self.reset()
+
+    # --- planning ------------------------------------------------------------------------------
+
+    def reset(self) -> None:
+        g = self.geometry
+        obs = self.geometry.inner._get_observations(force_update=True)
+        self._rot0 = T.quat2mat(obs["robot0_eef_quat"])
+        self._axis0 = _heading(g.finger_axis())
+        self._others = [n for n in g.inner.objects_dict if n != self.goal.obj]
+        self._plan_grasp()
+        self._enter("approach")
+
+    def _plan_grasp(self) -> None:
+        """Choose the grasp yaw and point from the object's geometry as it lies now."""
+        g, name = self.geometry, self.goal.obj
+        lo, hi = g.box(name)
+        centre = g.position(name)
+        if any(key in name for key in RIM_GRASP):
+            yaw, point = self._rim_grasp(centre, lo, hi)
+            z = hi[2] - 0.022  # the middle of the rim wall's collision boxes
+        else:
+            # at the height of its bulk (the carton, not the gable fin on top of it)
+            z = min(g.bulk_centre(name)[2], hi[2] - 0.02)
+            z = max(z, lo[2] + FINGERTIP_BELOW_EEF + 0.002)
+            point = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, z])
+            yaw = self._narrow_yaw(name, point)
+        point[2] = z
+        # the fingers close along (cos yaw, sin yaw); a turn of delta about z gets them there
+        delta = (yaw - self._axis0 + math.pi / 2) % math.pi - math.pi / 2
+        self._ref_rot = _rot_z(delta) @ self._rot0
+        self._grasp = point
+        self._grasp_offset = point - centre  # from the object's origin, kept while it moves
+
+    def _narrow_yaw(self, name: str, point: np.ndarray) -> float:
+        """Heading that closes the fingers across the object's narrowest horizontal side, among
+        the 12 headings 15 degrees apart (a heading and its opposite grasp alike), with the hand
+        and fingers clear of the neighbours when they reach the grasp ``point``."""
+        best, best_score = None, np.inf
+        for k in range(-6, 6):
+            yaw = self._axis0 + k * math.pi / 12
+            width = self.geometry.extent(name, _unit(yaw))
+            if width > MAX_GRASP_WIDTH:
+                continue
+            score = width + 1e-3 * abs(k) + (1.0 if self._hand_hits(yaw, point) else 0.0)
+            if score < best_score:
+                best, best_score = yaw, score
+        if best is None:
+            raise CapVectorError(
+                f"{name} is wider than the gripper opens ({MAX_GRASP_WIDTH * 100:.1f} cm) "
+                "whichever way it is gripped"
+            )
+        return best
+
+    def _hand_hits(self, yaw: float, point: np.ndarray) -> bool:
+        """Whether the hand or the open fingers, lowered to grasp at ``point`` with the fingers
+        along ``yaw``, would land on another object (its box overlapping the footprint)."""
+        u, v = _unit(yaw), _unit(yaw + math.pi / 2)
+        # (half length along the finger axis, half width across it, lowest z above the grasp)
+        parts = (
+            (HAND_HALF_LENGTH, HAND_HALF_WIDTH, HAND_ABOVE_EEF),
+            (0.05, 0.012, -FINGERTIP_BELOW_EEF),
+        )
+        for other in self._others:
+            corners = self.geometry.corners(other)
+            along, across = (corners - point) @ u, (corners - point) @ v
+            top = corners[:, 2].max()
+            for half_length, half_width, above in parts:
+                if top < point[2] + above:
+                    continue
+                overlaps_along = along.max() > -half_length and along.min() < half_length
+                if overlaps_along and across.max() > -half_width and across.min() < half_width:
+                    return True
+        return False
+
+    def _rim_grasp(
+        self, centre: np.ndarray, lo: np.ndarray, hi: np.ndarray
+    ) -> tuple[float, np.ndarray]:
+        """(yaw, point) on a bowl's rim wall whose fingers land farthest from anything else: the
+        other objects' and the fixtures' (a drawer's walls) collision geoms at the fingers' height."""
+        g = self.geometry
+        z = hi[2] - 0.022
+        names = self._others + list(g.inner.fixtures_dict)
+        boxes = [
+            box for n in names for box in g.geom_boxes(n)
+            if box[1][2] > z - FINGERTIP_BELOW_EEF and box[0][2] < z + 0.15
+        ]  # fmt: skip
+        best, best_score = (self._axis0, centre.copy()), -np.inf
+        for k in range(-2, 2):
+            yaw = self._axis0 + k * math.pi / 4
+            for side in (1.0, -1.0):
+                u = side * _unit(yaw)
+                point = centre + RIM_OFFSET * u
+                # the open fingers reach 4 cm either side of the grasp point, plus their width
+                fingers = (point, centre + (RIM_OFFSET + 0.045) * u)
+                clearance = min(
+                    (_distance_xy(p, box) for box in boxes for p in fingers), default=1.0
+                )
+                # clear by 5 cm is enough; within the arm's reach (its base is at -x; beyond
+                # REACH_X the hand cannot get down to the rim); less wrist turn
+                reach = max(0.0, point[0] - REACH_X)
+                score = min(clearance, 0.05) - 2.0 * reach - 0.01 * abs(k)
+                score -= 1.0 if self._hand_hits(yaw, np.array([*point[:2], z])) else 0.0
+                if score > best_score:
+                    best, best_score = (yaw, point.copy()), score
+        return best
+
+    def _place_target(self) -> tuple[np.ndarray, float]:
+        """(xy where the object's origin goes, z of the surface its bottom goes to)."""
+        g, goal = self.geometry, self.goal
+        if not goal.target_is_site:
+            lo, hi = g.box(goal.target)
+            return g.position(goal.target)[:2], float(hi[2])
+        site = g.site(goal.target)
+        parent = self._site_parent(goal.target)
+        if goal.relation == "in" and parent is not None:
+            return site[:2], float(g.box(parent)[1][2])  # drop over the container's wall
+        return site[:2], float(site[2])
+
+    def _site_parent(self, site: str) -> str | None:
+        names = list(self.geometry.inner.objects_dict) + list(self.geometry.inner.fixtures_dict)
+        matches = [n for n in names if site.startswith(n + "_")]
+        return max(matches, key=len) if matches else None
+
+    def _carry_floor(self) -> float:
+        """z the held object's bottom must clear while carried: the tops of the other objects."""
+        tops = [self.geometry.box(n)[1][2] for n in self._others]
+        return max(tops) + self.clearance
+
+    # --- acting --------------------------------------------------------------------------------
+
+    def _enter(self, phase: str) -> None:
+        self.phase = phase
+        self._count = 0
+        self._xy_error_sum = np.zeros(3)
+
+    def _rotation_error(self, quat: np.ndarray) -> np.ndarray:
+        rot = T.quat2mat(quat)
+        return np.asarray(T.quat2axisangle(T.mat2quat(self._ref_rot @ rot.T)))
+
+    def _step(
+        self, obs: Mapping[str, np.ndarray], target: np.ndarray, gripper: float
+    ) -> ExpertStep:
+        error = target - np.asarray(obs["robot0_eef_pos"])
+        if self.phase in ("descend", "carry", "lower"):
+            # an integral term on xy: stretched far forward the OSC settles 7-13 mm short, enough
+            # to put a fingertip on the rim or the bowl off the plate
+            self._xy_error_sum[:2] = np.clip(self._xy_error_sum[:2] + error[:2], -0.3, 0.3)
+        move = np.clip(10.0 * error + 1.0 * self._xy_error_sum, -1.0, 1.0)
+        turn = np.clip(self._rotation_error(obs["robot0_eef_quat"]) / 0.5, -1.0, 1.0)
+        return ExpertStep(np.concatenate([move, turn, [gripper]]), self.phase)
+
+    def _holding(self, obs: Mapping[str, np.ndarray]) -> bool:
+        """The object still moves with the hand: its grasp point within 5 cm of the gripper. (The
+        finger opening says nothing here: a bowl hangs by its 2 mm wall with the fingers as
+        closed as on nothing.)"""
+        grasp = self.geometry.position(self.goal.obj) + self._grasp_offset
+        return bool(np.linalg.norm(grasp - np.asarray(obs["robot0_eef_pos"])) < 0.05)
+
+    def act(self, obs: Mapping[str, np.ndarray]) -> ExpertStep:
+        eef = np.asarray(obs["robot0_eef_pos"])
+        g, goal = self.geometry, self.goal
+        obj = g.position(goal.obj)
+        grasp = obj + self._grasp_offset
+        self._count += 1
+        if self.phase == "approach":
+            target = grasp + np.array([0.0, 0.0, self.approach_height])
+            # the open fingertips above the object's top until lined up over it
+            target[2] = max(target[2], g.box(goal.obj)[1][2] + FINGERTIP_BELOW_EEF + 0.02)
+            aligned = np.linalg.norm(self._rotation_error(obs["robot0_eef_quat"])) < 0.08
+            if (
+                np.linalg.norm((target - eef)[:2]) < 0.01
+                and abs(target[2] - eef[2]) < 0.05
+                and aligned
+            ):
+                self._enter("descend")
+            return self._step(obs, target, GRIPPER_OPEN)
+        if self.phase == "descend":
+            error = grasp - eef
+            lined_up = np.linalg.norm(error[:2]) < 0.005 and abs(error[2]) < 0.008
+            if lined_up or self._count > self.descend_steps:
+                self._enter("grasp")
+            target = grasp.copy()
+            if np.linalg.norm((grasp - eef)[:2]) > 0.004:
+                target[2] = max(grasp[2], eef[2] - 0.01)  # line up before going lower
+            return self._step(obs, target, GRIPPER_OPEN)
+        if self.phase == "grasp":
+            # lift once the fingers have stopped closing: lifting a bowl by its 2 mm rim wall
+            # before they squeeze it lets the wall slip out
+            closing = np.abs(np.asarray(obs["robot0_gripper_qvel"])).max() > 0.01
+            if (self._count >= self.grasp_steps and not closing) or self._count >= 25:
+                # at least 6 cm up first: off a cabinet or a stove, not dragged across it
+                self._lift_floor = eef[2] + 0.06
+                # where the hand did close (a descent stopped by a tall bottle's top closes
+                # higher than planned): what _holding compares against
+                self._grasp_offset = eef - obj
+                self._enter("lift")
+            return self._step(obs, grasp, GRIPPER_CLOSED)
+        if self.phase in ("lift", "carry", "lower") and not self._holding(obs):
+            self._plan_grasp()  # dropped it: grasp again from where it lies now
+            self._enter("approach")
+            return self.act(obs)
+        bottom_below_eef = eef[2] - g.box(goal.obj)[0][2]
+        xy, surface = self._place_target()
+        carry_z = max(self._carry_floor(), surface + self.clearance) + bottom_below_eef
+        carry_z = max(carry_z, self._lift_floor)
+        over = np.array([*(eef[:2] + xy - obj[:2]), carry_z])
+        if self.phase == "lift":
+            target = np.array([eef[0], eef[1], carry_z])
+            if carry_z - eef[2] < 0.02:
+                self._enter("carry")
+            return self._step(obs, target, GRIPPER_CLOSED)
+        if self.phase == "carry":
+            # On needs the centres within 3 cm, In the origin inside the region
+            if np.linalg.norm(obj[:2] - xy) < 0.008 or self._count > 80:
+                self._enter("lower")
+            return self._step(obs, over, GRIPPER_CLOSED)
+        if self.phase == "lower":
+            target = over.copy()
+            target[2] = surface + self.release_height + bottom_below_eef
+            if abs(target[2] - eef[2]) < 0.006 or self._count > 60:
+                self._enter("release")
+            return self._step(obs, target, GRIPPER_CLOSED)
+        if self.phase == "release":
+            if self._count >= self.release_steps:
+                self._enter("retreat")
+            return self._step(obs, eef, GRIPPER_OPEN)
+        return self._step(obs, eef + np.array([0.0, 0.0, 0.05]), GRIPPER_OPEN)
+
+
+def _distance_xy(point: np.ndarray, box: tuple[np.ndarray, np.ndarray]) -> float:
+    lo, hi = box
+    d = np.maximum(np.maximum(lo[:2] - point[:2], point[:2] - hi[:2]), 0.0)
+    return float(np.linalg.norm(d))
+
+
+@dataclass
+class TrialResult:
+    success: bool
+    steps: int
+    """Policy steps (after the wait steps) until success, or the step limit."""
+
+
+def run_trial(
+    env: Any,
+    init_state: np.ndarray | None,
+    max_steps: int,
+    *,
+    on_step: Any = None,
+    fixture_seed: int | None = None,
+) -> TrialResult:
+    """One trial under LIBERO's protocol: ``reset`` and ``set_init_state``, 10 wait steps, then
+    the expert until LIBERO's ``done`` or ``max_steps``. ``init_state=None`` starts from the env's
+    current state without a reset (demos: the caller has placed the objects).
+
+    ``on_step(obs, step, done)`` is called before every expert step (``obs`` the observation the
+    step acts on) (demo recording). ``fixture_seed`` seeds numpy's global RNG for the reset,
+    from which LIBERO places the fixtures (cabinets, stoves; restored after).
+    """
+    from capvector.sim.libero import NUM_WAIT_STEPS, WAIT_ACTION
+
+    if init_state is not None:
+        saved = np.random.get_state()
+        if fixture_seed is not None:
+            np.random.seed(fixture_seed)
+            env.seed(fixture_seed)
+        try:
+            env.reset()
+        finally:
+            np.random.set_state(saved)
+        env.set_init_state(init_state)
+    for _ in range(NUM_WAIT_STEPS):
+        obs, _, _, _ = env.step(WAIT_ACTION.tolist())  # objects settle, as in the evaluation
+    expert = LiberoPlaceExpert(env)
+    for t in range(max_steps):
+        step = expert.act(obs)
+        if on_step is not None:
+            on_step(obs, step, t)
+        obs, _, done, _ = env.step(step.action.tolist())
+        if done:
+            return TrialResult(True, t + 1)
+    return TrialResult(False, max_steps)
+
+
+def evaluate_expert(
+    suite: str,
+    tasks: Sequence[int] | None = None,
+    trials: int = 50,
+    *,
+    progress: bool = True,
+    on_task: Any = None,
+) -> dict[int, list[TrialResult]]:
+    """The expert on the first ``trials`` official initial states of each task;
+    ``on_task(task_id, results)`` is called as each task finishes."""
+    from tqdm import tqdm
+
+    from capvector.sim.libero import LIBERO_NUM_TASKS, initial_states, make_libero_env, max_steps
+
+    tasks = list(range(LIBERO_NUM_TASKS[suite])) if tasks is None else list(tasks)
+    results: dict[int, list[TrialResult]] = {}
+    bar = tqdm(
+        total=len(tasks) * trials, desc=f"{suite} expert", unit="trial", disable=not progress
+    )
+    for task_id in tasks:
+        # as `capvector evaluate` (eval/libero.py): soft resets (the same states after
+        # set_init_state, in a tenth of the time), trial i's fixtures from seed 1,000,000 + i
+        env = make_libero_env(suite, task_id, render=False, hard_reset=False)
+        try:
+            states = initial_states(suite, task_id)[:trials]
+            results[task_id] = []
+            for trial, state in enumerate(states):
+                seed = FIXTURE_SEED_START + trial
+                results[task_id].append(run_trial(env, state, max_steps(suite), fixture_seed=seed))
+                done = sum(r.success for r in results[task_id])
+                bar.set_postfix(task=task_id, success=f"{done}/{len(results[task_id])}")
+                bar.update(1)
+        finally:
+            env.close()
+        if on_task is not None:
+            on_task(task_id, results[task_id])
+    bar.close()
+    return results
+
+
+def success_table(suite: str, results: Mapping[int, Sequence[TrialResult]]) -> str:
+    """A Markdown table: per task its instruction, successes over trials and mean steps."""
+    from capvector.sim.libero import libero_task
+
+    lines = ["| task | instruction | success | mean steps (successes) |", "|---|---|---|---|"]
+    for task_id, trials in sorted(results.items()):
+        wins = [r.steps for r in trials if r.success]
+        steps = f"{np.mean(wins):.0f}" if wins else "-"
+        instruction = libero_task(suite, task_id).instruction
+        lines.append(f"| {task_id} | {instruction} | {len(wins)}/{len(trials)} | {steps} |")
+    total = sum(r.success for trials in results.values() for r in trials)
+    count = sum(len(trials) for trials in results.values())
+    lines.append(f"| all | | {total}/{count} | |")
+    return "\n".join(lines)
+
+
+def expert_success(
+    suite: str, tasks: Sequence[int] = (), trials: int = 50, progress: bool = True
+) -> None:
+    """Run the scripted expert on the official initial states of a LIBERO suite and print the
+    per-task success (LIBERO's predicate) as a Markdown table.
+
+    Args:
+        suite: libero_spatial, libero_object, libero_goal, ...
+        tasks: task ids (default: every task of the suite)
+        trials: initial states per task, the first N of the official 50
+        progress: show the progress bar
+    """
+
+    def report(task_id: int, results: list[TrialResult]) -> None:  # a long run shows as it goes
+        wins = sum(r.success for r in results)
+        print(f"{suite} task {task_id}: {wins}/{len(results)}", file=sys.stderr, flush=True)
+
+    results = evaluate_expert(suite, list(tasks) or None, trials, progress=progress, on_task=report)
+    print(success_table(suite, results))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from capvector.tool_cli import run_tool
+
+    return run_tool(expert_success, argv, "python -m capvector.sim.libero_experts")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
