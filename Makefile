@@ -31,12 +31,13 @@ demo: $(VENV)/.installed
 
 # SLURM (Debian's slurm-wlm and munge) for tests/test_slurm.py, which starts a one-node cluster:
 # installed here when missing, where apt-get runs as root; elsewhere that test says why it skips.
-# Two pytest-xdist workers (tests/conftest.py groups them); `-m "install or not install"` adds the
-# install tests, left out of a plain run: a fresh `pip install capvector[lerobot]` without the
-# simulator, on numpy 2, trains from a LeRobot folder (minutes, beside the other tests).
+# Two pytest-xdist workers, a test file on one worker (its module fixtures built once; the install
+# tests' one environment); `-m "install or not install"` adds the install tests, left out of a
+# plain run: a fresh `pip install capvector[lerobot]` without the simulator, on numpy 2, trains
+# from a LeRobot folder (minutes, beside the other tests).
 test: $(VENV)/.installed
 	tools/slurm/install.sh
-	$(PY) -m pytest -q -n 2 --dist loadgroup -m "install or not install"
+	$(PY) -m pytest -q -n 2 --dist loadfile -m "install or not install"
 
 lint: $(VENV)/.installed
 	$(VENV)/bin/ruff check . && $(VENV)/bin/ruff format --check .

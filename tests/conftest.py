@@ -182,22 +182,12 @@ def cache_snapshot(cache: Path, repo_id: str, folder: Path) -> Path:
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Two things, both for `make test`:
-
-    - The install tests build a fresh environment (minutes): they run only when ``-m`` names them
-      (`make test` adds them with ``-m "install or not install"``), not in a plain or a
-      ``-m "not sim"`` run.
-    - `make test` runs on two pytest-xdist workers (``--dist loadgroup``): a file's tests stay on
-      one worker (its module fixtures are built once), and every test that starts processes of its
-      own (``distributed``: 2 ranks; the SLURM cluster) queues on one worker, so at most one such
-      test runs beside one single-threaded test.
-    """
-    if "install" not in config.getoption("markexpr"):
-        kept = [item for item in items if item.get_closest_marker("install") is None]
-        if len(kept) < len(items):
-            config.hook.pytest_deselected(items=[i for i in items if i not in kept])
-            items[:] = kept
-    for item in items:
-        own_processes = item.get_closest_marker("distributed") or item.path.name == "test_slurm.py"
-        group = "own-processes" if own_processes else item.path.name
-        item.add_marker(pytest.mark.xdist_group(group))
+    """The install tests build a fresh environment (minutes): they run only when ``-m`` names them
+    (`make test` adds them with ``-m "install or not install"``), not in a plain or a
+    ``-m "not sim"`` run."""
+    if "install" in config.getoption("markexpr"):
+        return
+    kept = [item for item in items if item.get_closest_marker("install") is None]
+    if len(kept) < len(items):
+        config.hook.pytest_deselected(items=[i for i in items if i not in kept])
+        items[:] = kept

@@ -1,8 +1,8 @@
 """`pip install capvector[lerobot]` without the sim extra, as a cluster's training nodes install it:
 numpy 2, no robosuite or MuJoCo, and `capvector fit` trains from a LeRobot v3 folder.
 
-It builds a fresh environment (minutes: torch's wheels are large), so `make test` runs it as its
-own step: ``pytest -m install tests/test_install.py``."""
+It builds a fresh environment (minutes: torch's wheels are large), so it runs only when ``-m``
+names it, as `make test` does (``-m "install or not install"``, on its own xdist worker)."""
 
 from __future__ import annotations
 

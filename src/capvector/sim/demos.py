@@ -370,7 +370,8 @@ def demos_cli(
         return
     if task is None or episodes is None:
         raise CapVectorError(
-            "give --task and --episodes (robosuite), or --suite and --episodes-per-task (LIBERO)"
+            "give --task and --episodes (robosuite), or --suite and --episodes-per-task (LIBERO) "
+            "(see capvector demos --help)"
         )
     if tasks or episodes_per_task is not None:
         raise CapVectorError(

@@ -77,14 +77,9 @@ def push(
     if dry_run:
         print(f"{kind} {folder}: {len(operations)} files, model card valid; nothing uploaded")
         return
-    network_errors: tuple[type[Exception], ...] = (OSError, ValueError)
-    try:  # huggingface_hub >= 1 talks through httpx, whose errors are no OSErrors
-        import httpx
-
-        network_errors += (httpx.HTTPError,)
-    except ImportError:
-        pass
     api = HfApi()
+    # Offline, unreachable, no token, no write access: huggingface_hub raises its own errors, OSErrors
+    # or (since 1.0) its HTTP client's, so every failure of the upload is one line.
     try:
         api.create_repo(repo_id, repo_type="model", private=private, exist_ok=True)
         commit = api.create_commit(
@@ -93,7 +88,7 @@ def push(
             commit_message=message or f"capvector push: {kind} {Path(folder).name}",
             revision=revision,
         )
-    except network_errors as err:  # offline, unreachable, no token, no write access
+    except Exception as err:
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise CapVectorError(f"could not upload to {repo_id} ({first})") from err
     print(f"pushed {kind} {folder} to {commit.commit_url}")
