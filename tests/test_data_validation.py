@@ -138,8 +138,6 @@ def test_bad_hdf5_is_refused_before_training(
 def test_non_finite_lerobot_values_are_refused_before_training(
     where: str, tmp_path: Path, capfd: pytest.CaptureFixture[str]
 ) -> None:
-    pytest.importorskip("pyarrow")
-    pytest.importorskip("av")
     import pyarrow as pa
     import pyarrow.parquet as pq
 

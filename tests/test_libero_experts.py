@@ -14,19 +14,17 @@ import h5py
 import numpy as np
 import pytest
 
-pytest.importorskip("libero", reason="the `libero` extra is not installed")
-
-from capvector.cli import main as capvector  # noqa: E402
-from capvector.data.hdf5 import HDF5RobotDataset  # noqa: E402
-from capvector.errors import CapVectorError  # noqa: E402
-from capvector.sim import libero  # noqa: E402
-from capvector.sim.libero_demos import (  # noqa: E402
+from capvector.cli import main as capvector
+from capvector.data.hdf5 import HDF5RobotDataset
+from capvector.errors import CapVectorError
+from capvector.sim import libero
+from capvector.sim.libero_demos import (
     _object_qpos,
     _place,
     demo_file_name,
     is_official_state,
 )
-from capvector.sim.libero_experts import PlaceGoal, place_goal, run_trial  # noqa: E402
+from capvector.sim.libero_experts import PlaceGoal, place_goal, run_trial
 
 # One task per suite: its goal as LIBERO's BDDL parser reads it.
 TASKS = {

@@ -46,6 +46,7 @@ import numpy as np
 from tqdm import tqdm
 
 from capvector.errors import CapVectorError
+from capvector.io.frames import write_frames
 from capvector.io.outputs import atomic_write_file, check_output
 from capvector.sim.annotations import Annotator
 from capvector.sim.envs import (
@@ -188,14 +189,7 @@ def _write_demo(group: h5py.Group, ep: Episode, sim: SimEnv, model_xml: str) -> 
     obs = group.create_group("obs")
     for key, value in ep.obs.items():
         if key.endswith(("_image", "_depth")):
-            # One chunk per frame: a data loader reads random frames, gzip shrinks them ~3x.
-            obs.create_dataset(
-                key,
-                data=value,
-                chunks=(1, *value.shape[1:]),
-                compression="gzip",
-                compression_opts=4,
-            )
+            write_frames(obs, key, value)
         else:
             obs.create_dataset(key, data=value)
 

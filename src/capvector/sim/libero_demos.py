@@ -42,6 +42,7 @@ from robosuite.utils import transform_utils as T
 from tqdm import tqdm
 
 from capvector.errors import CapVectorError
+from capvector.io.frames import write_frames
 from capvector.io.outputs import atomic_write_file, check_output
 from capvector.sim.libero import (
     LIBERO_NUM_TASKS,
@@ -152,14 +153,8 @@ def _write_demo(
     group: h5py.Group, episode: dict[str, np.ndarray], seed: int, model_xml: str
 ) -> None:
     for key, value in episode.items():
-        if key.endswith("_rgb"):  # one gzip chunk per frame: loaders read random frames
-            group.create_dataset(
-                key,
-                data=value,
-                chunks=(1, *value.shape[1:]),
-                compression="gzip",
-                compression_opts=4,
-            )
+        if key.endswith("_rgb"):
+            write_frames(group, key, value)
         else:
             group.create_dataset(key, data=value)
     group.attrs["num_samples"] = len(episode["actions"])
