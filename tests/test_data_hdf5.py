@@ -226,3 +226,27 @@ def test_libero_layout_reads_its_image_keys_upright_and_problem_info(tmp_path: P
     np.testing.assert_allclose(
         upright[keys.IMAGES][0].numpy(), frames[1].transpose(2, 0, 1) / 255.0, atol=1e-6
     )
+
+
+def test_a_folder_in_train_files_stands_for_its_hdf5_files(tmp_path: Path) -> None:
+    """A LIBERO suite comes as a folder of per-task files: data.train_files takes the folder."""
+    folder = tmp_path / "suite"
+    folder.mkdir()
+    for name in ("b_task_demo.hdf5", "a_task_demo.hdf5"):
+        write_demo_file(folder / name)
+    (folder / "notes.txt").write_text("not a demo file")
+    dm = RobotDataModule(train_files=[str(folder)], cameras=CAMERAS, proprio_keys=PROPRIO)
+    assert dm.hparams.train_files == [
+        str(folder / "a_task_demo.hdf5"),
+        str(folder / "b_task_demo.hdf5"),
+    ]
+    dm.setup("fit")
+    single = RobotDataModule(
+        train_files=[str(folder / "a_task_demo.hdf5")], cameras=CAMERAS, proprio_keys=PROPRIO
+    )
+    single.setup("fit")
+    assert len(dm.train_dataset) == 2 * len(single.train_dataset)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(DatasetError, match=r"data.val_files: folder .*empty holds no \*.hdf5"):
+        RobotDataModule(train_files=[str(folder)], val_files=[str(empty)])

@@ -208,3 +208,35 @@ def test_from_results_takes_the_place_of_the_run_folder(tmp_path: Path) -> None:
     with pytest.raises(CapVectorError, match="not a results.json written by capvector report"):
         main(["--from-results", str(tmp_path / "notes.json"), "--out", str(tmp_path / "o")])
     assert not (tmp_path / "o").exists()
+
+
+def test_libero_episodes_pair_by_task_and_initial_state(tmp_path: Path) -> None:
+    """LIBERO's evaluation units are (task, official initial state): the validation loop's
+    episodes.csv names them `libero_spatial/<task>` and trial (tests/test_libero_eval.py), the
+    evaluate stage's results.json the same, so trial 0 of task 5 pairs with trial 0 of task 5 only."""
+    run, tasks, trials = tmp_path / "run", (5, 6), (0, 1)
+    rows = [
+        {"task": f"libero_spatial/{t}", "robot": "Panda", "variant": None, "episodes": 2,
+         "successes": 0, "outcomes": [[i, False] for i in trials]}
+        for t in tasks
+    ]  # fmt: skip
+    (run / "eval_pre").mkdir(parents=True)
+    (run / "eval_pre" / "results.json").write_text(json.dumps(rows))
+    # task 5 is solved from state 0 by both arms, task 6 from state 1 by aux only
+    arms = {"sft": {(5, 0): 1, (6, 1): 0}, "aux": {(5, 0): 1, (6, 1): 1}}
+    for arm, solved in arms.items():
+        write_fit(run, f"{arm}_s0", {4: sum(solved.values()) / 4}, {4: 0.3})
+        lines = ["step,task,seed,success"] + [
+            f"4,libero_spatial/{t},{i},{solved.get((t, i), 0)}" for t in tasks for i in trials
+        ]
+        (run / f"{arm}_s0" / "fit" / "version_0" / "episodes.csv").write_text("\n".join(lines))
+    out = tmp_path / "report"
+    stages = [("plain SFT", "sft_s*", "eval_pre"), ("aux-SFT", "aux_s*", "eval_pre")]
+    report(run, stages, [], out, 0.5, ["plain SFT"], [], resamples=200)
+    result = json.loads((out / "results.json").read_text())
+    sft, aux = result["comparison"]["arms"]
+    units = [[f"libero_spatial/{t}", i] for t in tasks for i in trials]
+    assert sft["eval_seeds"] == aux["eval_seeds"] == units
+    assert sft["outcomes"][0][1] == [1, 0, 0, 0] and aux["outcomes"][0][1] == [1, 0, 0, 1]
+    (difference,) = result["comparison"]["differences"]
+    assert difference["points"]["4"]["difference"] == pytest.approx(0.25)

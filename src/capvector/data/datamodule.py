@@ -48,6 +48,23 @@ class DemoGeneration:
     image_size: int = 64
 
 
+def demo_files(paths: Sequence[str] | None, option: str) -> list[str] | None:
+    """``paths`` with each existing folder replaced by its ``*.hdf5`` files, sorted; other
+    entries (files, or files ``data.generate`` will record) as given."""
+    if paths is None:
+        return None
+    files: list[str] = []
+    for path in paths:
+        if not Path(path).is_dir():
+            files.append(str(path))
+            continue
+        found = sorted(str(f) for f in Path(path).glob("*.hdf5"))
+        if not found:
+            raise DatasetError(f"{option}: folder {path} holds no *.hdf5 files")
+        files.extend(found)
+    return files
+
+
 class RobotDataModule(L.LightningDataModule):
     """Training samples from HDF5 demos or a LeRobot v3 folder; optional held-out demos (files, or
     episodes of the folder) for an action-L1 validation. With ``eval_tasks`` alone it only
@@ -79,8 +96,9 @@ class RobotDataModule(L.LightningDataModule):
     ) -> None:
         """
         Args:
-            train_files: HDF5 files in the robomimic/LIBERO layout.
-            val_files: held-out files; validation then reports the action L1 on them.
+            train_files: HDF5 files in the robomimic/LIBERO layout; a folder stands for every
+                ``*.hdf5`` in it (a LIBERO suite's released datasets: one file per task).
+            val_files: held-out files (or folders); validation then reports the action L1 on them.
             eval_tasks: MuJoCo rollout episodes for the validation loop (success rates):
                 robosuite tasks (``{task: Lift, episodes: 20}``) and LIBERO trials under the
                 official protocol (``{suite: libero_spatial, tasks: [0, 1], trials: 5}``).
@@ -116,6 +134,8 @@ class RobotDataModule(L.LightningDataModule):
         check_normalization(normalization)
         super().__init__()
         self.save_hyperparameters()
+        self.hparams["train_files"] = demo_files(train_files, "data.train_files")
+        self.hparams["val_files"] = demo_files(val_files, "data.val_files")
         self.eval_tasks = [eval_task(t) for t in eval_tasks or []]
         if self.eval_tasks:  # rollouts need the simulator: say so before the run starts
             require_extra("rollout validation (data.eval_tasks)", "sim", "mujoco", "robosuite")

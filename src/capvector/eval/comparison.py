@@ -4,7 +4,8 @@ An arm is a set of training seeds, each evaluated on the same evaluation episode
 points (training steps, or zero-shot scene variants): a 0/1 array ``(training seeds, points,
 evaluation seeds)``. A difference between two arms gets a 95% percentile interval from a
 two-level bootstrap: each resample draws the evaluation seeds with replacement, the same draw for
-both arms (outcomes pair by evaluation seed: an easy initial state is easy for every arm), and
+both arms (outcomes pair by evaluation seed: an easy initial state is easy for every arm; an
+evaluation seed is a (task, seed) pair, for LIBERO (task, official initial state)), and
 each arm's training seeds with replacement, independently (seeds are not paired across arms).
 """
 
