@@ -20,6 +20,8 @@ differently, and nothing else:
   are robosuite's (visual, and the controller's target markers). Reflections cost the most
   after the meshes: LIBERO-Spatial's stove base is a mirror (a box with reflectance 0.5), for
   which robosuite draws the whole scene a second time; without them it looks matte grey.
+- Depth, when asked (``camera_depths=True``), is read back in metres with the images, in the same
+  call: it costs nothing measurable (``docs/performance.md``).
 
 Decimation is numpy, ~0.2 s for a whole scene, cached in memory per mesh (keyed by a digest of
 its vertices and faces, and the grid), so a hard reset (LIBERO rebuilds the model on every
