@@ -14,6 +14,7 @@ wrist camera sees the objects close up), so rows differ only in how a step is co
 (c) no cameras, robosuite's controller; (d) no cameras, fast substeps: the physics share
 (e) the fast renderer (:mod:`capvector.sim.libero_render`) and fast substeps: the default on a
     machine without a GPU renderer
+(f) as (e), with depth in metres too (``camera_depths=True``: ``capvector demos --suite --depth``)
 
 The states after every step of (b)-(e) are checked against (a) (equal to the bit), and the
 images of (e) against those of (a) at the same states. Then the renderers alone, per frame of
@@ -140,6 +141,7 @@ def main() -> None:
         "c": Run(make_libero_env(**make, render=False, fast_step=False), episodes),
         "d": Run(make_libero_env(**make, render=False, fast_step=True), episodes),
         "e": Run(make_libero_env(**make, rendering="fast", fast_step=True), episodes),
+        "f": Run(make_libero_env(**make, rendering="fast", camera_depths=True), episodes),
     }
     reference = np.array(runs["a"].states)
     same = all(np.array_equal(np.array(r.states), reference) for r in runs.values())
@@ -150,6 +152,7 @@ def main() -> None:
         "c": "(c) no cameras, robosuite's controller",
         "d": "(d) no cameras, fast controller substeps",
         "e": f"(e) fast renderer (cells={FAST_CELLS}) + fast substeps, 2 cameras {args.size}px",
+        "f": "(f) as (e), with depth",
     }
     steps = sum(len(actions) for _, actions in episodes)
     print(

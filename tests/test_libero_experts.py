@@ -97,7 +97,8 @@ def test_demos_suite_writes_libero_layout_that_trains(tmp_path: Path) -> None:
         demo = data["demo_0"]
         steps = demo["actions"].shape[0]
         assert data.attrs["total"] == steps == demo.attrs["num_samples"]
-        assert set(demo) == {"actions", "states", "robot_states", "rewards", "dones", "obs"}
+        # ours beside LIBERO's keys: per-step annotations (tests/test_libero_depth.py)
+        assert set(demo) == {"actions", "states", "robot_states", "rewards", "dones", "obs", "annotations"}  # fmt: skip
         assert set(demo["obs"]) == {
             "agentview_rgb", "eye_in_hand_rgb", "ee_states", "ee_pos", "ee_ori",
             "gripper_states", "joint_states",

@@ -131,8 +131,8 @@ def test_bad_rendering_options_name_the_problem() -> None:
 
     with pytest.raises(UnknownNameError, match="rendering 'fastt'.*did you mean fast"):
         make_libero_env("libero_spatial", 0, rendering="fastt")
-    with pytest.raises(CapVectorError, match="RGB images only.*rendering='official'"):
-        make_libero_env("libero_spatial", 0, rendering="fast", camera_depths=True)
+    with pytest.raises(CapVectorError, match="RGB images and depth only.*rendering='official'"):
+        make_libero_env("libero_spatial", 0, rendering="fast", camera_segmentations="instance")
 
 
 def _actions(steps: int) -> np.ndarray:

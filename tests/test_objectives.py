@@ -125,6 +125,25 @@ def test_geometric_teacher_reflects_geometry() -> None:
         teacher({keys.IMAGES: torch.zeros(1, 1, 3, 32, 32)}, (4, 4))
 
 
+def test_geometric_teacher_sees_the_same_surface_in_a_mirrored_image() -> None:
+    # LIBERO's frames are read mirrored against their camera, with fx < 0 (capvector.data.hdf5):
+    # the same tilted plane then gives the same per-patch geometry, patch columns mirrored. (On a
+    # plane 1/depth is linear in the pixel coordinates, and every finite-difference normal is the
+    # plane's, so the mirror is exact up to float32 rounding: 1e-3 here, 2.0 with the normals
+    # left to the pixel grid's handedness.)
+    teacher = GeometricTeacher(feature_dim=32, position_embedding=False)
+    K = torch.tensor([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]])
+    mirrored_K = K.clone()
+    mirrored_K[0, 0], mirrored_K[0, 2] = -40.0, 32 - 16
+    centres = torch.arange(32) + 0.5
+    depth = 1 / (1.0 + 0.01 * centres.view(1, 1, 1, 32) + 0.005 * centres.view(1, 1, 32, 1))
+    a = teacher({keys.DEPTH: depth, keys.INTRINSICS: K.expand(1, 1, 3, 3)}, (4, 4))
+    b = teacher(
+        {keys.DEPTH: depth.flip(-1), keys.INTRINSICS: mirrored_K.expand(1, 1, 3, 3)}, (4, 4)
+    )
+    assert torch.allclose(a.view(4, 4, 32), b.view(4, 4, 32).flip(1), atol=1e-2)
+
+
 def test_reasoning_loss_scores_only_answer_tokens(demo_file: Path) -> None:
     dm = datamodule(demo_file)
     backbone = build_backbone("openvla-oft-tiny", **dm.spec.backbone_overrides()).eval()

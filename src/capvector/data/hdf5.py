@@ -7,14 +7,17 @@ Layout read here (robomimic ``docs/datasets/overview.md``; LIBERO ``scripts/crea
         actions                (T, A)
         obs/<camera>_image     (T, H, W, 3) uint8, upright; LIBERO: obs/agentview_rgb,
                                obs/eye_in_hand_rgb (cameras agentview, robot0_eye_in_hand)
-        obs/<camera>_depth     (T, H, W) float32 metres (optional)
+        obs/<camera>_depth     (T, H, W) float32 metres (optional); ours in LIBERO's files:
+                               obs/agentview_depth, obs/eye_in_hand_depth
         obs/<proprio key>      (T, d) for each key in ``proprio_keys``, concatenated in order
         annotations            (T,) UTF-8 text about the scene (optional)
 
 LIBERO's files (``data`` attr ``macros_image_convention="opengl"``) hold the images as the
 simulator renders them; they are rotated 180 degrees when read, as the LIBERO evaluation rotates
 the live images (``capvector.sim.libero.flip_image``; OpenVLA-OFT's RLDS conversion and
-``get_libero_image``), so training and evaluation see the same orientation. Their 8-d proprio is
+``get_libero_image``), so training and evaluation see the same orientation. Depth maps are rotated
+with them, and the intrinsics (``data`` attrs ``<camera>_intrinsics``, of the frames as stored) are
+rotated to match (:func:`rotate_intrinsics`), so depth back-projects to camera-frame points. Their 8-d proprio is
 ``proprio_keys: [ee_states, gripper_states]`` (eef position, axis-angle, two finger joints).
 
 A sample is the observation at step t and the action chunk t..t+T-1. Chunks never run past the end
@@ -89,6 +92,24 @@ def image_key(obs: h5py.Group, camera: str) -> str:
         if key in obs:
             return key
     return f"{camera}_image"
+
+
+def depth_key(obs: h5py.Group, camera: str) -> str:
+    """The key of ``camera``'s depth in a demo's ``obs``: ``<camera>_depth``, or beside LIBERO's
+    image keys without robosuite's ``robot0_`` prefix (``eye_in_hand_depth``, ``capvector demos
+    --suite --depth``); ``<camera>_depth`` when neither is there (the error names it)."""
+    for key in (f"{camera}_depth", f"{camera.removeprefix('robot0_')}_depth"):
+        if key in obs:
+            return key
+    return f"{camera}_depth"
+
+
+def rotate_intrinsics(intrinsics: np.ndarray, height: int, width: int) -> np.ndarray:
+    """(..., 3, 3) intrinsics of images rotated 180 degrees: pixel coordinates (u, v) become
+    (W - u, H - v) (continuous, pixel (i, j) covering [j, j+1) x [i, i+1)), so both focal lengths
+    change sign and the principal point moves to (W - cx, H - cy)."""
+    rotation = np.array([[-1.0, 0.0, width], [0.0, -1.0, height], [0.0, 0.0, 1.0]])
+    return rotation @ intrinsics
 
 
 def stored_upside_down(data: h5py.Group) -> bool:
@@ -240,9 +261,11 @@ class HDF5RobotDataset(Dataset):
                     f"{path} has depth but no camera intrinsics for {missing} (attr "
                     "`data.<camera>_intrinsics`, 3x3 in pixels); regenerate with `capvector demos --depth`"
                 )
-            return torch.tensor(
-                np.stack([attrs[f"{c}_intrinsics"] for c in self.cameras]), dtype=torch.float32
-            )
+            intrinsics = np.stack([attrs[f"{c}_intrinsics"] for c in self.cameras])
+            if stored_upside_down(f["data"]):  # the frames are rotated when read: these too
+                height, width, _ = self._shapes["image"][0]
+                intrinsics = rotate_intrinsics(intrinsics, height, width)
+            return torch.tensor(intrinsics, dtype=torch.float32)
 
     def _check_demo(self, demo: h5py.Group, path: str, name: str) -> None:
         where = f"{path}:data/{name}"
@@ -250,7 +273,9 @@ class HDF5RobotDataset(Dataset):
             raise DatasetError(f"{where} has no `actions` dataset")
         obs = demo.get("obs")
         available = sorted(obs.keys()) if obs is not None else []
-        depth = [f"{c}_depth" for c in self.cameras] if self.load_depth else []
+        depth = (
+            [depth_key(obs, c) for c in self.cameras] if self.load_depth and obs is not None else []
+        )
         missing_depth = [k for k in depth if k not in available]
         images = [image_key(obs, c) for c in self.cameras] if obs is not None else []
         missing = [k for k in images + self.proprio_keys if k not in available]
@@ -299,9 +324,9 @@ class HDF5RobotDataset(Dataset):
             _check_steps(image.shape[0], length, key)
             self._check_shape("image", image.shape[1:], key)
             if self.load_depth:  # (T, H, W): the images' size, so both follow one crop
-                depth = obs[f"{camera}_depth"]
+                depth = obs[depth_key(obs, camera)]
                 self._shapes.setdefault("depth", (image.shape[1:3], key))
-                key = f"{where}/obs/{camera}_depth"
+                key = f"{where}/obs/{depth_key(obs, camera)}"
                 _check_steps(depth.shape[0], length, key)
                 self._check_shape("depth", depth.shape[1:], key)
         if self.load_annotations:
@@ -403,13 +428,17 @@ class HDF5RobotDataset(Dataset):
         obs = demo["obs"]
         keys = self._image_keys[episode.file]
         images = np.stack([obs[key][steps] for key in keys], axis=1)
-        if self._upside_down[episode.file]:  # (S, N_cam, H, W, 3): each image rotated 180°
-            images = np.ascontiguousarray(images[:, :, ::-1, ::-1])
         depth = (
-            np.stack([obs[f"{c}_depth"][steps] for c in self.cameras], axis=1).astype(np.float32)
+            np.stack([obs[depth_key(obs, c)][steps] for c in self.cameras], axis=1).astype(
+                np.float32
+            )
             if self.load_depth
             else None
         )
+        if self._upside_down[episode.file]:  # (S, N_cam, H, W[, 3]): each frame rotated 180°
+            images = np.ascontiguousarray(images[:, :, ::-1, ::-1])
+            if depth is not None:
+                depth = np.ascontiguousarray(depth[:, :, ::-1, ::-1])
         annotations = demo["annotations"][steps] if self.load_annotations else None
         return Frames(episode.file, images, depth, annotations)
 

@@ -135,7 +135,10 @@ class GeometricTeacher(Teacher):
         dv = torch.diff(points, dim=-2)
         du = torch.cat([du, du[..., -1:]], dim=-1)  # repeat the border difference
         dv = torch.cat([dv, dv[..., -1:, :]], dim=-2)
-        normals = F.normalize(torch.cross(du, dv, dim=2), dim=2)
+        # Neighbours' cross product turns with the pixel grid's handedness: images mirrored
+        # against their camera (LIBERO's, read rotated 180 degrees from bottom-up frames: fx < 0)
+        # would get the opposite normals of the same surface. sign(fx * fy) keeps one convention.
+        normals = F.normalize(torch.cross(du, dv, dim=2), dim=2) * torch.sign(fx * fy).unsqueeze(2)
         per_pixel = torch.cat([points, normals], dim=2).flatten(0, 1)  # (B*N, 6, H, W)
         mean = F.adaptive_avg_pool2d(per_pixel, grid)
         spread = (F.adaptive_avg_pool2d(per_pixel**2, grid) - mean**2).clamp_min(0).sqrt()

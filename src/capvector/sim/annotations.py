@@ -10,11 +10,21 @@ Example (Lift)::
 
     The robot is moving above the red cube. The red cube is at x=0.02, y=-0.01 on the table,
     3 cm to the left of, 12 cm in front of and 18 cm below the gripper.
+
+LIBERO scenes (:class:`LiberoAnnotator`) get the same sentences for every movable object of the
+scene, positions in LIBERO's world frame (table centre at x=y=0, the robot's base at x=-0.66,
+facing +x, so the directions are the robot's too), and what an object stands on by LIBERO's own
+``On`` predicate (``ObjectState.check_ontop``, the one its goals are checked with)::
+
+    The robot is carrying the akita black bowl 1 over the plate. The akita black bowl 1 is in the
+    gripper at x=0.02, y=0.20, 9 cm above where it started. The plate is at x=0.05, y=0.21 on the
+    table, 3 cm to the left of, 3 cm in front of and 20 cm below the gripper. ...
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -56,6 +66,21 @@ def _offset_phrase(obj: np.ndarray, eef: np.ndarray) -> str:
     return f"{', '.join(parts[:-1])} and {parts[-1]} the gripper"
 
 
+def _doing(phase: str, obj: str, onto: str, over: str) -> str:
+    """The sentence for the expert's ``phase`` (:mod:`capvector.sim.experts`' phase machine)."""
+    text = {
+        "approach": f"moving above the {obj}",
+        "descend": f"lowering the open gripper around the {obj}",
+        "grasp": f"closing the gripper on the {obj}",
+        "lift": f"lifting the {obj}",
+        "carry": f"carrying the {obj} {over}",
+        "lower": f"lowering the {obj} {onto}",
+        "release": f"opening the gripper to release the {obj}",
+        "retreat": "moving the open gripper up and away",
+    }[phase]
+    return f"The robot is {text}."
+
+
 class Annotator:
     """Turns (expert step, observation) into a sentence; call :meth:`reset` at each episode start."""
 
@@ -72,19 +97,8 @@ class Annotator:
         return f"{self._doing(step)} {self._scene(step, obs)}"
 
     def _doing(self, step: ExpertAction) -> str:
-        obj = self.spec.objects[step.target]
         _, onto, over = _GOALS.get(self.task, ("", "", ""))
-        text = {
-            "approach": f"moving above the {obj}",
-            "descend": f"lowering the open gripper around the {obj}",
-            "grasp": f"closing the gripper on the {obj}",
-            "lift": f"lifting the {obj}",
-            "carry": f"carrying the {obj} {over}",
-            "lower": f"lowering the {obj} {onto}",
-            "release": f"opening the gripper to release the {obj}",
-            "retreat": "moving the open gripper up and away",
-        }[step.phase]
-        return f"The robot is {text}."
+        return _doing(step.phase, self.spec.objects[step.target], onto, over)
 
     def _scene(self, step: ExpertAction, obs: Mapping[str, np.ndarray]) -> str:
         eef = obs["robot0_eef_pos"]
@@ -104,4 +118,58 @@ class Annotator:
             else:
                 text = f"is at {where}, {height} cm up, {_offset_phrase(pos, eef)}"
             sentences.append(f"The {name} {text}.")
+        return " ".join(sentences)
+
+
+def readable_names(names: Sequence[str]) -> dict[str, str]:
+    """LIBERO names -> words: ``akita_black_bowl_1`` -> "akita black bowl 1", and ``plate_1`` ->
+    "plate" when the scene has no other plate."""
+    stems = [n.rsplit("_", 1)[0] if n.rsplit("_", 1)[-1].isdigit() else n for n in names]
+    return {
+        name: (stem if stems.count(stem) == 1 else name).replace("_", " ")
+        for name, stem in zip(names, stems, strict=True)
+    }
+
+
+class LiberoAnnotator:
+    """Sentences for a LIBERO scene: the expert's phase towards its goal (put ``obj`` ``relation``
+    ``target``) and every movable object's place. ``env`` is LIBERO's task env (the robosuite
+    env that holds ``objects_dict``); call :meth:`reset` when an episode starts (objects at rest).
+    """
+
+    def __init__(self, env: Any, obj: str, relation: str, target: str) -> None:
+        self.env = env
+        self.obj = obj
+        self.objects = list(env.objects_dict)
+        self.supports = self.objects + list(env.fixtures_dict)
+        # the goal's target may be a region (a site): named by its words all the same
+        self.names = readable_names([*self.supports, *([target] * (target not in self.supports))])
+        self.onto = f"{'into' if relation == 'in' else 'onto'} the {self.names[target]}"
+        self.over = f"over the {self.names[target]}"
+        self._rest_z: dict[str, float] = {}
+
+    def _position(self, name: str) -> np.ndarray:
+        return np.array(self.env.sim.data.body_xpos[self.env.obj_body_id[name]])
+
+    def reset(self) -> None:
+        self._rest_z = {name: float(self._position(name)[2]) for name in self.objects}
+
+    def __call__(self, phase: str, obs: Mapping[str, np.ndarray]) -> str:
+        eef = np.asarray(obs["robot0_eef_pos"])
+        states = self.env.object_states_dict
+        sentences = [_doing(phase, self.names[self.obj], self.onto, self.over)]
+        for name in self.objects:
+            pos = self._position(name)
+            where = f"x={_num(pos[0])}, y={_num(pos[1])}"
+            height = _cm(pos[2] - self._rest_z[name])
+            under = [s for s in self.supports if s != name and states[name].check_ontop(states[s])]
+            if name == self.obj and phase in _HELD_PHASES:
+                text = f"is in the gripper at {where}, {height} cm above where it started"
+            elif under:
+                text = f"is at {where} on the {self.names[under[0]]}, {_offset_phrase(pos, eef)}"
+            elif pos[2] - self._rest_z[name] < 0.01:
+                text = f"is at {where} on the table, {_offset_phrase(pos, eef)}"
+            else:
+                text = f"is at {where}, {height} cm up, {_offset_phrase(pos, eef)}"
+            sentences.append(f"The {self.names[name]} {text}.")
         return " ".join(sentences)

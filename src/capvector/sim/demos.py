@@ -348,7 +348,7 @@ def demos_cli(
         gripper: gripper override, e.g. PandaGripper (arms whose default gripper has 6 joints
             need one)
         cameras: cameras to render; none (a bare --cameras) records low-dim demos only, fast
-        depth: also store <camera>_depth in metres
+        depth: also store <camera>_depth in metres and the cameras' intrinsics
         image_size: image height and width (default 64; LIBERO: 128, its released size)
         seed: first seed; attempts use seed, seed+1, ... (LIBERO: seeds of its placement
             initializer, skipping any that lands on an official evaluation initial state)
@@ -360,7 +360,7 @@ def demos_cli(
     """
     if suite is not None:
         _libero_demos(suite, tasks, episodes_per_task, out, task, episodes, image_size, cameras,
-                      seed, max_attempts, progress)  # fmt: skip
+                      depth, seed, max_attempts, progress)  # fmt: skip
         return
     if task is None or episodes is None:
         raise CapVectorError(
@@ -395,6 +395,7 @@ def _libero_demos(
     episodes: int | None,
     image_size: int | None,
     cameras: Sequence[str],
+    depth: bool,
     seed: int,
     max_attempts: int | None,
     progress: bool,
@@ -408,7 +409,7 @@ def _libero_demos(
     from capvector.sim.libero_demos import LIBERO_IMAGE_SIZE, record_suite
 
     summaries = record_suite(
-        suite, episodes_per_task, out, tasks=tasks, cameras=cameras, seed=seed,
+        suite, episodes_per_task, out, tasks=tasks, cameras=cameras, depth=depth, seed=seed,
         image_size=LIBERO_IMAGE_SIZE if image_size is None else image_size,
         max_attempts=max_attempts, progress=progress,
     )  # fmt: skip

@@ -492,7 +492,8 @@ def make_libero_env(
     ``render=False`` builds no renderer and no camera observations (state-only experts, physics
     tests): the observation dict then holds only proprio and object states. ``rendering`` picks
     who draws the images (:data:`Rendering`); the fast renderer's env is a
-    :class:`~capvector.sim.libero_render.FastRenderEnv` with the same observation keys.
+    :class:`~capvector.sim.libero_render.FastRenderEnv` with the same observation keys
+    (``camera_depths=True`` there gives ``<camera>_depth`` in metres, not robosuite's raw buffer).
     ``fast_step`` runs the controller substeps through :mod:`capvector.sim.fast_control` (the
     same states to the bit, ~40% less physics time); ``rendering="official", fast_step=False`` is
     LIBERO exactly as shipped. Both fast paths need robosuite 1.5. ``seed`` is passed to
@@ -516,11 +517,13 @@ def make_libero_env(
         from capvector.sim.libero_render import fast_rendering_default
 
         fast_render = fast_rendering_default()
-    if fast_render and (env_kwargs.get("camera_depths") or env_kwargs.get("camera_segmentations")):
+    if fast_render and env_kwargs.get("camera_segmentations"):
         raise CapVectorError(
-            "the fast renderer draws RGB images only; pass rendering='official' for depth or "
+            "the fast renderer draws RGB images and depth only; pass rendering='official' for "
             "segmentation"
         )
+    # The fast renderer draws depth itself (in metres); robosuite's renderer is not built.
+    fast_depth = bool(env_kwargs.pop("camera_depths", False)) if fast_render else False
     if render and not fast_render:
         env = libero.offscreen_env(
             bddl_file_name=str(task.bddl_file),
@@ -546,7 +549,7 @@ def make_libero_env(
     if fast_render:
         from capvector.sim.libero_render import FastRenderEnv
 
-        env = FastRenderEnv(env, cameras, image_size)
+        env = FastRenderEnv(env, cameras, image_size, depth=fast_depth)
     env.seed(seed)
     return env
 

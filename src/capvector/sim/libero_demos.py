@@ -8,14 +8,20 @@ datasets), so a user's real LIBERO data and these demos load through the same re
                           language_instruction), macros_image_convention ("opengl"),
                           bddl_file_name, bddl_file_content, env_args (JSON: type=1, env_name,
                           problem_name, bddl_file, env_kwargs), num_demos, total;
-                          ours: expert, suite, task_id, seeds (JSON)
+                          ours: expert, suite, task_id, seeds (JSON); with --depth
+                          <camera>_intrinsics (3x3 px, e.g. robot0_eye_in_hand_intrinsics) of
+                          the frames as stored: rows bottom-up, so fy < 0 and cy = H - cy_upright
     data/demo_<i>         attrs: num_samples, model_file (MJCF), init_state; ours: seed
         actions           (T, 7) float64  gripper -1 open / +1 closed
         states            (T, D) float64  flattened sim state before step t
         robot_states      (T, 9)          gripper qpos (2), eef pos (3), eef quat (4, xyzw)
         rewards, dones    (T,) uint8      1 at the last step only (as create_dataset.py)
         obs/agentview_rgb, obs/eye_in_hand_rgb   (T, H, W, 3) uint8, as the env renders them
-                          (OpenGL convention: rotated 180 degrees from upright, like LIBERO's)
+                          (OpenGL convention: rows bottom-up, like LIBERO's)
+        ours: annotations (T,) str   what the expert does at step t, where every movable object
+                          is and what it stands on (:class:`~capvector.sim.annotations.LiberoAnnotator`)
+        ours (--depth): obs/agentview_depth, obs/eye_in_hand_depth   (T, H, W) float32 metres
+                          along the optical axis, in the orientation of the ``_rgb`` frames
         obs/ee_states (T, 6) eef pos + axis-angle, obs/ee_pos (T, 3), obs/ee_ori (T, 3),
         obs/gripper_states (T, 2), obs/joint_states (T, 7)
 
@@ -25,6 +31,12 @@ within :data:`MIN_DISTANCE` of one of the task's official evaluation initial sta
 object coordinate) is skipped, so no demo starts where an evaluation trial does. The 10 wait
 steps of the evaluation protocol run first (objects settle) and are not recorded; recording stops
 at the first step LIBERO's success predicate holds, as a released demo ends when the task is done.
+
+Depth is drawn by the fast renderer (:class:`~capvector.sim.libero_render.FastRenderEnv`) in
+metres, or converted from robosuite's depth buffer with its ``get_real_depth_map`` when robosuite
+renders. The reader (:class:`capvector.data.hdf5.HDF5RobotDataset`) rotates RGB, depth and
+intrinsics alike, so back-projecting its depth with its intrinsics gives camera-frame points
+(``tests/test_libero_depth.py``).
 """
 
 from __future__ import annotations
@@ -44,6 +56,8 @@ from tqdm import tqdm
 from capvector.errors import CapVectorError
 from capvector.io.frames import write_frames
 from capvector.io.outputs import atomic_write_file, check_output
+from capvector.sim.annotations import LiberoAnnotator
+from capvector.sim.envs import camera_intrinsics
 from capvector.sim.libero import (
     LIBERO_NUM_TASKS,
     initial_states,
@@ -51,7 +65,7 @@ from capvector.sim.libero import (
     make_libero_env,
     max_steps,
 )
-from capvector.sim.libero_experts import LiberoPlaceExpert, run_trial, task_env
+from capvector.sim.libero_experts import LiberoPlaceExpert, place_goal, run_trial, task_env
 
 LIBERO_IMAGE_SIZE = 128
 """The released datasets' image size (``create_dataset.py``: ``camera_heights=128``)."""
@@ -60,6 +74,33 @@ MIN_DISTANCE = 1e-3
 least one object coordinate."""
 CAMERA_KEYS = {"agentview": "agentview_rgb", "robot0_eye_in_hand": "eye_in_hand_rgb"}
 """Env camera -> the dataset key LIBERO stores its images under."""
+
+
+def depth_key(rgb_key: str) -> str:
+    """Our depth key beside LIBERO's image key: ``eye_in_hand_rgb`` -> ``eye_in_hand_depth``."""
+    return rgb_key.removesuffix("_rgb") + "_depth"
+
+
+def stored_intrinsics(fovy_degrees: float, image_size: int) -> np.ndarray:
+    """(3, 3) pinhole intrinsics of frames stored as LIBERO stores them (OpenGL convention: the
+    upright image's rows bottom-up, row v of the stored frame is row H - 1 - v upright): the
+    upright intrinsics with the vertical axis reversed, ``fy -> -fy``, ``cy -> H - cy``."""
+    k = camera_intrinsics(fovy_degrees, image_size)
+    flip_rows = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, image_size], [0.0, 0.0, 1.0]])
+    return flip_rows @ k
+
+
+def _metric_depth(env: Any, obs: Any, camera: str) -> np.ndarray:
+    """(H, W) float32 metres: the fast renderer's as is, robosuite's buffer through its own
+    ``camera_utils.get_real_depth_map``."""
+    from capvector.sim.libero_render import FastRenderEnv
+
+    depth = np.asarray(obs[f"{camera}_depth"])
+    if not isinstance(env, FastRenderEnv):
+        from robosuite.utils.camera_utils import get_real_depth_map
+
+        depth = get_real_depth_map(task_env(env).sim, depth)
+    return depth.reshape(depth.shape[:2]).astype(np.float32)
 
 
 @dataclass
@@ -113,13 +154,19 @@ def _place(env: Any, seed: int) -> None:
         np.random.set_state(saved)
 
 
-def record_episode(env: Any, limit: int, cameras: dict[str, str]) -> dict[str, np.ndarray] | None:
+def record_episode(
+    env: Any, limit: int, cameras: dict[str, str], *, depth: bool = False
+) -> dict[str, np.ndarray] | None:
     """One demo from the env's current (just placed) state, or None if the expert did not
-    succeed in ``limit`` steps."""
+    succeed in ``limit`` steps. ``depth``: the env renders depth (``camera_depths=True``)."""
     rows: dict[str, list[np.ndarray]] = {}
     inner = task_env(env)
+    goal = place_goal(env)
+    annotator = LiberoAnnotator(inner, goal.obj, goal.relation, goal.target)
 
     def record(obs: Any, step: Any, t: int) -> None:
+        if t == 0:  # after the wait steps: the objects have settled
+            annotator.reset()
         # as create_dataset.py: eef position and robosuite's axis-angle of the eef quaternion
         ee_states = np.concatenate(
             [obs["robot0_eef_pos"], T.quat2axisangle(obs["robot0_eef_quat"])]
@@ -133,8 +180,12 @@ def record_episode(env: Any, limit: int, cameras: dict[str, str]) -> dict[str, n
             "obs/ee_ori": ee_states[3:],
             "obs/gripper_states": np.asarray(obs["robot0_gripper_qpos"]),
             "obs/joint_states": np.asarray(obs["robot0_joint_pos"]),
+            "annotations": annotator(step.phase, obs),
             **{f"obs/{key}": np.asarray(obs[f"{cam}_image"]) for cam, key in cameras.items()},
         }
+        if depth:
+            for cam, key in cameras.items():
+                values[f"obs/{depth_key(key)}"] = _metric_depth(env, obs, cam)
         for key, value in values.items():
             rows.setdefault(key, []).append(np.array(value))
 
@@ -153,8 +204,10 @@ def _write_demo(
     group: h5py.Group, episode: dict[str, np.ndarray], seed: int, model_xml: str
 ) -> None:
     for key, value in episode.items():
-        if key.endswith("_rgb"):
+        if key.endswith(("_rgb", "_depth")):
             write_frames(group, key, value)
+        elif key == "annotations":
+            group.create_dataset(key, data=value.tolist(), dtype=h5py.string_dtype("utf-8"))
         else:
             group.create_dataset(key, data=value)
     group.attrs["num_samples"] = len(episode["actions"])
@@ -164,10 +217,20 @@ def _write_demo(
 
 
 def _write_data_attrs(
-    data: h5py.Group, env: Any, suite: str, task_id: int, summary: TaskDemos, image_size: int
+    data: h5py.Group,
+    env: Any,
+    suite: str,
+    task_id: int,
+    summary: TaskDemos,
+    image_size: int,
+    depth_cameras: Sequence[str] = (),
 ) -> None:
     task = libero_task(suite, task_id)
     inner = task_env(env)
+    model = inner.sim.model
+    for camera in depth_cameras:  # the attribute names capvector.sim.demos writes
+        fovy = float(model.cam_fovy[model.camera_name2id(camera)])
+        data.attrs[f"{camera}_intrinsics"] = stored_intrinsics(fovy, image_size)
     problem = inner.parsed_problem
     problem_info = {
         "problem_name": problem["problem_name"],
@@ -212,19 +275,28 @@ def record_task(
     *,
     image_size: int = LIBERO_IMAGE_SIZE,
     cameras: Sequence[str] = tuple(CAMERA_KEYS),
+    depth: bool = False,
     seed: int = 0,
     max_attempts: int | None = None,
     bar: Any = None,
 ) -> TaskDemos:
-    """``episodes`` successful demos of one task, written atomically to ``out_dir``."""
+    """``episodes`` successful demos of one task, written atomically to ``out_dir``; ``depth``
+    adds each camera's depth in metres and its intrinsics."""
     unknown = [c for c in cameras if c not in CAMERA_KEYS]
     if unknown:
         raise CapVectorError(f"LIBERO demos record cameras {list(CAMERA_KEYS)}, not {unknown}")
+    if depth and not cameras:
+        raise CapVectorError("--depth needs cameras to render; drop the bare --cameras")
     max_attempts = max_attempts or max(2 * episodes, episodes + 20)
     path = out_dir / demo_file_name(suite, task_id)
     summary = TaskDemos(path, task_id)
     env = make_libero_env(
-        suite, task_id, cameras=list(cameras), image_size=image_size, render=bool(cameras)
+        suite,
+        task_id,
+        cameras=list(cameras),
+        image_size=image_size,
+        render=bool(cameras),
+        **({"camera_depths": True} if depth else {}),
     )
     try:
         official = initial_states(suite, task_id)
@@ -248,7 +320,7 @@ def record_task(
                     continue
                 summary.attempts += 1
                 episode = record_episode(
-                    env, max_steps(suite), {c: CAMERA_KEYS[c] for c in cameras}
+                    env, max_steps(suite), {c: CAMERA_KEYS[c] for c in cameras}, depth=depth
                 )
                 if episode is not None:
                     model_xml = task_env(env).sim.model.get_xml()
@@ -263,7 +335,8 @@ def record_task(
                 attempt_seed += 1
                 if bar is not None:
                     bar.set_postfix(task=task_id, attempts=summary.attempts)
-            _write_data_attrs(data, env, suite, task_id, summary, image_size)
+            depth_cameras = list(cameras) if depth else []
+            _write_data_attrs(data, env, suite, task_id, summary, image_size, depth_cameras)
     finally:
         env.close()
     return summary
@@ -277,6 +350,7 @@ def record_suite(
     tasks: Sequence[int] | None = None,
     image_size: int = LIBERO_IMAGE_SIZE,
     cameras: Sequence[str] = tuple(CAMERA_KEYS),
+    depth: bool = False,
     seed: int = 0,
     max_attempts: int | None = None,
     progress: bool = True,
@@ -312,6 +386,7 @@ def record_suite(
                 out_dir,
                 image_size=image_size,
                 cameras=cameras,
+                depth=depth,
                 seed=seed,
                 max_attempts=max_attempts,
                 bar=bar,

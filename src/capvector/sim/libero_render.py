@@ -20,6 +20,8 @@ differently, and nothing else:
   are robosuite's (visual, and the controller's target markers). Reflections cost the most
   after the meshes: LIBERO-Spatial's stove base is a mirror (a box with reflectance 0.5), for
   which robosuite draws the whole scene a second time; without them it looks matte grey.
+- Depth, when asked (``camera_depths=True``), is read back in metres with the images, in the same
+  call: it costs nothing measurable (``docs/performance.md``).
 
 Decimation is numpy, ~0.2 s for a whole scene, cached in memory per mesh (keyed by a digest of
 its vertices and faces, and the grid), so a hard reset (LIBERO rebuilds the model on every
@@ -194,13 +196,26 @@ class FastRenderEnv:
     drawn by the fast renderer: the keys (``<camera>_image``), shape, dtype and orientation of
     LIBERO's ``OffScreenRenderEnv`` (robosuite's ``IMAGE_CONVENTION``: bottom-up by default).
 
+    ``depth=True`` adds ``<camera>_depth``: (H, W) float32 metres along the optical axis, in the
+    images' orientation, read back from the same pass as the images. robosuite's env
+    (``camera_depths=True``) gives the raw depth buffer in [0, 1] there, (H, W, 1); its
+    ``camera_utils.get_real_depth_map`` turns that into these metres (``tests/test_libero_depth.py``
+    compares the two).
+
     Everything else is the wrapped env's (``env.env``, ``sim``, ``check_success``,
     ``get_sim_state``, ``seed``, ...). The render model follows the physics model across hard
-    resets. ``render()`` gives the current images upright, ``{camera: (H, W, 3) uint8}``.
+    resets. ``render()`` gives the current images upright, ``{camera: (H, W, 3) uint8}``, and
+    ``render_depth()`` the images and depth maps upright.
     """
 
     def __init__(
-        self, env: Any, cameras: Sequence[str], image_size: int, *, cells: int = FAST_CELLS
+        self,
+        env: Any,
+        cameras: Sequence[str],
+        image_size: int,
+        *,
+        cells: int = FAST_CELLS,
+        depth: bool = False,
     ) -> None:
         if not cameras:
             raise CapVectorError("FastRenderEnv needs at least one camera")
@@ -208,6 +223,7 @@ class FastRenderEnv:
         self.cameras = tuple(cameras)
         self.image_size = image_size
         self.cells = cells
+        self.depth = depth
         self._source: mujoco.MjModel | None = None
         self._renderer: CameraRenderer | None = None
         self._flip = IMAGE_CONVENTION_MAPPING[macros.IMAGE_CONVENTION] == 1  # OpenGL rows
@@ -220,6 +236,10 @@ class FastRenderEnv:
 
     def render(self) -> dict[str, np.ndarray]:
         """The current images, upright (the render model is rebuilt after a hard reset)."""
+        return self.render_depth()[0]
+
+    def render_depth(self) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray] | None]:
+        """The current images and, with ``depth=True``, depth maps in metres, all upright."""
         model = self.env.env.sim.model._model
         if model is not self._source:
             if self._renderer is not None:
@@ -229,15 +249,21 @@ class FastRenderEnv:
                 render_model(model, self.cells),
                 self.cameras,
                 self.image_size,
+                depth=self.depth,
                 geom_groups=DRAWN_GROUPS,
             )
             self._source = model
-        images, _ = self._renderer.render(self.env.env.sim.data._data)
-        return images
+        # Depth from the same pass as the images: CameraRenderer linearises MuJoCo's depth buffer
+        # with the model's clip planes (znear, zfar times the model extent), the metres robosuite's
+        # camera_utils.get_real_depth_map computes from its own buffer.
+        return self._renderer.render(self.env.env.sim.data._data)
 
     def _with_images(self, obs: dict[str, Any]) -> dict[str, Any]:
-        for camera, image in self.render().items():
-            obs[f"{camera}_image"] = np.ascontiguousarray(image[::-1]) if self._flip else image
+        images, depth = self.render_depth()
+        frames = {f"{camera}_image": image for camera, image in images.items()}
+        frames.update({f"{camera}_depth": d for camera, d in (depth or {}).items()})
+        for key, frame in frames.items():
+            obs[key] = np.ascontiguousarray(frame[::-1]) if self._flip else frame
         return obs
 
     def reset(self) -> dict[str, Any]:
