@@ -13,15 +13,18 @@ its extent along candidate finger axes), not from per-task tables:
 
 - Bowls (an object whose top is open, :data:`RIM_GRASP`) are gripped at the rim wall, the
   fingers closing across it about 4.7 cm from the bowl's centre (``research/libero_offline.md``,
-  "Scripted experts are feasible"); of the candidate yaws and sides, the one farthest from the
-  other objects.
+  "Scripted experts are feasible"); of 32 finger headings, the one whose open outer finger and
+  hand land farthest from the other objects' and the fixtures' collision geoms (a drawer's walls),
+  within the arm's reach.
 - Everything else is gripped at its centre, the fingers closing across its narrowest horizontal
   side, a little below its top.
 
 LIBERO's ``On(a, b)`` holds when a is in contact with b, above it and within 3 cm of its centre
 in xy; ``In(a, region)`` when a's body origin is inside the region's box. So the expert carries the
 object until the *object's* origin (not the gripper) is over the target, lowers it until its
-bottom is just above the target's top, and lets go.
+bottom is just above the target's top, and lets go. It lifts the object out from under whatever
+overhangs it (a cabinet's top over its open drawer) before lifting it up, and carries it just over
+what lies on its way, not over everything in the scene (the Spatial step limit is short).
 
 Measured success, the 50 official initial states of every task, LIBERO's protocol (10 wait
 steps, the suite's step limit; robosuite 1.5.2 through rpent-libero): see docs/evaluation.md;
@@ -52,12 +55,16 @@ HAND_HALF_LENGTH, HAND_HALF_WIDTH, HAND_ABOVE_EEF = 0.11, 0.035, 0.03
 """The Panda hand's footprint about the end-effector site (along and across the finger axis) and
 how far above the site it begins: what must not land on a neighbour."""
 MAX_GRASP_WIDTH = 0.075
-REACH_X = 0.08
-"""Table scenes: beyond this x (world, m) the Panda cannot lower its hand to a bowl's rim."""
+"""The Panda hand opens to 8 cm; wider sides cannot be gripped across."""
+RIM_YAWS = 16
+"""Bowl rim grasps: finger axes tried, 180/RIM_YAWS degrees apart (each from both sides)."""
+REACH = 0.805
+"""How far (m, in the vertical plane through the arm's base, along x and z) from the Panda's
+shoulder it can lower its hand to a bowl's rim: measured on table-top bowls, where beyond x = 0.08
+m it cannot; a rim up in a drawer is in reach farther out. (Across, in y, the arm turns.)"""
 FIXTURE_SEED_START = 1_000_000
 """Trial i's fixtures are placed from seed FIXTURE_SEED_START + i, as in ``capvector evaluate``
 (``capvector.eval.episodes.EVAL_SEED_START``; sim/ may not import eval/)."""
-"""The Panda hand opens to 8 cm; wider sides cannot be gripped across."""
 
 
 @dataclass(frozen=True)
@@ -148,6 +155,16 @@ class _Geometry:
         """World axis-aligned bounding box (lo, hi) of each collision geom of a body."""
         corners = self.corners(name).reshape(-1, 8, 3)
         return [(c.min(axis=0), c.max(axis=0)) for c in corners]
+
+    def oriented_boxes(self, names: Sequence[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(centres (G, 3), rotations (G, 3, 3), half sizes (G, 3)) of the collision geoms' own
+        boxes: a turned cabinet's walls as they stand, not the world boxes around them (which
+        fill its open drawer)."""
+        ids = np.concatenate([self.geoms(n) for n in names]) if names else np.zeros(0, np.int64)
+        rot = self.data.geom_xmat[ids].reshape(-1, 3, 3)
+        aabb = self.model.geom_aabb[ids]
+        centres = self.data.geom_xpos[ids] + np.einsum("gij,gj->gi", rot, aabb[:, :3])
+        return centres, rot, aabb[:, 3:]
 
     def box(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """World axis-aligned bounding box (lo, hi) of a body's collision geometry."""
@@ -284,34 +301,43 @@ class LiberoPlaceExpert:
     def _rim_grasp(
         self, centre: np.ndarray, lo: np.ndarray, hi: np.ndarray
     ) -> tuple[float, np.ndarray]:
-        """(yaw, point) on a bowl's rim wall whose fingers land farthest from anything else: the
-        other objects' and the fixtures' (a drawer's walls) collision geoms at the fingers' height."""
+        """(yaw, point) on a bowl's rim wall where the open fingers and the hand land farthest
+        from anything else: the other objects' and the fixtures' (a drawer's walls, a cabinet's
+        top) collision geoms, as the oriented boxes they are."""
         g = self.geometry
         z = hi[2] - 0.022
-        names = self._others + list(g.inner.fixtures_dict)
-        boxes = [
-            box for n in names for box in g.geom_boxes(n)
-            if box[1][2] > z - FINGERTIP_BELOW_EEF and box[0][2] < z + 0.15
-        ]  # fmt: skip
+        boxes = g.oriented_boxes(self._others + list(g.inner.fixtures_dict))
+        shoulder = g.inner.sim.data.get_body_xpos("robot0_link2")
         best, best_score = (self._axis0, centre.copy()), -np.inf
-        for k in range(-2, 2):
-            yaw = self._axis0 + k * math.pi / 4
+        for k in range(-RIM_YAWS // 2, RIM_YAWS // 2):
+            yaw = self._axis0 + k * math.pi / RIM_YAWS
             for side in (1.0, -1.0):
                 u = side * _unit(yaw)
-                point = centre + RIM_OFFSET * u
-                # the open fingers reach 4 cm either side of the grasp point, plus their width
-                fingers = (point, centre + (RIM_OFFSET + 0.045) * u)
-                clearance = min(
-                    (_distance_xy(p, box) for box in boxes for p in fingers), default=1.0
-                )
-                # clear by 5 cm is enough; within the arm's reach (its base is at -x; beyond
-                # REACH_X the hand cannot get down to the rim); less wrist turn
-                reach = max(0.0, point[0] - REACH_X)
-                score = min(clearance, 0.05) - 2.0 * reach - 0.01 * abs(k)
-                score -= 1.0 if self._hand_hits(yaw, np.array([*point[:2], z])) else 0.0
+                point = np.array([*(centre + RIM_OFFSET * u)[:2], z])
+                clearance = _clearance(_hand_points(point, u), boxes)
+                # clear by 2 cm is enough; within the arm's reach; less wrist turn
+                reach = max(0.0, float(np.linalg.norm((point - shoulder)[[0, 2]])) - REACH)
+                score = min(clearance, 0.02) - 2.0 * reach - 0.001 * abs(k)
                 if score > best_score:
                     best, best_score = (yaw, point.copy()), score
         return best
+
+    def _way_out(self) -> np.ndarray | None:
+        """Horizontal unit vector that slides the held object out from under whatever is just
+        above it (a bowl at the back of an open drawer sits under the cabinet's top, 1 cm above
+        its rim, and lifted straight up it is wiped out of the fingers), or None if it is free."""
+        g = self.geometry
+        centres, rot, half = g.oriented_boxes(self._others + list(g.inner.fixtures_dict))
+        corners = g.corners(self.goal.obj)
+        # the object's geometry 1 to 4 cm above where it is now
+        raised = np.concatenate([corners + np.array([0.0, 0.0, dz]) for dz in (0.01, 0.02, 0.04)])
+        local = np.einsum("gji,pgj->pgi", rot, raised[:, None, :] - centres[None])
+        inside = (np.abs(local) <= half[None] + 0.002).all(axis=-1)  # (P, G)
+        if not inside.any():
+            return None
+        blocker = int(np.argmax(inside.sum(axis=0)))
+        away = (g.position(self.goal.obj) - centres[blocker])[:2]
+        return np.array([*(away / np.linalg.norm(away)), 0.0])
 
     def _place_target(self) -> tuple[np.ndarray, float]:
         """(xy where the object's origin goes, z of the surface its bottom goes to)."""
@@ -330,10 +356,22 @@ class LiberoPlaceExpert:
         matches = [n for n in names if site.startswith(n + "_")]
         return max(matches, key=len) if matches else None
 
-    def _carry_floor(self) -> float:
-        """z the held object's bottom must clear while carried: the tops of the other objects."""
-        tops = [self.geometry.box(n)[1][2] for n in self._others]
-        return max(tops) + self.clearance
+    def _carry_floor(self, xy: np.ndarray) -> float:
+        """z the held object's bottom must clear while carried to ``xy``: the tops of the other
+        objects' and the fixtures' collision geoms it would pass over (clearing everything in the
+        scene, a bowl up on a cabinet, costs the Spatial tasks' short step limit the time to
+        lower again)."""
+        g = self.geometry
+        lo, hi = g.box(self.goal.obj)
+        reach = (hi[:2] - lo[:2]) / 2 + 0.02  # the held object's half size, and a margin
+        start = (lo[:2] + hi[:2]) / 2
+        path = start + np.linspace(0.0, 1.0, 20)[:, None] * (xy - start)
+        centres, rot, half = g.oriented_boxes(self._others + list(g.inner.fixtures_dict))
+        world_half = np.einsum("gij,gj->gi", np.abs(rot), half)  # their world boxes' half sizes
+        gap = np.abs(path[:, None, :] - centres[None, :, :2]) - world_half[None, :, :2]  # (P, G, 2)
+        passed = (gap < reach).all(axis=-1).any(axis=0)
+        tops = centres[passed, 2] + world_half[passed, 2]
+        return float(tops.max(initial=-np.inf)) + self.clearance
 
     # --- acting --------------------------------------------------------------------------------
 
@@ -410,12 +448,15 @@ class LiberoPlaceExpert:
             return self.act(obs)
         bottom_below_eef = eef[2] - g.box(goal.obj)[0][2]
         xy, surface = self._place_target()
-        carry_z = max(self._carry_floor(), surface + self.clearance) + bottom_below_eef
+        carry_z = max(self._carry_floor(xy), surface + self.clearance) + bottom_below_eef
         carry_z = max(carry_z, self._lift_floor)
         over = np.array([*(eef[:2] + xy - obj[:2]), carry_z])
         if self.phase == "lift":
             target = np.array([eef[0], eef[1], carry_z])
-            if carry_z - eef[2] < 0.02:
+            way_out = self._way_out()
+            if way_out is not None:  # under a cabinet's top: slide it out first, then up
+                target = eef + 0.05 * way_out
+            if carry_z - eef[2] < 0.01:
                 self._enter("carry")
             return self._step(obs, target, GRIPPER_CLOSED)
         if self.phase == "carry":
@@ -436,10 +477,34 @@ class LiberoPlaceExpert:
         return self._step(obs, eef + np.array([0.0, 0.0, 0.05]), GRIPPER_OPEN)
 
 
-def _distance_xy(point: np.ndarray, box: tuple[np.ndarray, np.ndarray]) -> float:
-    lo, hi = box
-    d = np.maximum(np.maximum(lo[:2] - point[:2], point[:2] - hi[:2]), 0.0)
-    return float(np.linalg.norm(d))
+def _hand_points(point: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """(P, 3) points on the open outer finger and the hand when the end-effector is at ``point``
+    with the fingers closing along ``u`` (horizontal unit vector pointing to the outer finger)."""
+    v = np.array([-u[1], u[0], 0.0])
+    z = np.array([0.0, 0.0, 1.0])
+    finger = [
+        point + r * u + w * v + h * z
+        for r in (0.04, 0.05)  # the open finger's pad and its outer face
+        for w in (-0.01, 0.0, 0.01)
+        for h in (-FINGERTIP_BELOW_EEF, 0.01, HAND_ABOVE_EEF)
+    ]
+    hand = [
+        point + r * u + w * v + h * z
+        for r in np.linspace(-HAND_HALF_LENGTH, HAND_HALF_LENGTH, 5)
+        for w in (-HAND_HALF_WIDTH, HAND_HALF_WIDTH)
+        for h in (HAND_ABOVE_EEF + 0.01, HAND_ABOVE_EEF + 0.05)
+    ]
+    return np.array(finger + hand)
+
+
+def _clearance(points: np.ndarray, boxes: tuple[np.ndarray, np.ndarray, np.ndarray]) -> float:
+    """Smallest distance from any of ``points`` (P, 3) to any oriented box (1.0 if no boxes)."""
+    centres, rot, half = boxes
+    if len(centres) == 0:
+        return 1.0
+    local = np.einsum("gji,pgj->pgi", rot, points[:, None, :] - centres[None])  # (P, G, 3)
+    outside = np.maximum(np.abs(local) - half[None], 0.0)
+    return float(np.linalg.norm(outside, axis=-1).min())
 
 
 @dataclass
