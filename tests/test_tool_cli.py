@@ -225,3 +225,26 @@ def test_the_cli_reference_names_only_real_options(
         cli.main([command, "--help"])
     shown = set(re.findall(r"--[a-z][\w-]*", capsys.readouterr().out))
     assert set(re.findall(r"--[a-z][\w-]*", synopsis)) <= shown
+
+
+def fit_shape(args: list[str]) -> tuple[str, ...]:
+    """A fit stage's ``--config`` files and the names of the options it sets."""
+    configs = [b for a, b in zip(args, args[1:], strict=False) if a == "--config"]
+    names = sorted({a.split("=")[0] for a in args if a.startswith("--") and a != "--config"})
+    return (*configs, *names)
+
+
+@pytest.mark.parametrize("recipe", RECIPES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_fit_stage_of_the_shipped_recipes_parses(
+    recipe: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A fit stage's configs and overrides make one valid `capvector fit` configuration (its
+    typos would otherwise surface hours into a study, when the stage starts)."""
+    monkeypatch.chdir(ROOT)  # the stages name their configs relative to the repository
+    _, stages = load_recipe(recipe)
+    # one stage of each shape (its configs and the options it sets): the others differ only in
+    # values a parse accepts alike (seeds, paths)
+    fits = {fit_shape(s.args): s for s in stages if s.command == "fit"}
+    for stage in fits.values():
+        config = options("fit", stage.args, capsys)
+        assert config["trainer"]["max_steps"] > 0 and config["data"]["train_files"]
