@@ -150,3 +150,30 @@ def test_our_evaluator_gives_the_policy_what_the_served_client_sent() -> None:
     assert measured["state"][0] < 1e-4, measured  # 0.1 mm / 0.1 mrad after the wait steps
     assert measured["chunk"] < CHUNK, measured
     assert max(measured["eef_mm"]) < EEF_MM, measured
+
+
+def test_the_client_waits_for_the_server_a_bounded_time() -> None:
+    """openpi's client waits forever; ours gives up with a message after --connect-timeout. The
+    client imports LIBERO 1.4 and openpi-client, which this environment lacks, so its
+    ``wait_for_server`` is compiled from the source on its own."""
+    import ast
+    import socket
+    import time
+
+    source = (Path(__file__).parents[1] / "tools" / "libero" / "eval_client.py").read_text()
+    (function,) = [
+        node for node in ast.parse(source).body
+        if isinstance(node, ast.FunctionDef) and node.name == "wait_for_server"
+    ]  # fmt: skip
+    namespace: dict[str, Any] = {"socket": socket, "time": time}
+    exec(compile(ast.Module([function], []), "eval_client.py", "exec"), namespace)
+    wait_for_server = namespace["wait_for_server"]
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        port = server.getsockname()[1]
+        wait_for_server("127.0.0.1", port, 5.0)  # returns: the port accepts
+    with pytest.raises(
+        SystemExit, match=rf"no policy server answers at 127.0.0.1:{port} after 2 s"
+    ):
+        wait_for_server("127.0.0.1", port, 2.0)  # closed now

@@ -45,7 +45,9 @@ import argparse
 import json
 import math
 import os
+import socket
 import tempfile
+import time
 from pathlib import Path
 from typing import Any
 
@@ -214,6 +216,25 @@ def write_atomically(path: Path, data: bytes) -> None:
     os.replace(tmp, path)
 
 
+def wait_for_server(host: str, port: int, timeout: float) -> None:
+    """Return once ``host:port`` accepts a connection; exit with a message after ``timeout`` s.
+    openpi's client waits for the server forever (a typo'd port or a server that crashed while
+    loading would hang the evaluation), so the wait is bounded here before it connects."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            socket.create_connection((host, port), timeout=5).close()
+            return
+        except OSError as err:
+            if time.monotonic() >= deadline:
+                raise SystemExit(
+                    f"no policy server answers at {host}:{port} after {timeout:.0f} s ({err}): "
+                    "start `capvector serve --ckpt EXPORT --port PORT` first, or raise "
+                    "--connect-timeout while a large model loads"
+                ) from None
+            time.sleep(1)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--host", default="127.0.0.1")
@@ -226,6 +247,10 @@ def main() -> None:
     parser.add_argument("--replan-steps", type=int, help="actions per request (default: chunk)")
     parser.add_argument("--json", type=Path, help="write the rows, every episode's outcome")
     parser.add_argument("--observations", type=Path, help="write first requests' arrays (npz)")
+    parser.add_argument(
+        "--connect-timeout", type=float, default=600.0,
+        help="seconds to wait for the server to accept connections (default 600)",
+    )  # fmt: skip
     args = parser.parse_args()
 
     bench = benchmark.get_benchmark_dict()[args.suite]()
@@ -235,6 +260,7 @@ def main() -> None:
             parser.error(f"--tasks {task_id}: {args.suite} has tasks 0..{bench.n_tasks - 1}")
     if not 1 <= args.trials <= 50:
         parser.error(f"--trials {args.trials}: LIBERO has 50 initial states per task")
+    wait_for_server(args.host, args.port, args.connect_timeout)
     client = WebsocketClientPolicy(args.host, args.port)
     meta = client.get_server_metadata()
     horizon = int(meta["action_horizon"])
