@@ -322,11 +322,12 @@ class LiberoPlaceExpert:
                 u = side * _unit(yaw)
                 point = np.array([*(centre + RIM_OFFSET * u)[:2], z])
                 clearance = _clearance(_hand_points(point, u), boxes)
-                # clear by 2 cm is enough; within the arm's reach, here and where it lets go;
-                # less wrist turn
+                # clear by 2 cm is enough; within the arm's reach, here and (as a tie-break
+                # among clear sides: a bowl deep in a drawer has one) where it lets go; less
+                # wrist turn
                 reach = max(0.0, float(np.linalg.norm((point - shoulder)[[0, 2]])) - REACH)
                 place = np.array([*(place_xy + point[:2] - centre[:2]), place_z])
-                reach += max(0.0, float(np.linalg.norm(place - shoulder)) - PLACE_REACH)
+                reach += 0.1 * max(0.0, float(np.linalg.norm(place - shoulder)) - PLACE_REACH)
                 score = min(clearance, 0.02) - 2.0 * reach - 0.001 * abs(k)
                 if score > best_score:
                     best, best_score = (yaw, point.copy()), score
