@@ -54,7 +54,7 @@ def test_expert_takes_the_bowl_out_of_the_open_drawer() -> None:
     """LIBERO-Spatial 4, official init state 0, fixtures as the evaluation's trial 0 places them:
     failed while the rim grasp read the turned cabinet's world boxes (they fill its drawer, so
     every finger heading looked blocked and the fingers landed on a wall) and the bowl was lifted
-    straight up into the cabinet's top (6/50 then, 48/50 now)."""
+    straight up into the cabinet's top (6/50 then, 46/50 at 2ae3e40)."""
     env = libero.make_libero_env("libero_spatial", 4, render=False, hard_reset=False)
     try:
         state = libero.initial_states("libero_spatial", 4)[0]

@@ -62,6 +62,9 @@ REACH = 0.805
 """How far (m, in the vertical plane through the arm's base, along x and z) from the Panda's
 shoulder it can lower its hand to a bowl's rim: measured on table-top bowls, where beyond x = 0.08
 m it cannot; a rim up in a drawer is in reach farther out. (Across, in y, the arm turns.)"""
+PLACE_REACH = 0.75
+"""How far (m) from the shoulder the hand can let a bowl go: stretched out to a plate at y = 0.2
+it stalls 0.785 m out, drifting 3 cm forward of the plate's centre as it goes down."""
 FIXTURE_SEED_START = 1_000_000
 """Trial i's fixtures are placed from seed FIXTURE_SEED_START + i, as in ``capvector evaluate``
 (``capvector.eval.episodes.EVAL_SEED_START``; sim/ may not import eval/)."""
@@ -308,6 +311,10 @@ class LiberoPlaceExpert:
         z = hi[2] - 0.022
         boxes = g.oriented_boxes(self._others + list(g.inner.fixtures_dict))
         shoulder = g.inner.sim.data.get_body_xpos("robot0_link2")
+        place_xy, surface = self._place_target()
+        # where the hand lets go: the bowl's bottom just above the surface, held 2 cm lower
+        # than planned (a bowl held by its rim tilts 15-20 degrees as it is lifted)
+        place_z = surface + self.release_height + (z - lo[2]) + 0.02
         best, best_score = (self._axis0, centre.copy()), -np.inf
         for k in range(-RIM_YAWS // 2, RIM_YAWS // 2):
             yaw = self._axis0 + k * math.pi / RIM_YAWS
@@ -315,8 +322,12 @@ class LiberoPlaceExpert:
                 u = side * _unit(yaw)
                 point = np.array([*(centre + RIM_OFFSET * u)[:2], z])
                 clearance = _clearance(_hand_points(point, u), boxes)
-                # clear by 2 cm is enough; within the arm's reach; less wrist turn
+                # clear by 2 cm is enough; within the arm's reach, here and (as a tie-break
+                # among clear sides: a bowl deep in a drawer has one) where it lets go; less
+                # wrist turn
                 reach = max(0.0, float(np.linalg.norm((point - shoulder)[[0, 2]])) - REACH)
+                place = np.array([*(place_xy + point[:2] - centre[:2]), place_z])
+                reach += 0.1 * max(0.0, float(np.linalg.norm(place - shoulder)) - PLACE_REACH)
                 score = min(clearance, 0.02) - 2.0 * reach - 0.001 * abs(k)
                 if score > best_score:
                     best, best_score = (yaw, point.copy()), score
