@@ -65,6 +65,20 @@ def test_expert_takes_the_bowl_out_of_the_open_drawer() -> None:
         env.close()
 
 
+def test_expert_lets_the_bowl_from_the_cabinet_go_over_the_far_plate() -> None:
+    """LIBERO-Spatial 9, official init state 1, fixtures as the evaluation's trial 1 places them:
+    the arm, stretched out to the plate, stops above it; it failed while the hand, told to stay
+    where it was as the fingers opened, sprang 2 cm forward and swung the bowl off the plate."""
+    env = libero.make_libero_env("libero_spatial", 9, render=False, hard_reset=False)
+    try:
+        state = libero.initial_states("libero_spatial", 9)[1]
+        steps = libero.max_steps("libero_spatial")
+        result = run_trial(env, state, steps, fixture_seed=FIXTURE_SEED_START + 1)
+        assert result.success, f"not solved in {result.steps} steps"
+    finally:
+        env.close()
+
+
 def test_goals_that_are_not_one_placement_are_refused() -> None:
     env = libero.make_libero_env("libero_goal", 0, render=False)  # open the middle drawer
     try:

@@ -236,6 +236,7 @@ class LiberoPlaceExpert:
         self._rot0 = T.quat2mat(obs["robot0_eef_quat"])
         self._axis0 = _heading(g.finger_axis())
         self._others = [n for n in g.inner.objects_dict if n != self.goal.obj]
+        self._release_at: np.ndarray | None = None  # where the hand stays as it lets go
         self._plan_grasp()
         self._enter("approach")
 
@@ -400,7 +401,7 @@ class LiberoPlaceExpert:
         self, obs: Mapping[str, np.ndarray], target: np.ndarray, gripper: float
     ) -> ExpertStep:
         error = target - np.asarray(obs["robot0_eef_pos"])
-        if self.phase in ("descend", "carry", "lower"):
+        if self.phase in ("descend", "carry", "lower", "release"):
             # an integral term on xy: stretched far forward the OSC settles 7-13 mm short, enough
             # to put a fingertip on the rim or the bowl off the plate
             self._xy_error_sum[:2] = np.clip(self._xy_error_sum[:2] + error[:2], -0.3, 0.3)
@@ -485,13 +486,21 @@ class LiberoPlaceExpert:
             # or the arm has stopped going down: stretched to the end of its reach (a bowl held
             # high on its rim hangs low, tilted), waiting out the 60 steps loses the episode
             stalled = len(self._heights) > 10 and self._heights[-6] - eef[2] < 0.002
-            if abs(target[2] - eef[2]) < 0.006 or stalled or self._count > 60:
+            if abs(target[2] - eef[2]) < 0.006 or self._count > 60:
+                self._release_at = None  # stay where it is
                 self._enter("release")
+            elif stalled:
+                # hold the hand at the target while the fingers open, keeping the integral term
+                # (not _enter, which zeroes it): the stretched arm, told to stay where it is,
+                # springs 2 cm forward and swings the bowl off the plate
+                self._release_at = np.array([*target[:2], eef[2]])
+                self.phase, self._count = "release", 0
             return self._step(obs, target, GRIPPER_CLOSED)
         if self.phase == "release":
             if self._count >= self.release_steps:
                 self._enter("retreat")
-            return self._step(obs, eef, GRIPPER_OPEN)
+            hold = eef if self._release_at is None else self._release_at
+            return self._step(obs, hold, GRIPPER_OPEN)
         return self._step(obs, eef + np.array([0.0, 0.0, 0.05]), GRIPPER_OPEN)
 
 
