@@ -129,15 +129,21 @@ def test_read_depth_back_projects_onto_the_objects(scene) -> None:
     # with the read intrinsics, is the object's top surface, within 2 cm of its body origin
     # (measured: 0.4-1.5 cm). The black bowls are left out: from agentview, the pixel of a bowl's
     # origin sees its near wall, 6 cm along the ray.
+    # Where the wrist camera looks at step 60 depends on the expert's path: an object out of its
+    # view is skipped, but every camera must see some object.
+    checked: dict[str, int] = dict.fromkeys(CAMERAS, 0)
     for sample, objects, poses in scene:
         for i, camera in enumerate(CAMERAS):
             k = sample["intrinsics"][i].numpy().astype(np.float64)
             points = _back_project(sample["depth"][i].numpy(), k, poses[camera])
             for name in ("plate_1", "cookies_1"):
                 row, col = _pixel(objects[name], k, poses[camera])
-                assert 0 <= row < SIZE and 0 <= col < SIZE, (camera, name, row, col)
+                if not (0 <= row < SIZE and 0 <= col < SIZE):
+                    continue
                 error = np.linalg.norm(points[row, col] - objects[name])
                 assert error < 0.02, (camera, name, error)
+                checked[camera] += 1
+    assert min(checked.values()) >= 2, checked
 
 
 def _bowl_contrast(sample, objects, poses, camera: str, i: int) -> tuple[int, float]:
