@@ -4,6 +4,7 @@ committed reports, rebuilt from their results.json."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -240,3 +241,19 @@ def test_libero_episodes_pair_by_task_and_initial_state(tmp_path: Path) -> None:
     assert sft["outcomes"][0][1] == [1, 0, 0, 0] and aux["outcomes"][0][1] == [1, 0, 0, 1]
     (difference,) = result["comparison"]["differences"]
     assert difference["points"]["4"]["difference"] == pytest.approx(0.25)
+
+
+def test_the_libero_recipe_table_is_its_committed_evaluation() -> None:
+    """docs/evaluation.md's per-task table of the LIBERO-Spatial recipe run counts what the run's
+    committed `capvector evaluate --json` holds, episode by episode."""
+    rows = json.loads((RESULTS / "libero_spatial_recipe" / "evaluate.json").read_text())
+    text = (RESULTS.parent / "evaluation.md").read_text()
+    table = text[text.index("### A policy trained on LIBERO-Spatial") :]
+    total = 0
+    for row in rows:
+        task = int(row["task"].split("/")[1])
+        successes = sum(ok for _, ok in row["outcomes"])
+        assert successes == row["successes"] and len(row["outcomes"]) == 20
+        assert re.search(rf"^\| {task} [^|]*\| {successes}/20 ", table, re.M), task
+        total += successes
+    assert f"| all | {total}/200 " in table
