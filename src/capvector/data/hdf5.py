@@ -192,6 +192,7 @@ class HDF5RobotDataset(Dataset):
         # kind ("actions", "image", ...) -> (per-step shape, the key it was first seen at)
         self._shapes: dict[str, tuple[tuple[int, ...], str]] = {}
         self._image_keys: list[list[str]] = []  # per file: each camera's obs key
+        self._depth_keys: list[list[str]] = []  # per file: each camera's depth key
         self._upside_down: list[bool] = []  # per file: rotate its images 180 degrees when read
         all_actions, all_proprio = [], []
         for file_index, path in enumerate(self.files):
@@ -201,11 +202,9 @@ class HDF5RobotDataset(Dataset):
                 data = f["data"]
                 names = _demo_names(data)
                 self._upside_down.append(stored_upside_down(data))
-                self._image_keys.append(
-                    [image_key(data[names[0]].get("obs", {}), c) for c in self.cameras]
-                    if names
-                    else []
-                )
+                first_obs = data[names[0]].get("obs", {}) if names else {}
+                self._image_keys.append([image_key(first_obs, c) for c in self.cameras])
+                self._depth_keys.append([depth_key(first_obs, c) for c in self.cameras])
                 if not names:
                     raise DatasetError(
                         f"{path}:data holds no demonstration (no `demo_N` group); re-record the "
@@ -429,7 +428,7 @@ class HDF5RobotDataset(Dataset):
         keys = self._image_keys[episode.file]
         images = np.stack([obs[key][steps] for key in keys], axis=1)
         depth = (
-            np.stack([obs[depth_key(obs, c)][steps] for c in self.cameras], axis=1).astype(
+            np.stack([obs[key][steps] for key in self._depth_keys[episode.file]], axis=1).astype(
                 np.float32
             )
             if self.load_depth

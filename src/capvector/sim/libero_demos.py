@@ -76,7 +76,7 @@ CAMERA_KEYS = {"agentview": "agentview_rgb", "robot0_eye_in_hand": "eye_in_hand_
 """Env camera -> the dataset key LIBERO stores its images under."""
 
 
-def depth_key(rgb_key: str) -> str:
+def depth_key_for_rgb(rgb_key: str) -> str:
     """Our depth key beside LIBERO's image key: ``eye_in_hand_rgb`` -> ``eye_in_hand_depth``."""
     return rgb_key.removesuffix("_rgb") + "_depth"
 
@@ -185,7 +185,7 @@ def record_episode(
         }
         if depth:
             for cam, key in cameras.items():
-                values[f"obs/{depth_key(key)}"] = _metric_depth(env, obs, cam)
+                values[f"obs/{depth_key_for_rgb(key)}"] = _metric_depth(env, obs, cam)
         for key, value in values.items():
             rows.setdefault(key, []).append(np.array(value))
 
