@@ -257,3 +257,26 @@ def test_the_libero_recipe_table_is_its_committed_evaluation() -> None:
         assert re.search(rf"^\| {task} [^|]*\| {successes}/20 ", table, re.M), task
         total += successes
     assert f"| all | {total}/200 " in table
+
+
+def test_the_libero_recipe_fails_the_same_with_twice_the_step_limit() -> None:
+    """docs/evaluation.md's step-limit check: at 440 steps the recipe's policy solves exactly the
+    episodes it solved at 220 (tasks 0-4, states 0-9), as the committed evaluations say."""
+
+    def solved(name: str) -> set[tuple[int, int]]:
+        rows = json.loads((RESULTS / "libero_spatial_recipe" / name).read_text())
+        episodes = [e for row in rows for e in row["per_episode"]]
+        return {(e["task"], e["trial"]) for e in episodes if e["success"]}
+
+    doubled = json.loads(
+        (RESULTS / "libero_spatial_recipe" / "evaluate_440_steps.json").read_text()
+    )
+    episodes = [e for row in doubled for e in row["per_episode"]]
+    assert {(e["task"], e["trial"]) for e in episodes} == {
+        (t, i) for t in range(5) for i in range(10)
+    }
+    assert all(e["steps"] == 440 for e in episodes if not e["success"])
+    at_220 = {(t, i) for t, i in solved("evaluate.json") if t < 5 and i < 10}
+    assert solved("evaluate_440_steps.json") == at_220
+    text = (RESULTS.parent / "evaluation.md").read_text()
+    assert f"succeeds in **{len(at_220)} of 50 episodes at 440 steps**" in text
