@@ -11,6 +11,7 @@ import torch
 
 from capvector.cli import main
 from capvector.data.datamodule import RobotDataModule
+from capvector.errors import CapVectorError
 from capvector.module import VLAModule
 from capvector.vectors import extract
 from capvector.workflows.fit import run_lightning_cli
@@ -138,3 +139,30 @@ def test_a_sweep_by_rollouts_alone_keeps_the_models_own_preprocessing(tmp_path: 
     assert row["episodes"] == 1 and "held_out_l1" not in row
     with (tmp_path / "sweep" / "scale_0.5" / "version_0" / "episodes.csv").open() as f:
         assert [r["seed"] for r in csv.DictReader(f)] == ["2000000"]
+
+
+def test_a_fit_config_that_merges_a_vector_itself_is_refused(tmp_path: Path) -> None:
+    """sweep-scale merges θ_pre + λc itself: a merge callback in --fit-config would merge a vector a
+    second time into every λ it fine-tunes, so the sweep stops before any work, naming it."""
+    data = write_demo_file(tmp_path / "demos.hdf5", lengths=(12, 12))
+    dm = RobotDataModule(train_files=[str(data)], augment=False)
+    torch.manual_seed(0)
+    VLAModule(data_spec=dm.spec).export(tmp_path / "pre")
+    torch.manual_seed(1)
+    VLAModule(data_spec=dm.spec).export(tmp_path / "other")
+    extract(aux=tmp_path / "other", sft=tmp_path / "pre", out=tmp_path / "vector")
+    config = tmp_path / "fit.yaml"
+    config.write_text(f"""
+trainer:
+  accelerator: cpu
+  callbacks:
+    - class_path: capvector.callbacks.MergeCapabilityVector
+      init_args: {{vector: {tmp_path / "vector"}, scale: 1.0}}
+data: {{train_files: [{data}], val_files: [{data}]}}
+""")
+    with pytest.raises(CapVectorError, match="MergeCapabilityVector: sweep-scale merges"):
+        sweep(
+            str(tmp_path / "pre"), str(tmp_path / "vector"), [1.0], str(tmp_path / "sweep"),
+            fit_configs=[str(config)], finetune_steps=2,
+        )  # fmt: skip
+    assert not (tmp_path / "sweep").exists()

@@ -75,6 +75,7 @@ def fit_settings(
             "give --task/--episodes (rollouts) and/or --demos (held-out L1), or a --fit-config "
             "whose data has eval_tasks or val_files"
         )
+    check_no_merge_callback(config.trainer.callbacks)
     for t in data.eval_tasks or []:  # validation seeds, never the evaluation ones
         if "suite" in vars(t):
             raise CapVectorError(
@@ -92,6 +93,20 @@ def fit_settings(
     for key, value in trainer_placement(device, precision, defaults=not fit_configs).items():
         config[key] = value
     return cli
+
+
+def check_no_merge_callback(callbacks: Any) -> None:
+    """The sweep merges θ_pre + λc itself, in memory: a ``MergeCapabilityVector`` in the fit
+    config's callbacks would merge a vector again when a λ is fine-tuned (``--finetune-steps``)."""
+    listed = callbacks if isinstance(callbacks, list) else [callbacks] if callbacks else []
+    for callback in listed:
+        class_path = str(getattr(callback, "class_path", ""))
+        if class_path.rsplit(".", 1)[-1] == "MergeCapabilityVector":
+            raise CapVectorError(
+                f"the --fit-config's trainer.callbacks has {class_path}: sweep-scale merges "
+                "θ_pre + λc itself, so each λ would get a vector merged a second time; give the "
+                "fit config without that callback (the downstream arm's config before the merge)"
+            )
 
 
 def trainer_placement(
