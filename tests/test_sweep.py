@@ -19,6 +19,15 @@ from capvector.workflows.sweep import best_scale, sweep
 from conftest import cpu_trainer, write_demo_file
 
 
+def export_pre_and_vector(tmp_path: Path, dm: RobotDataModule) -> None:
+    """θ_pre (``tmp_path/pre``) and a vector (``tmp_path/vector``) between two random models."""
+    torch.manual_seed(0)
+    VLAModule(data_spec=dm.spec).export(tmp_path / "pre")
+    torch.manual_seed(1)
+    VLAModule(data_spec=dm.spec).export(tmp_path / "other")
+    extract(aux=tmp_path / "other", sft=tmp_path / "pre", out=tmp_path / "vector")
+
+
 def test_exact_difference_vector_is_best_at_scale_one(tmp_path: Path) -> None:
     data = write_demo_file(tmp_path / "demos.hdf5", lengths=(16, 16))
     dm = RobotDataModule(train_files=[str(data)], batch_size=8, augment=False)
@@ -55,11 +64,7 @@ def test_sweep_with_downstream_finetuning_and_rollouts(tmp_path: Path) -> None:
     """Each λ: merge in memory, 2 steps of SFT + orthogonal regularization, 1 validation episode."""
     data = write_demo_file(tmp_path / "demos.hdf5", lengths=(12, 12))
     dm = RobotDataModule(train_files=[str(data)], batch_size=4)
-    torch.manual_seed(0)
-    VLAModule(data_spec=dm.spec).export(tmp_path / "pre")
-    torch.manual_seed(1)
-    VLAModule(data_spec=dm.spec).export(tmp_path / "other")
-    extract(aux=tmp_path / "other", sft=tmp_path / "pre", out=tmp_path / "vector")
+    export_pre_and_vector(tmp_path, dm)
     rows = sweep(
         str(tmp_path / "pre"), str(tmp_path / "vector"), [0.0, 1.0], str(tmp_path / "sweep"),
         task="Lift", episodes=1, demos=str(data), finetune_steps=2,
@@ -77,11 +82,7 @@ def test_the_sweep_scores_what_the_validation_loop_logs_on_the_configured_traine
     """A fit config's trainer and data; the row equals `capvector validate` of θ_pre + λc."""
     data = write_demo_file(tmp_path / "demos.hdf5", lengths=(12, 12))
     dm = RobotDataModule(train_files=[str(data)], augment=False)
-    torch.manual_seed(0)
-    VLAModule(data_spec=dm.spec).export(tmp_path / "pre")
-    torch.manual_seed(1)
-    VLAModule(data_spec=dm.spec).export(tmp_path / "other")
-    extract(aux=tmp_path / "other", sft=tmp_path / "pre", out=tmp_path / "vector")
+    export_pre_and_vector(tmp_path, dm)
     config = tmp_path / "fit.yaml"  # evaluation seeds in the config: the sweep validates on others
     config.write_text(f"""
 trainer: {{accelerator: cpu, limit_val_batches: 1, enable_progress_bar: false}}
@@ -126,11 +127,7 @@ def test_a_sweep_by_rollouts_alone_keeps_the_models_own_preprocessing(tmp_path: 
     """No demos: a data module of validation episodes only; θ_pre's data spec drives the policy."""
     data = write_demo_file(tmp_path / "demos.hdf5", lengths=(12, 12))
     dm = RobotDataModule(train_files=[str(data)], cameras=["agentview"])  # not the default two
-    torch.manual_seed(0)
-    VLAModule(data_spec=dm.spec).export(tmp_path / "pre")
-    torch.manual_seed(1)
-    VLAModule(data_spec=dm.spec).export(tmp_path / "other")
-    extract(aux=tmp_path / "other", sft=tmp_path / "pre", out=tmp_path / "vector")
+    export_pre_and_vector(tmp_path, dm)
     (row,) = sweep(
         str(tmp_path / "pre"), str(tmp_path / "vector"), [0.5], str(tmp_path / "sweep"),
         task="Lift", episodes=1,
@@ -146,11 +143,7 @@ def test_a_fit_config_that_merges_a_vector_itself_is_refused(tmp_path: Path) -> 
     second time into every λ it fine-tunes, so the sweep stops before any work, naming it."""
     data = write_demo_file(tmp_path / "demos.hdf5", lengths=(12, 12))
     dm = RobotDataModule(train_files=[str(data)], augment=False)
-    torch.manual_seed(0)
-    VLAModule(data_spec=dm.spec).export(tmp_path / "pre")
-    torch.manual_seed(1)
-    VLAModule(data_spec=dm.spec).export(tmp_path / "other")
-    extract(aux=tmp_path / "other", sft=tmp_path / "pre", out=tmp_path / "vector")
+    export_pre_and_vector(tmp_path, dm)
     config = tmp_path / "fit.yaml"
     config.write_text(f"""
 trainer:
