@@ -208,7 +208,7 @@ def command_line(stage: Stage, launcher: str = "local") -> list[str]:
             f"--trainer.logger.init_args.save_dir={stage.directory}",
             "--trainer.logger.init_args.name=fit",
             f"--trainer.logger.init_args.version={FIT_VERSION}",
-            "--trainer.callbacks+=lightning.pytorch.callbacks.ModelCheckpoint",
+            "--trainer.callbacks+=capvector.callbacks.CheckpointAfterValidation",
             "--trainer.callbacks.save_last=true",
             "--trainer.callbacks.every_n_train_steps=50",
         ]
