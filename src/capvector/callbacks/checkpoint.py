@@ -17,9 +17,10 @@ class CheckpointAfterValidation(ModelCheckpoint):
     evaluation takes minutes) resumes from it and Lightning counts the validation as done, so the
     step's evaluation is never run and its point is missing from the success-vs-steps curve. Saved
     after it, the checkpoint left by a stop during validation is the one before, and the resumed
-    fit trains up to the step again and evaluates it. The save goes through ModelCheckpoint's own
-    deferral to ``on_validation_end`` (used there for metrics that validation logs).
+    fit trains up to the step again and evaluates it.
     """
+
+    _save_after_validation = False
 
     @property
     def state_key(self) -> str:
@@ -38,9 +39,19 @@ class CheckpointAfterValidation(ModelCheckpoint):
         batch_idx: int,
     ) -> None:
         if validation_follows(trainer) and not self._should_save_on_train_epoch_end(trainer):
-            self._defer_save_until_validation = True  # ModelCheckpoint.on_validation_end saves
+            self._save_after_validation = True
             return
         super().on_train_batch_end(trainer, pl_module, outputs, batch, batch_idx)
+
+    def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        super().on_validation_end(trainer, pl_module)
+        # What ModelCheckpoint.on_train_batch_end would have saved, now with validation done
+        # (Lightning 2.6 defers some saves the same way; 2.5 has no such deferral to reuse).
+        if self._save_after_validation and not self._should_skip_saving_checkpoint(trainer):
+            self._save_after_validation = False
+            candidates = self._monitor_candidates(trainer)
+            self._save_topk_checkpoint(trainer, candidates)
+            self._save_last_checkpoint(trainer, candidates)
 
 
 def validation_follows(trainer: L.Trainer) -> bool:
