@@ -263,20 +263,19 @@ def test_the_libero_recipe_fails_the_same_with_twice_the_step_limit() -> None:
     """docs/evaluation.md's step-limit check: at 440 steps the recipe's policy solves exactly the
     episodes it solved at 220 (tasks 0-4, states 0-9), as the committed evaluations say."""
 
-    def solved(name: str) -> set[tuple[int, int]]:
+    def episodes(name: str) -> list[dict]:
         rows = json.loads((RESULTS / "libero_spatial_recipe" / name).read_text())
-        episodes = [e for row in rows for e in row["per_episode"]]
+        return [e for row in rows for e in row["per_episode"]]
+
+    def solved(episodes: list[dict]) -> set[tuple[int, int]]:
         return {(e["task"], e["trial"]) for e in episodes if e["success"]}
 
-    doubled = json.loads(
-        (RESULTS / "libero_spatial_recipe" / "evaluate_440_steps.json").read_text()
-    )
-    episodes = [e for row in doubled for e in row["per_episode"]]
-    assert {(e["task"], e["trial"]) for e in episodes} == {
+    doubled = episodes("evaluate_440_steps.json")
+    assert {(e["task"], e["trial"]) for e in doubled} == {
         (t, i) for t in range(5) for i in range(10)
     }
-    assert all(e["steps"] == 440 for e in episodes if not e["success"])
-    at_220 = {(t, i) for t, i in solved("evaluate.json") if t < 5 and i < 10}
-    assert solved("evaluate_440_steps.json") == at_220
+    assert all(e["steps"] == 440 for e in doubled if not e["success"])
+    at_220 = {(t, i) for t, i in solved(episodes("evaluate.json")) if t < 5 and i < 10}
+    assert solved(doubled) == at_220
     text = (RESULTS.parent / "evaluation.md").read_text()
     assert f"succeeds in **{len(at_220)} of 50 episodes at 440 steps**" in text
