@@ -28,7 +28,7 @@ def fit(root: Path, data: Path, checkpoint: str, *extra: str) -> int:
         f"--trainer.logger.init_args.save_dir={root}", "--trainer.logger.init_args.name=fit",
         f"--trainer.callbacks+={checkpoint}", "--trainer.callbacks.save_last=true",
         "--trainer.callbacks.every_n_train_steps=1",
-        "--trainer.callbacks+=stop_during_validation.StopDuringValidation",
+        "--trainer.callbacks+=stop_fit.StopDuringValidation",
         f"--trainer.callbacks.marker={root / 'stopped'}", "--trainer.callbacks.step=3",
         "--model.backbone=openvla-oft-tiny", f"--data.train_files=[{data}]",
         f"--data.val_files=[{data}]", "--data.batch_size=4", *extra,

@@ -1,5 +1,6 @@
-"""Seeded runs reproduce to the bit: a fit's weights, a recipe stage's weights whatever `jobs`,
-and batched rollouts of a trained policy whatever the number of simulator workers."""
+"""Seeded runs reproduce to the bit: a fit's weights, a fit stopped and resumed, a recipe stage's
+weights whatever `jobs`, and batched rollouts of a trained policy whatever the number of simulator
+workers."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from capvector.cli import main
 from conftest import write_demo_file
 
 REPO = Path(__file__).resolve().parents[1]
+TESTS = Path(__file__).parent
 SFT = str(REPO / "configs/recipes/sft.yaml")  # the demo's fits: seeded, deterministic: true
 
 
@@ -54,6 +56,51 @@ def test_a_seeded_fit_gives_the_same_weights_to_the_bit(tmp_path: Path) -> None:
     # The check is sharp: another seed gives other weights.
     other = fit(tmp_path / "c", data, "--seed_everything=1")
     assert not all(torch.equal(t, other[name]) for name, t in first.items())
+
+
+def fit_process(root: Path, data: Path, *extra: str) -> int:
+    """A seeded 8-step fit in its own process (2 epochs of 5 batches and 3 of the next),
+    checkpointing every step, as ``capvector fit`` runs from a shell; returns its exit code."""
+    args = [
+        *fit_args(data), "--trainer.max_steps=8", "--trainer.logger.init_args.version=version_0",
+        f"--trainer.default_root_dir={root}", f"--trainer.logger.init_args.save_dir={root}",
+        "--trainer.callbacks+=lightning.pytorch.callbacks.ModelCheckpoint",
+        f"--trainer.callbacks.dirpath={root / 'checkpoints'}", "--trainer.callbacks.save_last=true",
+        "--trainer.callbacks.every_n_train_steps=1", *extra,
+    ]  # fmt: skip
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]),
+    }
+    completed = subprocess.run(
+        [sys.executable, "-m", "capvector.cli", "fit", *args], capture_output=True, text=True,
+        env=env, timeout=600,
+    )  # fmt: skip
+    assert completed.returncode in (0, 3), completed.stderr[-3000:]
+    assert "dataloader is not resumable" not in completed.stderr
+    return completed.returncode
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("stop_after", [3, 5])  # mid-epoch; at the end of the first epoch
+def test_a_fit_stopped_and_resumed_gives_the_uninterrupted_weights(
+    tmp_path: Path, stop_after: int
+) -> None:
+    # Resumed mid-epoch, Lightning restarted the epoch's order from its first batch and torch's
+    # random state from the seed (other batches, other augmentations): other weights. The
+    # training loader now resumes both (capvector.data.resumable).
+    data = write_demo_file(tmp_path / "demos.hdf5")  # 22 samples: 5 batches of 4 per epoch
+    assert fit_process(tmp_path / "whole", data) == 0
+    stopped = tmp_path / "stopped"
+    stop = [
+        "--trainer.callbacks+=stop_fit.StopAfterStep", f"--trainer.callbacks.step={stop_after}",
+        f"--trainer.callbacks.marker={stopped / 'marker'}",
+    ]  # fmt: skip
+    assert fit_process(stopped, data, *stop) == 3
+    assert not (stopped / "fit/version_0/export").exists()
+    resume = f"--ckpt_path={stopped / 'checkpoints/last.ckpt'}"
+    assert fit_process(stopped, data, *stop, resume) == 0
+    assert_bit_identical(exported(tmp_path / "whole"), exported(stopped))
 
 
 @pytest.mark.slow

@@ -10,7 +10,7 @@ from typing import Any
 import lightning as L
 import numpy as np
 import torch
-from torch.utils.data import DataLoader, DistributedSampler
+from torch.utils.data import DataLoader
 
 from capvector.data.batch import Batch
 from capvector.data.episodes import (
@@ -24,6 +24,7 @@ from capvector.data.episodes import (
 )
 from capvector.data.hdf5 import DEFAULT_CACHE_MB, DatasetError, HDF5RobotDataset
 from capvector.data.lerobot import LeRobotV3Dataset
+from capvector.data.resumable import ResumableLoader, ResumableSampler
 from capvector.data.spec import DataSpec
 from capvector.data.statistics import BOUNDS_Q99, check_normalization
 from capvector.data.transforms import ImageTransform
@@ -288,25 +289,18 @@ class RobotDataModule(L.LightningDataModule):
             raise DatasetError("training needs data.train_files or data.lerobot_root")
         drop_last = len(dataset) >= hp.batch_size
         trainer = self.trainer
-        if trainer is not None and trainer.world_size > 1:
-            # Our own sampler: Lightning's replacement always shuffles training data, which would
-            # make `shuffle=false` mean nothing on several devices.
-            sampler = DistributedSampler(
-                dataset, num_replicas=trainer.world_size, rank=trainer.global_rank,
-                shuffle=hp.shuffle, seed=hp.seed, drop_last=drop_last,
-            )  # fmt: skip
-            return DataLoader(dataset, batch_size=hp.batch_size, sampler=sampler,
-                              num_workers=hp.num_workers, persistent_workers=hp.num_workers > 0,
-                              drop_last=drop_last)  # fmt: skip
-        return DataLoader(
-            dataset,
-            batch_size=hp.batch_size,
-            shuffle=hp.shuffle,
-            num_workers=hp.num_workers,
-            persistent_workers=hp.num_workers > 0,
-            generator=torch.Generator().manual_seed(hp.seed),
+        world, rank = (trainer.world_size, trainer.global_rank) if trainer is not None else (1, 0)
+        # Our own sampler on any number of processes: Lightning's replacement always shuffles
+        # training data (`shuffle=false` would mean nothing on several devices), and ours resumes.
+        sampler = ResumableSampler(
+            dataset, num_replicas=world, rank=rank, shuffle=hp.shuffle, seed=hp.seed,
             drop_last=drop_last,
-        )
+        )  # fmt: skip
+        return ResumableLoader(
+            dataset, sampler, batch_size=hp.batch_size, num_workers=hp.num_workers,
+            persistent_workers=hp.num_workers > 0, drop_last=drop_last,
+            generator=torch.Generator().manual_seed(hp.seed),  # the workers' seeds
+        )  # fmt: skip
 
     def on_before_batch_transfer(
         self, batch: Batch | list[EpisodeItem], dataloader_idx: int

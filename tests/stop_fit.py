@@ -1,5 +1,5 @@
-"""A callback for tests/test_checkpoint_after_validation.py: the process dies in the middle of a
-validation, as a preempted job or a killed session does (``os._exit``: nothing runs after it)."""
+"""Callbacks for tests that stop a real `capvector fit` process as a preempted job or a killed
+session does (``os._exit``: nothing runs after it), then resume it."""
 
 from __future__ import annotations
 
@@ -22,4 +22,18 @@ class StopDuringValidation(L.Callback):
         if trainer.sanity_checking or trainer.global_step != self.step or self.marker.exists():
             return
         self.marker.write_text("stopped during validation\n")
+        os._exit(3)
+
+
+class StopAfterStep(StopDuringValidation):
+    """Exit with code 3 at the end of training step ``step``, once, after the callbacks listed
+    before this one (a checkpoint callback's save) have run."""
+
+    def on_validation_batch_end(self, *args: Any, **kwargs: Any) -> None:
+        pass
+
+    def on_train_batch_end(self, trainer: L.Trainer, *args: Any, **kwargs: Any) -> None:
+        if trainer.global_step != self.step or self.marker.exists():
+            return
+        self.marker.write_text("stopped after a training step\n")
         os._exit(3)
