@@ -235,6 +235,32 @@ def test_recipe_configs_differ_only_in_auxiliary_callbacks() -> None:
     assert len(extra) == 2
 
 
+def test_the_alignment_layer_lever_changes_only_the_layer(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    # configs/recipes/aux_sft_layer2.yaml repeats aux_sft.yaml's callbacks (a config replaces the
+    # list): resolved, the two configs differ in the spatial alignment's layer and nothing else.
+    data = write_demo_file(tmp_path / "demos.hdf5")
+
+    def resolved(*extra: str) -> dict:
+        args = ["fit", "--config", str(REPO / "configs/recipes/aux_sft.yaml"), *extra]
+        with pytest.raises(SystemExit):
+            main([*args, f"--data.train_files=[{data}]", "--print_config"])
+        return yaml.safe_load(capsys.readouterr().out)
+
+    base = resolved()
+    lever = resolved("--config", str(REPO / "configs/recipes/aux_sft_layer2.yaml"))
+    objectives = [
+        c["init_args"]["objective"]
+        for config in (base, lever)
+        for c in config["trainer"]["callbacks"]
+        if "objective" in c.get("init_args", {})
+    ]
+    spatial = [o["init_args"] for o in objectives if o["class_path"].endswith("SpatialAlignment")]
+    assert [s.pop("layer") for s in spatial] == [None, 2]
+    assert lever == base
+
+
 def test_aux_sft_config_trains_through_the_cli(tmp_path: Path) -> None:
     data = write_demo_file(tmp_path / "demos.hdf5", lengths=(16, 16))
     main([
