@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -73,6 +74,14 @@ def test_recipe_runs_resumes_and_never_redoes_a_stage(tmp_path: Path, demo_file:
     completed = subprocess.run(half, capture_output=True, text=True, cwd=REPO)
     assert completed.returncode == 0, completed.stderr[-3000:]
     markers = {s.name: (s.directory / ".done").stat().st_mtime_ns for s in stages[:3]}
+    status = capvector("recipe", "--config", str(recipe), "--status")
+    assert status.returncode == 0, status.stderr[-3000:]
+    assert f"{tmp_path / 'run'}: 3 of 4 stages done" in status.stdout
+    assert "  extract     done\n" in status.stdout
+    assert (
+        "  downstream  started, not done: step 1 logged; resumes from its last checkpoint"
+        in status.stdout
+    )
 
     completed = capvector("recipe", "--config", str(recipe))
     assert completed.returncode == 0, completed.stderr[-3000:]
@@ -89,6 +98,9 @@ def test_recipe_runs_resumes_and_never_redoes_a_stage(tmp_path: Path, demo_file:
     with (downstream.directory / "fit" / "version_0" / "metrics.csv").open() as f:
         steps = {int(row["step"]) for row in csv.DictReader(f)}
     assert steps == {0, 1, 2, 3}
+    status = capvector("recipe", "--config", str(recipe), "--status").stdout
+    assert "4 of 4 stages done" in status
+    assert re.search(r"  downstream  done in \d+ s\n", status)
 
 
 def test_recipe_errors_are_clear(tmp_path: Path) -> None:
@@ -233,3 +245,17 @@ def test_only_runs_the_named_stages_and_what_they_wait_for(tmp_path: Path) -> No
     # What is left counts neither stages outside --only nor finished ones.
     assert "[recipe 1/3] a (backbone-info) started; 1 more to run: c" in completed.stdout
     assert "[recipe 3/3] c (fit)" in completed.stdout
+
+    # --status runs nothing: what each stage (of --only's) waits for.
+    status = capvector("recipe", "--config", str(path), "--status", "--only", "c", "e")
+    assert status.returncode == 0, status.stderr[-3000:]
+    assert status.stdout.splitlines() == [
+        f"{tmp_path / 'run'}: 1 of 6 stages done",
+        "  a     not started",
+        "  b     done",
+        "  c     not started; waits for a",
+        "  d_s0  not started; waits for a",
+        "  d_s1  not started; waits for a",
+        "  e     not started; waits for d_s0, d_s1",
+    ]
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["b"]

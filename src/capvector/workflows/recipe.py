@@ -35,11 +35,14 @@ names (``--ckpt ${out.down.export}`` in a seeded ``evaluate`` stage evaluates ea
 ``down``). An ``after:`` list that names ``<name>`` waits for all of its seeds.
 
 ``--only STAGE ...`` runs those stages and what they wait for, nothing else (a seeded stage's
-name stands for all of its seeds), e.g. one report of a large recipe.
+name stands for all of its seeds), e.g. one report of a large recipe. ``--status`` runs nothing
+and says where each of them stands: done (in how long), a fit's last logged step and whether it
+resumes from a checkpoint, or what it waits for.
 """
 
 from __future__ import annotations
 
+import csv
 import functools
 import json
 import re
@@ -321,10 +324,12 @@ def run(
     only: list[str] | None = None,
     threads: int | None = None,
     launcher: str | None = None,
+    status: bool = False,
 ) -> list[dict]:
     """Run the stages, up to ``jobs`` at a time once their dependencies have finished, each with
     ``threads`` torch threads, through ``launcher`` (default: the recipe's, ``local``); with
-    ``only``, just those stages and what they wait for.
+    ``only``, just those stages and what they wait for; with ``status``, print where they stand
+    instead (``print_status``).
 
     Locally with ``jobs > 1``, and always through submitit, each stage's output goes to
     ``<stage>/log.txt``.
@@ -348,15 +353,20 @@ def run(
     runner = make_launcher(launcher, None if jobs is None else int(jobs), threads)
     for i in range(len(names)):  # every interpolation resolves: a typo fails now, not hours in
         runner.check(names[i], resolve_stage(raw, i, run_dir, recipe).resources)
-    run_dir.mkdir(parents=True, exist_ok=True)
     if only:
         required = required_stages(waits_for, only)
         names = [n for n in names if n in required]
+    index = {str(s.name): i for i, s in enumerate(raw.stages)}
+    if status:
+        print_status(
+            run_dir, [resolve_stage(raw, index[n], run_dir, recipe) for n in names], waits_for
+        )
+        return []
+    run_dir.mkdir(parents=True, exist_ok=True)
     stages: dict[str, Stage] = {}
     finished: set[str] = set()
     running: dict[str, Started] = {}
     failed: list[str] = []
-    index = {str(s.name): i for i, s in enumerate(raw.stages)}
     quiet = launcher == "local" and (jobs or 1) == 1  # the stage's output is this one's
 
     def status(name: str) -> str:
@@ -425,6 +435,45 @@ def run(
     return collect_results([stages[n] for n in names])
 
 
+def print_status(run_dir: Path, stages: list[Stage], waits_for: dict[str, set[str]]) -> None:
+    """One line per stage: what its folder says (``stage_status``), and for a stage not started,
+    the stages it still waits for."""
+    done = {s.name for s in stages if s.done_marker.is_file()}
+    print(f"{run_dir}: {len(done)} of {len(stages)} stages done")
+    width = max((len(s.name) for s in stages), default=0)
+    for stage in stages:
+        line = stage_status(stage)
+        waiting = sorted(n for n in waits_for[stage.name] if not (run_dir / n / DONE).is_file())
+        if line == "not started" and waiting:
+            line += f"; waits for {', '.join(waiting)}"
+        print(f"  {stage.name:<{width}}  {line}")
+
+
+def stage_status(stage: Stage) -> str:
+    """Where a stage stands, from its folder: done (in how long), a fit's last logged step and
+    whether it would resume from a checkpoint, started, or not started. (A stage that is not done
+    may be running or stopped: the folder cannot tell.)"""
+    if stage.done_marker.is_file():
+        seconds = json.loads(stage.done_marker.read_text() or "{}").get("seconds")
+        return "done" if seconds is None else f"done in {seconds:.0f} s"
+    if not stage.directory.exists():
+        return "not started"
+    outputs = stage_outputs(stage.directory.parent, stage.name)
+    metrics = Path(outputs["ckpt"]).parents[1] / "metrics.csv"
+    if stage.command != "fit":
+        return "started, not done"
+    steps = []
+    if metrics.is_file():
+        with metrics.open(newline="") as f:
+            steps = [int(row["step"]) for row in csv.DictReader(f) if row.get("step")]
+    logged = f"step {max(steps)} logged" if steps else "no step logged"
+    resumes = (
+        "resumes from its last checkpoint" if Path(outputs["ckpt"]).is_file()
+        else "no checkpoint yet: starts again"
+    )  # fmt: skip
+    return f"started, not done: {logged}; {resumes}"
+
+
 def collect_results(stages: list[Stage]) -> list[SuccessRow]:
     """Rows of every evaluate stage's ``--json`` output, labelled with the stage name."""
     rows = []
@@ -451,6 +500,7 @@ def recipe_cli(
     threads: int | None = None,
     only: list[str] | None = None,
     launcher: str | None = None,
+    status: bool = False,
 ) -> None:
     """Run the whole recipe, or the stages some need, as resumable stages.
 
@@ -466,7 +516,8 @@ def recipe_cli(
         launcher: local (child processes), slurm (a SLURM job per stage, through submitit) or
             submitit-local (the slurm path, jobs as local processes); default: the recipe's
             `launcher`, local
+        status: run nothing; print where each stage (of --only's) stands
     """
-    rows = run(config, list(overrides), dry_run, jobs, only, threads, launcher)
+    rows = run(config, list(overrides), dry_run, jobs, only, threads, launcher, status)
     if rows:
         print("\nResults\n" + format_success_table(rows))
