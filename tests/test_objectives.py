@@ -15,6 +15,7 @@ from capvector.callbacks import AuxiliaryObjective
 from capvector.cli import main
 from capvector.data import keys
 from capvector.data.datamodule import RobotDataModule
+from capvector.errors import CapVectorError
 from capvector.module import OptimizerSettings, VLAModule
 from capvector.objectives import (
     GeometricTeacher,
@@ -171,6 +172,19 @@ def test_reasoning_loss_scores_only_answer_tokens(demo_file: Path) -> None:
         {**batch, keys.ANNOTATION: answers, keys.INSTRUCTION: ["lift", "lift"]}, None, backbone
     )
     assert torch.isfinite(loss)
+
+
+def test_reasoning_samples_scores_the_batchs_first_samples_alone(demo_file: Path) -> None:
+    dm = datamodule(demo_file)
+    backbone = build_backbone("openvla-oft-tiny", **dm.spec.backbone_overrides()).eval()
+    batch = first_batch(dm, size=4)
+    batch = {**batch, keys.ANNOTATION: ["left", "a longer answer here", "ok", "right of it"]}
+    first_two = {k: v[:2] for k, v in batch.items()}
+    capped = ReasoningCoTraining(samples=2)(batch, None, backbone)
+    torch.testing.assert_close(capped, ReasoningCoTraining()(first_two, None, backbone))
+    assert not torch.allclose(capped, ReasoningCoTraining()(batch, None, backbone))
+    with pytest.raises(CapVectorError, match="reasoning samples must be at least 1"):
+        ReasoningCoTraining(samples=0)
 
 
 def test_reasoning_pass_is_causal_and_leaves_actions_alone(demo_file: Path) -> None:

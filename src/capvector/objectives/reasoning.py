@@ -4,7 +4,9 @@ A next-token loss on text answers about the scene — the per-step annotations t
 the robot is doing, where things are) — through the backbone's own language head in a separate,
 causal pass, so the action pathway's bidirectional attention is untouched. L = L_action + λ·L_text
 with λ = 0.1 as StarVLA's ``loss_scale.vlm``. Only answer tokens are scored; prompt, visual and
-padding positions carry label -100.
+padding positions carry label -100. ``samples`` caps how many of each batch's samples the text
+pass scores: StarVLA's LIBERO configs pair 4 VLM samples with 16 VLA samples per step, and the
+text pass over a long answer costs several action passes.
 """
 
 from __future__ import annotations
@@ -28,10 +30,17 @@ class ReasoningCoTraining(Objective):
         question: str = DEFAULT_QUESTION,
         prompt_template: str = "Task: {instruction}. Question: {question}\nAnswer: ",
         name: str = "reasoning",
+        samples: int | None = None,
     ) -> None:
+        """``samples``: score the first ``samples`` of each (shuffled) batch, None for all."""
         super().__init__(name=name, weight=weight)
+        if samples is not None and samples < 1:
+            raise CapVectorError(
+                f"reasoning samples must be at least 1 (or None: all), got {samples}"
+            )
         self.question = question
         self.prompt_template = prompt_template
+        self.samples = samples
 
     def bind(self, backbone: VLABackbone) -> None:
         # The LM head trains with the text objective, unless the run is LoRA (then only adapters
@@ -49,6 +58,8 @@ class ReasoningCoTraining(Objective):
                 "reasoning co-training needs per-step text annotations: set data.load_annotations=true "
                 "(demos from `capvector demos` carry them)"
             )
+        if self.samples is not None:  # every entry of a batch is batch-first (tensors, lists)
+            batch = {key: value[: self.samples] for key, value in batch.items()}  # type: ignore[assignment]
         prompts = [
             self.prompt_template.format(instruction=instruction, question=self.question)
             for instruction in batch["instruction"]
