@@ -68,8 +68,11 @@ def fit_process(root: Path, data: Path, *extra: str) -> int:
         f"--trainer.callbacks.dirpath={root / 'checkpoints'}", "--trainer.callbacks.save_last=true",
         "--trainer.callbacks.every_n_train_steps=1", *extra,
     ]  # fmt: skip
+    # One thread in every fit: unset, a fit takes its share of the cores beside the other
+    # capvector processes running (ShareCores), and another thread count rounds other sums.
     env = {
         **os.environ,
+        "OMP_NUM_THREADS": "1",
         "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]),
     }
     completed = subprocess.run(

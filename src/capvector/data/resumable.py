@@ -56,7 +56,11 @@ class ResumableLoader(DataLoader):
         self._batches = 0
         if resume is not None:
             torch.set_rng_state(resume["torch_rng"])
-            if resume["epoch"] == self.sampler.epoch:  # else it was saved at the epoch's end
+            if resume["batches"] < len(self):  # saved mid-pass: finish that pass
+                # Its epoch's order, whatever epoch Lightning sets: a fit that ended at
+                # max_steps counts its epoch as processed, and one resumed from its last
+                # checkpoint with more steps gets the next epoch number for the same pass.
+                self.sampler.set_epoch(resume["epoch"])
                 self._batches = resume["batches"]
                 self.sampler.start = self._batches * self.batch_size  # type: ignore[operator]
         for batch in super().__iter__():
