@@ -369,7 +369,7 @@ def run(
     failed: list[str] = []
     quiet = launcher == "local" and (jobs or 1) == 1  # the stage's output is this one's
 
-    def status(name: str) -> str:
+    def label(name: str) -> str:
         return f"[recipe {names.index(name) + 1}/{len(names)}] {name} ({stages[name].command})"
 
     def start(name: str) -> None:
@@ -377,7 +377,7 @@ def run(
         left = [n for n in names if n not in finished and n not in running and n != name
                 and not (run_dir / n / DONE).is_file()]  # fmt: skip
         more = f": {', '.join(left[:3])}{', ...' if len(left) > 3 else ''}" if left else ""
-        print(f"{status(name)} started; {len(left)} more to run{more}", flush=True)
+        print(f"{label(name)} started; {len(left)} more to run{more}", flush=True)
         if dry_run:
             print("  " + " ".join(command_line(stage, launcher)[2:]))
             finished.add(name)
@@ -392,12 +392,12 @@ def run(
         started = running.pop(name)
         if code != 0:
             failed.append(name)
-            print(f"{status(name)} failed: {started.failure()}", flush=True)
+            print(f"{label(name)} failed: {started.failure()}", flush=True)
             return
         finished.add(name)
         if not quiet:
             seconds = json.loads(stages[name].done_marker.read_text())["seconds"]
-            print(f"{status(name)} finished in {seconds:.0f} s", flush=True)
+            print(f"{label(name)} finished in {seconds:.0f} s", flush=True)
 
     try:
         while len(finished) < len(names) and not failed:
@@ -407,7 +407,7 @@ def run(
                 # Resolved only now, so the arguments can use what earlier stages produced.
                 stages[name] = resolve_stage(raw, index[name], run_dir, recipe)
                 if stages[name].done_marker.is_file():
-                    print(f"{status(name)}: done earlier, skipped", flush=True)
+                    print(f"{label(name)}: done earlier, skipped", flush=True)
                     finished.add(name)
                 elif runner.has_room(stages[name].resources):
                     start(name)
@@ -458,17 +458,20 @@ def stage_status(stage: Stage) -> str:
         return "done" if seconds is None else f"done in {seconds:.0f} s"
     if not stage.directory.exists():
         return "not started"
-    outputs = stage_outputs(stage.directory.parent, stage.name)
-    metrics = Path(outputs["ckpt"]).parents[1] / "metrics.csv"
     if stage.command != "fit":
         return "started, not done"
+    outputs = stage_outputs(stage.directory.parent, stage.name)
+    checkpoint = Path(outputs["ckpt"])
+    metrics = (
+        Path(outputs["export"]).parent / "metrics.csv"
+    )  # beside the export, in the fit's folder
     steps = []
     if metrics.is_file():
         with metrics.open(newline="") as f:
             steps = [int(row["step"]) for row in csv.DictReader(f) if row.get("step")]
     logged = f"step {max(steps)} logged" if steps else "no step logged"
     resumes = (
-        "resumes from its last checkpoint" if Path(outputs["ckpt"]).is_file()
+        "resumes from its last checkpoint" if checkpoint.is_file()
         else "no checkpoint yet: starts again"
     )  # fmt: skip
     return f"started, not done: {logged}; {resumes}"
