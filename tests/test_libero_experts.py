@@ -19,7 +19,7 @@ from capvector.cli import main as capvector
 from capvector.data.datamodule import RobotDataModule
 from capvector.data.hdf5 import HDF5RobotDataset
 from capvector.errors import CapVectorError
-from capvector.eval.libero import build_libero_env
+from capvector.eval.libero import POLICY_GRIPPER, build_libero_env
 from capvector.eval.policy import VLAPolicy
 from capvector.module import VLAModule
 from capvector.sim import libero
@@ -169,7 +169,8 @@ def test_evaluation_gives_the_policy_what_training_read_at_the_same_state(demo_f
     """End to end: the simulator state of a demo step, observed as the LIBERO evaluation observes
     it, becomes the same model input as that step's stored frame read through the training
     pipeline (its deterministic view: the centre crop OFT evaluates with after random-crop
-    training). Camera order, rotation, crop, proprio and its normalisation all take part."""
+    training). Camera order, rotation, crop, proprio and its normalisation all take part; and the
+    chunk training targets there, sent as evaluation sends the policy's, is the expert's."""
     cameras, proprio_keys = ["agentview", "robot0_eye_in_hand"], ["ee_states", "gripper_states"]
     data = RobotDataModule(
         train_files=[str(demo_file)], val_files=[str(demo_file)], cameras=cameras,
@@ -182,12 +183,16 @@ def test_evaluation_gives_the_policy_what_training_read_at_the_same_state(demo_f
     assert data.spec.center_crop  # training augments, so both views are the centre crop
     with h5py.File(demo_file, "r") as f:
         demo = f["data/demo_0"]
-        states, seed, steps = demo["states"][:], int(demo.attrs["seed"]), len(demo["actions"])
+        states, actions, seed = demo["states"][:], demo["actions"][:], int(demo.attrs["seed"])
+    steps, chunk = len(actions), data.spec.chunk_size
+    stats = data.spec.stats_entry["action"]
+    # the arm's targets are clipped to the q01/q99 bounds (OFT's bounds_q99), the gripper raw
+    expert = np.clip(actions, [*stats["q01"][:6], -1], [*stats["q99"][:6], 1])
     instruction = libero.libero_task("libero_spatial", 0).instruction
     env = build_libero_env("libero_spatial", 0, cameras, 32)
     try:
         _place(env, seed)  # the fixtures (not in a state) where the demo's reset put them
-        for t in (0, steps // 2, steps - data.spec.chunk_size):
+        for t in (0, steps // 2, steps - chunk):
             obs = env.set_init_state(states[t])
             live = policy.observations_to_batch(
                 [libero.libero_observation(obs, instruction, cameras)]
@@ -200,5 +205,8 @@ def test_evaluation_gives_the_policy_what_training_read_at_the_same_state(demo_f
             atol = 1e-6 if t == 0 else 0.02
             torch.testing.assert_close(live["proprio"][0], read["proprio"], atol=atol, rtol=0)
             assert (live["images"][0] - read["images"]).abs().mean() < (1e-6 if t == 0 else 1e-3)
+            raw = policy.normalizer.unnormalize("action", read["actions"].numpy())
+            sent = np.stack([libero.to_libero_action(a, POLICY_GRIPPER) for a in raw])
+            np.testing.assert_allclose(sent, expert[t : t + chunk], atol=1e-5)
     finally:
         env.close()

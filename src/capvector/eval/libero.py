@@ -31,6 +31,7 @@ from capvector.eval.episodes import LiberoEpisodeSpec
 from capvector.sim.libero import (
     NUM_WAIT_STEPS,
     WAIT_ACTION,
+    GripperConvention,
     flip_image,
     initial_states,
     libero_observation,
@@ -42,6 +43,10 @@ from capvector.sim.libero import (
 from capvector.sim.policy import EpisodeResult, Observation, as_chunk
 
 log = logging.getLogger(__name__)
+
+POLICY_GRIPPER: GripperConvention = "close_positive"
+"""How a policy's gripper value reads: our policies train on robosuite's -1 open / +1 close, the
+convention of LIBERO's HDF5 and of the demos `capvector demos` records."""
 
 
 class LiberoEnvs(Protocol):
@@ -139,7 +144,7 @@ class LiberoEpisode:
                 return self._result(
                     False, f"non-finite action at step {self.steps}: {action.tolist()}"
                 )
-            command = to_libero_action(action, "close_positive").tolist()
+            command = to_libero_action(action, POLICY_GRIPPER).tolist()
             try:
                 self.obs, _, done, _ = self.env.step(command)
             except Exception as e:  # as OFT and openpi: the trial fails, the evaluation goes on
