@@ -112,7 +112,11 @@ CASES: dict[str, tuple[Case, str]] = {
     ),
     "evaluate: LIBERO task ids without a suite": (
         lambda i, b, o: ["evaluate", "--ckpt", str(i / "missing.ckpt"), "--tasks", "3", "--json", str(o / "r.json")],
-        r"--tasks and --trials choose LIBERO trials: give --suite too",
+        r"--tasks, --trials and --from-demos choose LIBERO trials: give --suite too",
+    ),
+    "evaluate: LIBERO start states from a folder that is not there": (
+        lambda i, b, o: ["evaluate", "--ckpt", str(i / "missing.ckpt"), "--suite", "libero_spatial", "--from-demos", str(i / "nosuch"), "--json", str(o / "r.json")],
+        r"from_demos: .*nosuch is not a folder of demos",
     ),
     "evaluate: a robosuite task and a LIBERO suite at once": (
         lambda i, b, o: ["evaluate", "--ckpt", str(i / "missing.ckpt"), "--suite", "libero_spatial", "--task", "Lift", "--variant", "lighting", "--json", str(o / "r.json")],

@@ -19,13 +19,13 @@ from capvector.cli import main as capvector
 from capvector.data.datamodule import RobotDataModule
 from capvector.data.hdf5 import HDF5RobotDataset
 from capvector.errors import CapVectorError
-from capvector.eval.libero import POLICY_GRIPPER, build_libero_env
+from capvector.eval.episodes import LiberoEpisodeSpec
+from capvector.eval.libero import POLICY_GRIPPER, build_libero_env, start_trial
 from capvector.eval.policy import VLAPolicy
 from capvector.module import VLAModule
 from capvector.sim import libero
 from capvector.sim.libero_demos import (
     _object_qpos,
-    _place,
     demo_file_name,
     is_official_state,
 )
@@ -100,10 +100,10 @@ def test_demo_placements_are_told_apart_from_the_official_init_states() -> None:
         objects = _object_qpos(env)
         assert len(objects) == 5 * 7  # five free objects (two bowls, cookies, ramekin, plate)
         assert is_official_state(official[7], official, objects)
-        _place(env, 0)
+        libero.seeded_reset(env, 0)
         placed = env.env.sim.get_state().flatten()
         assert not is_official_state(placed, official, objects)
-        _place(env, 0)  # LIBERO's placement initializer is reproducible from the seed
+        libero.seeded_reset(env, 0)  # LIBERO's placement initializer is reproducible from the seed
         np.testing.assert_array_equal(
             env.env.sim.get_state().flatten()[1 + objects], placed[1 + objects]
         )
@@ -191,7 +191,9 @@ def test_evaluation_gives_the_policy_what_training_read_at_the_same_state(demo_f
     instruction = libero.libero_task("libero_spatial", 0).instruction
     env = build_libero_env("libero_spatial", 0, cameras, 32)
     try:
-        _place(env, seed)  # the fixtures (not in a state) where the demo's reset put them
+        libero.seeded_reset(
+            env, seed
+        )  # the fixtures (not in a state) where the demo's reset put them
         for t in (0, steps // 2, steps - chunk):
             obs = env.set_init_state(states[t])
             live = policy.observations_to_batch(
@@ -210,3 +212,40 @@ def test_evaluation_gives_the_policy_what_training_read_at_the_same_state(demo_f
             np.testing.assert_allclose(sent, expert[t : t + chunk], atol=1e-5)
     finally:
         env.close()
+
+
+def test_a_trial_from_demos_starts_where_its_demo_started(demo_file: Path) -> None:
+    with h5py.File(demo_file, "r") as f:
+        start, seed = f["data/demo_0/states"][0], int(f["data/demo_0"].attrs["seed"])
+    env = build_libero_env("libero_spatial", 0, [], 32)
+    try:
+        start_trial(env, LiberoEpisodeSpec("libero_spatial", 0, 0))
+        official = libero.fixture_poses(env)
+        start_trial(
+            env, LiberoEpisodeSpec("libero_spatial", 0, 0, from_demos=str(demo_file.parent))
+        )
+        np.testing.assert_array_equal(env.env.sim.get_state().flatten(), start)
+        from_demo = libero.fixture_poses(env)
+        libero.seeded_reset(env, seed)  # the demo's own placement of the fixtures
+        assert all(np.array_equal(from_demo[k], v) for k, v in libero.fixture_poses(env).items())
+        assert any(not np.array_equal(from_demo[k], v) for k, v in official.items())
+    finally:
+        env.close()
+
+
+def test_evaluate_from_demos_names_its_start_states(
+    demo_file: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    data = RobotDataModule(
+        train_files=[str(demo_file)], cameras=["agentview"],
+        proprio_keys=["ee_states", "gripper_states"],
+    )  # fmt: skip
+    VLAModule(backbone="openvla-oft-tiny", data_spec=data.spec).export(tmp_path / "export")
+    argv = ["evaluate", "--ckpt", str(tmp_path / "export"), "--suite", "libero_spatial", "--tasks",
+            "0", "--max-steps", "2", "--videos", "0", "--from-demos", str(demo_file.parent)]  # fmt: skip
+    assert capvector([*argv, "--trials", "2"]) == 2  # before any rollout
+    assert "has 1 demos and trial 1 starts where demo_1 did" in capsys.readouterr().err
+    assert capvector([*argv, "--trials", "1", "--json", str(tmp_path / "r.json")]) == 0
+    (row,) = json.loads((tmp_path / "r.json").read_text())
+    (episode,) = row["per_episode"]
+    assert episode["from_demos"] == str(demo_file.parent) and episode["steps"] == 2

@@ -57,6 +57,9 @@ class LiberoEvalTask:
     rendering: str = "auto"
     """Who draws the images: auto (the fast renderer on a CPU's OpenGL, robosuite's on a GPU),
     fast, or official (LIBERO's own; ``capvector.sim.libero.make_libero_env``)."""
+    from_demos: str | None = None
+    """A folder of demos (``capvector demos``): trial i starts where the task's demo i started,
+    not from official state i (success from the placements trained on: a diagnostic)."""
 
 
 def eval_task(entry: EvalTask | LiberoEvalTask | Mapping[str, Any]) -> EvalTask | LiberoEvalTask:
@@ -85,7 +88,9 @@ class EpisodeDataset(Dataset):
         self.specs: list[AnyEpisodeSpec] = []
         for t in tasks:
             if isinstance(t, LiberoEvalTask):
-                self.specs += libero_specs(t.suite, t.tasks, t.trials, t.max_steps, t.rendering)
+                self.specs += libero_specs(
+                    t.suite, t.tasks, t.trials, t.max_steps, t.rendering, t.from_demos
+                )
                 continue
             self.specs += eval_specs(
                 t.task, t.episodes, robot=t.robot, start_seed=t.start_seed, max_steps=t.max_steps,

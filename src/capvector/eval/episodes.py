@@ -10,12 +10,14 @@ LIBERO trials start from the task's fixed official initial states (trial i from 
 no demo of ours starts from (demos sample placements). What those states leave open, the fixtures'
 placement (cabinets, stoves: LIBERO draws it at every reset), is drawn from seed
 ``EVAL_SEED_START + i``, so a trial's scene does not depend on which trials ran before it.
+``from_demos`` starts trial i where demo i started instead: not the protocol, a diagnostic.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, ClassVar, get_args
 
 from capvector.errors import CapVectorError, unknown_name
@@ -94,6 +96,9 @@ class LiberoEpisodeSpec:
     """Step limit after the wait steps; None: the suite's (220 spatial, 280 object, ...)."""
     rendering: Rendering = "auto"
     """Who draws the images (``capvector.sim.libero.Rendering``): auto, fast or official."""
+    from_demos: str | None = None
+    """A folder of demos (``capvector demos``): the trial starts where demo ``trial`` of the
+    task's file started instead (a diagnostic: success from the placements a policy trained on)."""
 
     robot: ClassVar[str] = DEFAULT_ROBOT  # every LIBERO scene has one Panda
     variant: ClassVar[str | None] = None
@@ -119,7 +124,8 @@ class LiberoEpisodeSpec:
 
     def describe(self) -> dict[str, Any]:
         """Which trial it is, as JSON fields (``capvector evaluate --json``)."""
-        return {"suite": self.suite, "task": self.task_id, "trial": self.trial}
+        where = {} if self.from_demos is None else {"from_demos": self.from_demos}
+        return {"suite": self.suite, "task": self.task_id, "trial": self.trial, **where}
 
 
 AnyEpisodeSpec = EpisodeSpec | LiberoEpisodeSpec
@@ -131,8 +137,10 @@ def libero_specs(
     trials: int = LIBERO_TRIALS,
     max_steps: int | None = None,
     rendering: Rendering = "auto",
+    from_demos: str | None = None,
 ) -> list[LiberoEpisodeSpec]:
-    """Trials ``0..trials-1`` of each of ``tasks`` (default: the whole suite), task by task.
+    """Trials ``0..trials-1`` of each of ``tasks`` (default: the whole suite), task by task;
+    ``from_demos``: from the start states of that folder's demos (:class:`LiberoEpisodeSpec`).
 
     Checked without importing LIBERO, so a typo fails before anything is loaded.
     """
@@ -154,8 +162,10 @@ def libero_specs(
         raise CapVectorError(f"max_steps must be at least 1, not {max_steps}")
     if rendering not in LIBERO_RENDERINGS:
         raise unknown_name("LIBERO rendering", rendering, LIBERO_RENDERINGS)
+    if from_demos is not None and not Path(from_demos).is_dir():
+        raise CapVectorError(f"from_demos: {from_demos} is not a folder of demos")
     return [
-        LiberoEpisodeSpec(suite, task_id, trial, max_steps, rendering)
+        LiberoEpisodeSpec(suite, task_id, trial, max_steps, rendering, from_demos)
         for task_id in tasks
         for trial in range(trials)
     ]

@@ -38,6 +38,7 @@ from capvector.sim.libero import (
     libero_proprio,
     libero_task,
     make_libero_env,
+    seeded_reset,
     to_libero_action,
 )
 from capvector.sim.policy import EpisodeResult, Observation, as_chunk
@@ -70,19 +71,17 @@ def build_libero_env(
 
 
 def start_trial(env: Any, spec: LiberoEpisodeSpec) -> dict[str, Any]:
-    """Reset ``env`` (fixtures placed from the trial's seed) and load the trial's initial state;
-    the observation. The wait steps are the caller's."""
-    saved = np.random.get_state()
-    try:
-        # LIBERO's placement samplers draw from numpy's global generator (upstream too; OFT's
-        # env.seed(0) seeds it once per task); robosuite 1.5 draws the robot's reset noise from
-        # the env's own, which env.seed sets. Restored after: nothing else sees the reseeding.
-        np.random.seed(spec.fixture_seed)
-        env.seed(spec.fixture_seed)
-        env.reset()
-    finally:
-        np.random.set_state(saved)
-    return env.set_init_state(initial_states(spec.suite, spec.task_id)[spec.trial])
+    """Reset ``env`` and load the trial's initial state: the task's official state ``trial`` with
+    the fixtures placed from the trial's seed or, with ``from_demos``, where demo ``trial`` started,
+    its fixtures placed from its own seed. The observation; the wait steps are the caller's."""
+    if spec.from_demos is None:
+        seed, state = spec.fixture_seed, initial_states(spec.suite, spec.task_id)[spec.trial]
+    else:
+        from capvector.sim.libero_demos import demo_start
+
+        seed, state = demo_start(spec.from_demos, spec.suite, spec.task_id, spec.trial)
+    seeded_reset(env, seed)
+    return env.set_init_state(state)
 
 
 class LiberoEpisode:

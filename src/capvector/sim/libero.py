@@ -554,6 +554,22 @@ def make_libero_env(
     return env
 
 
+def seeded_reset(env: Any, seed: int) -> None:
+    """Reset ``env`` with LIBERO's placement initializer under ``seed``, which places the objects
+    and the fixtures (cabinets, stoves: no state holds them). Its region samplers draw from numpy's
+    global RNG (``regions/base_region_sampler.py``, upstream too; OFT's ``env.seed(0)`` seeds it
+    once per task), which the port's ``env.seed`` leaves alone; robosuite 1.5 draws the robot's
+    reset noise from the env's own generator, which ``env.seed`` sets. The global state is restored
+    after: nothing else sees the reseeding."""
+    saved = np.random.get_state()
+    try:
+        np.random.seed(seed)
+        env.seed(seed)
+        env.reset()
+    finally:
+        np.random.set_state(saved)
+
+
 def fixture_poses(env: Any) -> dict[str, np.ndarray]:
     """Each fixture's (cabinet, stove, ...) placement: name -> (7,) position + wxyz quaternion.
 

@@ -64,6 +64,7 @@ from capvector.sim.libero import (
     libero_task,
     make_libero_env,
     max_steps,
+    seeded_reset,
 )
 from capvector.sim.libero_experts import LiberoPlaceExpert, place_goal, run_trial, task_env
 
@@ -141,17 +142,29 @@ def _object_qpos(env: Any) -> np.ndarray:
     return np.asarray(sorted(out), dtype=np.int64)
 
 
-def _place(env: Any, seed: int) -> None:
-    """LIBERO's placement initializer under ``seed``: its region samplers draw from numpy's
-    global RNG (``regions/base_region_sampler.py``), which the port's ``env.seed`` leaves alone.
-    The global state is restored after: nothing else sees the reseeding."""
-    saved = np.random.get_state()
-    try:
-        np.random.seed(seed)
-        env.seed(seed)
-        env.reset()
-    finally:
-        np.random.set_state(saved)
+def demo_start(folder: str | Path, suite: str, task_id: int, index: int) -> tuple[int, np.ndarray]:
+    """Where demo ``index`` of the task's file in ``folder`` started: the seed of its placement
+    (:func:`seeded_reset`, which also placed the fixtures) and its first state (after the wait
+    steps)."""
+    path = Path(folder) / demo_file_name(suite, task_id)
+    if not path.is_file():
+        raise CapVectorError(
+            f"from_demos: {folder} has no demos of {suite} task {task_id} ({path.name}); record "
+            f"them with `capvector demos --suite {suite} --tasks {task_id} --out {folder}`"
+        )
+    with h5py.File(path, "r") as f:
+        demos, key = f["data"], f"demo_{index}"
+        if key not in demos:
+            raise CapVectorError(
+                f"from_demos: {path} has {len(demos)} demos and trial {index} starts where "
+                f"{key} did: ask for at most {len(demos)} trials"
+            )
+        if "seed" not in demos[key].attrs:
+            raise CapVectorError(
+                f"from_demos: {path} {key} has no placement seed: only demos recorded by "
+                "`capvector demos` have one (LIBERO's released files do not)"
+            )
+        return int(demos[key].attrs["seed"]), np.asarray(demos[key]["states"][0])
 
 
 def record_episode(
@@ -311,7 +324,7 @@ def record_task(
                         f"of {summary.attempts} attempts (seeds from {seed}), short of the "
                         f"{episodes} demos asked for: raise --max-attempts"
                     )
-                _place(env, attempt_seed)
+                seeded_reset(env, attempt_seed)
                 if is_official_state(
                     task_env(env).sim.get_state().flatten(), official, object_qpos
                 ):

@@ -74,6 +74,7 @@ def evaluate_cli(
     trials: int = LIBERO_TRIALS,
     max_steps: int | None = None,
     rendering: Rendering = "auto",
+    from_demos: str | None = None,
     image_size: int | None = None,
     video: str | None = None,
     videos: int = 2,
@@ -103,6 +104,9 @@ def evaluate_cli(
         rendering: who draws LIBERO's images: auto (the fast renderer where OpenGL runs on the
             CPU, robosuite's on a GPU), fast, or official (LIBERO's own: for policies trained on
             LIBERO's released data)
+        from_demos: a folder of LIBERO demos (`capvector demos`): trial i of a task starts where
+            its demo i started instead of from official state i, the fixtures placed as they
+            were; success from the placements a policy trained on (a diagnostic, not the protocol)
         image_size: render the cameras at this size (default: the policy's; LIBERO's protocol
             renders 256); the backbone resizes to its own input size
         video: folder for mp4s of the first --videos episodes
@@ -119,9 +123,14 @@ def evaluate_cli(
             check_output(path, overwrite=True, inputs=[ckpt], what=what)
     eval_tasks = _eval_tasks(
         task, robot, gripper, episodes, variant, start_seed, suite, tasks, trials, max_steps,
-        rendering,
+        rendering, from_demos,
     )  # fmt: skip
     specs = EpisodeDataset(eval_tasks).specs
+    if from_demos is not None:  # every trial's demo is there, before minutes of rollouts
+        from capvector.sim.libero_demos import demo_start
+
+        for s in specs:
+            demo_start(from_demos, s.suite, s.task_id, s.trial)  # type: ignore[union-attr]
     if batch_size is None:
         batch_size = 8 if suite is None else _libero_batch_size(workers)
     results = evaluate(
@@ -168,11 +177,14 @@ def _eval_tasks(
     trials: int,
     max_steps: int | None,
     rendering: Rendering,
+    from_demos: str | None,
 ) -> list[EvalTask | LiberoEvalTask]:
     """The command line's episodes; options of the other kind of evaluation are refused."""
     if suite is None:
-        if tasks is not None or trials != LIBERO_TRIALS:
-            raise CapVectorError("--tasks and --trials choose LIBERO trials: give --suite too")
+        if tasks is not None or trials != LIBERO_TRIALS or from_demos is not None:
+            raise CapVectorError(
+                "--tasks, --trials and --from-demos choose LIBERO trials: give --suite too"
+            )
         return [
             EvalTask(t, episodes, robot, start_seed, max_steps, gripper, v)
             for t in task or ["Lift"]
@@ -187,7 +199,9 @@ def _eval_tasks(
             "give one or the other"
         )
     return [
-        LiberoEvalTask(suite, None if tasks is None else list(tasks), trials, max_steps, rendering)
+        LiberoEvalTask(
+            suite, None if tasks is None else list(tasks), trials, max_steps, rendering, from_demos
+        )
     ]
 
 
