@@ -234,7 +234,10 @@ def test_libero_episodes_pair_by_task_and_initial_state(tmp_path: Path) -> None:
         (run / f"{arm}_s0" / "fit" / "version_0" / "episodes.csv").write_text("\n".join(lines))
     out = tmp_path / "report"
     stages = [("plain SFT", "sft_s*", "eval_pre"), ("aux-SFT", "aux_s*", "eval_pre")]
-    report(run, stages, [], out, 0.5, ["plain SFT"], [], resamples=200)
+    text = report(run, stages, [], out, 0.5, ["plain SFT"], [], resamples=200)
+    # where each arm's successes come from, per task at the final step (seeds pooled)
+    assert "| arm (step 4) | libero_spatial/5 | libero_spatial/6 |" in text
+    assert "| plain SFT | 1/2 | 0/2 |" in text and "| aux-SFT | 1/2 | 1/2 |" in text
     result = json.loads((out / "results.json").read_text())
     sft, aux = result["comparison"]["arms"]
     units = [[f"libero_spatial/{t}", i] for t in tasks for i in trials]

@@ -11,7 +11,7 @@ each arm's training seeds with replacement, independently (seeds are not paired 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,7 +24,8 @@ class ArmOutcomes:
     label: str
     points: list
     """Training steps (ascending ints) or variant names, one per column of ``outcomes``."""
-    eval_seeds: list[int]
+    eval_seeds: list[Hashable]
+    """The evaluation episodes, in ``outcomes``' order: (task, seed) pairs in reports."""
     outcomes: np.ndarray
     """(training seeds, points, evaluation seeds) of 0/1."""
 
@@ -42,7 +43,9 @@ class ArmOutcomes:
 
 
 def arm_from_episodes(
-    label: str, per_seed: Sequence[dict[object, dict[int, bool]]], points: Sequence | None = None
+    label: str,
+    per_seed: Sequence[dict[object, dict[Hashable, bool]]],
+    points: Sequence | None = None,
 ) -> ArmOutcomes:
     """An arm from ``{point: {evaluation seed: success}}`` per training seed. Every seed must
     have every point on the same evaluation seeds (else the pairing would be wrong)."""
@@ -75,7 +78,9 @@ def area_under_curve(steps: Sequence[int], rates: np.ndarray) -> np.ndarray:
 class PairedBootstrap:
     """Resampled success rates of arms that share their evaluation seeds (see module doc)."""
 
-    def __init__(self, eval_seeds: Sequence[int], resamples: int = 10_000, seed: int = 0) -> None:
+    def __init__(
+        self, eval_seeds: Sequence[Hashable], resamples: int = 10_000, seed: int = 0
+    ) -> None:
         self.eval_seeds = list(eval_seeds)
         self.rng = np.random.default_rng(seed)
         n = len(self.eval_seeds)

@@ -279,6 +279,24 @@ def format_comparison(
     return "\n".join(lines)
 
 
+def format_per_task(arms: list[ArmOutcomes]) -> str | None:
+    """Successes per task at the final step, pooled over training seeds, when the episodes span
+    more than one task (a LIBERO suite): where an arm's success comes from. None for one task."""
+    tasks = list(dict.fromkeys(seed[0] for seed in arms[0].eval_seeds))
+    if len(tasks) < 2:
+        return None
+    head = [f"arm (step {arms[0].points[-1]})", *map(str, tasks)]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for arm in arms:
+        final = arm.outcomes[:, -1]  # (training seeds, evaluation seeds)
+        cells = [arm.label]
+        for task in tasks:
+            columns = [i for i, seed in enumerate(arm.eval_seeds) if seed[0] == task]
+            cells.append(f"{int(final[:, columns].sum())}/{final[:, columns].size}")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def report(
     run_dir: Path,
     arms: list[tuple[str, str, str]],
@@ -409,6 +427,9 @@ def write_report(
         differences = compare(training, compare_to, resamples)
         result["comparison"] = _comparison_json(training, differences, resamples)
         sections.append(format_comparison(training, differences, compare_to[0], False))
+        per_task = format_per_task(training)
+        if per_task is not None:
+            sections.append(per_task)
     if zero_shot:
         labels = {a.label for a in zero_shot}
         against = [label for label in compare_to or [] if label in labels]
