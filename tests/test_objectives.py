@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import lightning as L
@@ -185,6 +186,32 @@ def test_reasoning_samples_scores_the_batchs_first_samples_alone(demo_file: Path
     assert not torch.allclose(capped, ReasoningCoTraining()(batch, None, backbone))
     with pytest.raises(CapVectorError, match="reasoning samples must be at least 1"):
         ReasoningCoTraining(samples=0)
+
+
+@pytest.mark.parametrize("preset", ["openvla-oft-tiny", "pi05-tiny"])
+def test_reasoning_runs_past_the_tiny_presets_512_positions(
+    preset: str, demo_file: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """LIBERO's annotations run to ~650 bytes, a token each: the text pass is longer than the tiny
+    preset's 512 positions. Rotary positions have no table to index past, so the loss and its
+    gradients are finite, and the tokenizer's warning of "indexing errors" is not given."""
+    from transformers.utils import logging as hf_logging
+
+    dm = datamodule(demo_file)
+    backbone = build_backbone(preset, **dm.spec.backbone_overrides())
+    assert backbone.tokenizer.model_max_length == 512
+    answer = "the black bowl is between the plate and the ramekin. " * 14  # 742 bytes
+    batch = {**first_batch(dm, size=1), keys.ANNOTATION: [answer]}
+    hf_logging.enable_propagation()  # transformers' warnings reach caplog
+    try:
+        with caplog.at_level(logging.WARNING):
+            loss = ReasoningCoTraining()(batch, None, backbone)
+    finally:
+        hf_logging.disable_propagation()
+    loss.backward()
+    assert torch.isfinite(loss)
+    assert all(torch.isfinite(p.grad).all() for p in backbone.parameters() if p.grad is not None)
+    assert "indexing errors" not in caplog.text
 
 
 def test_reasoning_pass_is_causal_and_leaves_actions_alone(demo_file: Path) -> None:

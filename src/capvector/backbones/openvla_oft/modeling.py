@@ -433,7 +433,10 @@ class OpenVLAOFT(VLABackbone):
         rows, label_rows = [], []
         for prompt, answer in zip(prompts, answers, strict=True):
             prompt_ids = tok(prompt, add_special_tokens=False)["input_ids"]
-            answer_ids = [*tok(answer, add_special_tokens=False)["input_ids"], tok.eos_token_id]
+            # verbose=False: a scene annotation can run past the tokenizer's model_max_length (the
+            # tiny preset's 512), which rotary positions allow: its "indexing errors" is wrong here
+            answer_ids = tok(answer, add_special_tokens=False, verbose=False)["input_ids"]
+            answer_ids = [*answer_ids, tok.eos_token_id]
             rows.append([tok.bos_token_id, *prompt_ids, *answer_ids])
             label_rows.append([IGNORE_INDEX] * (1 + len(prompt_ids)) + answer_ids)
         ids, text_valid = right_pad(rows, tok.pad_token_id, device)

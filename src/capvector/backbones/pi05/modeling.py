@@ -884,7 +884,9 @@ class Pi05(VLABackbone):
         rows, ar_rows, label_rows = [], [], []
         for prompt, answer in zip(prompts, answers, strict=True):
             prompt_ids = [tok.bos_token_id, *tok(prompt, add_special_tokens=False)["input_ids"]]
-            answer_ids = [*tok(answer, add_special_tokens=False)["input_ids"], tok.eos_token_id]
+            # verbose=False: as OpenVLA-OFT's text pass (a long annotation, rotary positions)
+            answer_ids = tok(answer, add_special_tokens=False, verbose=False)["input_ids"]
+            answer_ids = [*answer_ids, tok.eos_token_id]
             rows.append(prompt_ids + answer_ids)
             ar_rows.append([0] * len(prompt_ids) + [1] * len(answer_ids))
             label_rows.append([IGNORE_INDEX] * len(prompt_ids) + answer_ids)
