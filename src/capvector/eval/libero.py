@@ -84,6 +84,15 @@ def start_trial(env: Any, spec: LiberoEpisodeSpec) -> dict[str, Any]:
     return env.set_init_state(state)
 
 
+def check_trial_starts(specs: Sequence[LiberoEpisodeSpec]) -> None:
+    """Every trial that starts from a demo (``from_demos``) finds it; a clear error if not."""
+    from capvector.sim.libero_demos import demo_start
+
+    for spec in specs:
+        if spec.from_demos is not None:
+            demo_start(spec.from_demos, spec.suite, spec.task_id, spec.trial)
+
+
 class LiberoEpisode:
     """One LIBERO trial in progress: :meth:`observe`, then :meth:`execute` a chunk, until it
     returns the result (the interface of :class:`~capvector.eval.rollout.Episode`).

@@ -127,10 +127,9 @@ def evaluate_cli(
     )  # fmt: skip
     specs = EpisodeDataset(eval_tasks).specs
     if from_demos is not None:  # every trial's demo is there, before minutes of rollouts
-        from capvector.sim.libero_demos import demo_start
+        from capvector.eval.libero import check_trial_starts
 
-        for s in specs:
-            demo_start(from_demos, s.suite, s.task_id, s.trial)  # type: ignore[union-attr]
+        check_trial_starts(specs)  # type: ignore[arg-type]
     if batch_size is None:
         batch_size = 8 if suite is None else _libero_batch_size(workers)
     results = evaluate(
