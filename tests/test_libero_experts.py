@@ -121,12 +121,11 @@ def demo_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_demos_suite_writes_libero_layout_that_trains(demo_file: Path) -> None:
-    path = demo_file
-    assert path.name == (
+    assert demo_file.name == (
         "pick_up_the_black_bowl_between_the_plate_and_the_ramekin_and_place_it_on_the_plate_demo.hdf5"
     )
     instruction = libero.libero_task("libero_spatial", 0).instruction
-    with h5py.File(path, "r") as f:
+    with h5py.File(demo_file, "r") as f:
         data = f["data"]
         # the attributes and keys of LIBERO's scripts/create_dataset.py
         assert json.loads(data.attrs["problem_info"])["language_instruction"] == instruction
@@ -154,7 +153,7 @@ def test_demos_suite_writes_libero_layout_that_trains(demo_file: Path) -> None:
         assert not is_official_state(demo["states"][0], official, np.arange(9, 44))
         frame = demo["obs/agentview_rgb"][3]
     dataset = HDF5RobotDataset(
-        [path], cameras=["agentview", "robot0_eye_in_hand"],
+        [demo_file], cameras=["agentview", "robot0_eye_in_hand"],
         proprio_keys=["ee_states", "gripper_states"], chunk_size=4,
     )  # fmt: skip
     sample = dataset[3]
@@ -191,9 +190,8 @@ def test_evaluation_gives_the_policy_what_training_read_at_the_same_state(demo_f
     instruction = libero.libero_task("libero_spatial", 0).instruction
     env = build_libero_env("libero_spatial", 0, cameras, 32)
     try:
-        libero.seeded_reset(
-            env, seed
-        )  # the fixtures (not in a state) where the demo's reset put them
+        # the fixtures (no state holds them) where the demo's reset put them
+        libero.seeded_reset(env, seed)
         for t in (0, steps // 2, steps - chunk):
             obs = env.set_init_state(states[t])
             live = policy.observations_to_batch(
