@@ -87,3 +87,31 @@ def test_a_preempted_fit_requeues_and_resumes_from_its_checkpoint(
     assert set(range(steps)) <= trained  # both runs' steps, in one metrics.csv
     marker = json.loads((stage / ".done").read_text())
     assert marker["job"] == job and (stage / "fit/version_0/export/model.safetensors").is_file()
+
+
+@pytest.mark.slow
+def test_a_recipe_run_again_waits_for_its_job_still_running(
+    slurm: Path, tmp_path: Path, demo_file: Path
+) -> None:
+    """The recipe (on a login node) can stop while its jobs go on; run again, it waits for a
+    stage's job that is still running instead of submitting a second into the same folder."""
+    recipe = write_recipe(tmp_path / "recipe.yaml", [fit_stage(demo_file, steps=300)],
+                          launcher="slurm", resources={"time_min": 10})  # fmt: skip
+    command = [sys.executable, "-m", "capvector.cli", "recipe", "--config", str(recipe)]
+    first = subprocess.Popen(command, stdout=subprocess.DEVNULL, cwd=REPO)
+    stage = tmp_path / "run/fit"
+    metrics = stage / "fit/version_0/metrics.csv"
+    deadline = time.time() + 600
+    while not (metrics.is_file() and len(metrics.read_text().splitlines()) > 5):
+        assert first.poll() is None and time.time() < deadline
+        time.sleep(0.5)
+    first.kill()  # the recipe stops; its job does not
+    first.wait()
+    (job,) = slurm_command("squeue", "-h", "-o", "%i").split()
+    again = subprocess.run(command, capture_output=True, text=True, cwd=REPO, timeout=600)
+    assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
+    assert f"SLURM job {job} from an earlier run is still queued or running" in again.stdout
+    assert [p.name for p in (stage / "submitit").glob("*_submitted.pkl")] == [
+        f"{job}_submitted.pkl"
+    ]
+    assert json.loads((stage / ".done").read_text())["job"] == job

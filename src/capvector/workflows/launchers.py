@@ -13,6 +13,9 @@ ahead); a ``fit`` stage's Lightning (its ``SLURMEnvironment`` with auto-requeue,
 saves a checkpoint and requeues the job, which resumes from it; any other stage is requeued by
 submitit and runs again.
 
+A recipe run again while a stage's SLURM job is still queued or running (the recipe on a login
+node was stopped, its jobs were not) waits for that job instead of submitting a second one.
+
 ``submitit-local``: the ``slurm`` path with each job a local process (submitit's
 ``LocalExecutor``), to try a cluster recipe, resources, pickling and all, without a cluster.
 """
@@ -260,9 +263,36 @@ class SubmititLauncher:
             slurm_additional_parameters=dict(resources.slurm) or None,
         )  # fmt: skip
         launcher = "slurm" if self.cluster == "slurm" else "submitit-local"
-        job = executor.submit(StageJob(directory, command, self.threads, launcher, fit))
+        job = self._running_job(directory / "submitit", tasks) if self.cluster == "slurm" else None
+        if job is not None:
+            print(
+                f"stage {name!r}: SLURM job {job.job_id} from an earlier run is still queued or "
+                "running: waiting for it, not submitting another",
+                flush=True,
+            )
+        else:
+            job = executor.submit(StageJob(directory, command, self.threads, launcher, fit))
         self.running += 1
         return SubmititStage(self, directory, job)
+
+    @staticmethod
+    def _running_job(folder: Path, tasks: int) -> Any:
+        """The stage's newest SLURM job if SLURM still queues or runs it: the recipe (on a login
+        node) may have stopped while its jobs went on, and a second job would write into the
+        same stage folder."""
+        import submitit
+
+        submitted = sorted(folder.glob("*_submitted.pkl"), key=lambda p: p.stat().st_mtime)
+        if not submitted:
+            return None
+        job_id = submitted[-1].name.removesuffix("_submitted.pkl")
+        queue = subprocess.run(
+            ["squeue", "--noheader", "--jobs", job_id, "--format", "%T"],
+            capture_output=True, text=True,
+        )  # fmt: skip
+        if queue.returncode != 0 or not queue.stdout.strip():  # ended, or SLURM forgot it
+            return None
+        return submitit.SlurmJob(folder=folder, job_id=job_id, tasks=tuple(range(tasks)))
 
 
 class SubmititStage:
