@@ -27,7 +27,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from capvector.errors import CapVectorError
-from capvector.eval.episodes import LiberoEpisodeSpec
+from capvector.eval.episodes import AnyEpisodeSpec, LiberoEpisodeSpec
 from capvector.sim.libero import (
     NUM_WAIT_STEPS,
     WAIT_ACTION,
@@ -84,12 +84,12 @@ def start_trial(env: Any, spec: LiberoEpisodeSpec) -> dict[str, Any]:
     return env.set_init_state(state)
 
 
-def check_trial_starts(specs: Sequence[LiberoEpisodeSpec]) -> None:
+def check_trial_starts(specs: Sequence[AnyEpisodeSpec]) -> None:
     """Every trial that starts from a demo (``from_demos``) finds it; a clear error if not."""
     from capvector.sim.libero_demos import demo_start
 
     for spec in specs:
-        if spec.from_demos is not None:
+        if isinstance(spec, LiberoEpisodeSpec) and spec.from_demos is not None:
             demo_start(spec.from_demos, spec.suite, spec.task_id, spec.trial)
 
 

@@ -129,7 +129,7 @@ def evaluate_cli(
     if from_demos is not None:  # every trial's demo is there, before minutes of rollouts
         from capvector.eval.libero import check_trial_starts
 
-        check_trial_starts(specs)  # type: ignore[arg-type]
+        check_trial_starts(specs)
     if batch_size is None:
         batch_size = 8 if suite is None else _libero_batch_size(workers)
     results = evaluate(
