@@ -1,9 +1,9 @@
 """LIBERO under the official protocol through the one rollout loop: `capvector evaluate --suite`,
 LIBERO entries of the validation loop, and an episode's trajectory against OpenVLA-OFT's own loop.
 
-The tests share LIBERO-Spatial task 0 and, in file order, the envs the in-process evaluation keeps
-(each ~1.2 GB; at most two per process). The policy is an untrained tiny OpenVLA-OFT with one
-32 px camera: rendering dominates a LIBERO step on a CPU, so episodes are cut to a few steps.
+The tests share LIBERO-Spatial task 0; an evaluation closes the LIBERO envs it built (each
+~1.2 GB) when it ends. The policy is an untrained tiny OpenVLA-OFT with one 32 px camera:
+rendering dominates a LIBERO step on a CPU, so episodes are cut to a few steps.
 """
 
 from __future__ import annotations
@@ -48,8 +48,7 @@ def export(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_evaluate_runs_the_protocol_in_workers_and_here_alike(
     export: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """Batched in two worker processes, and one at a time in this one (whose env the validation
-    loop below reuses)."""
+    """Batched in two worker processes, and one at a time in this one."""
     runs = {}
     for workers, batch in (("2", "2"), ("0", "1")):
         out = tmp_path / workers
@@ -180,6 +179,20 @@ def test_a_non_finite_action_fails_only_its_trial() -> None:
     assert result.reason.startswith("non-finite action at step 0")
     assert (result.task, result.seed) == (f"{SUITE}/0", 3)
     close_envs()
+
+
+@pytest.mark.sim
+def test_no_libero_env_outlives_its_evaluation() -> None:
+    """A stepped LIBERO env holds ~1.1 GB and a fit trains between its validations: a run closes
+    the envs it cached, one at a time (an evaluator's own cache too) and batched."""
+    from capvector.eval import rollout
+
+    specs = libero_specs(SUITE, [0], trials=2, max_steps=2)
+    cache = rollout.EnvCache()
+    results = RolloutEvaluator((), 0, envs=cache, batch_size=1).run(press_down, specs[:1])
+    assert results[0].steps == 2 and len(cache) == 0
+    results = RolloutEvaluator((), 0, batch_size=2, workers=0).run(press_down, specs)
+    assert [r.steps for r in results] == [2, 2] and not rollout._local_slots._envs
 
 
 @pytest.mark.sim
