@@ -142,6 +142,7 @@ COMMITTED = [
     ("powered", ["plain SFT", "aux-SFT"]),
     ("pilot_few_demos/demos_10", ["plain SFT", "aux-SFT"]),
     ("pilot_few_demos/demos_5", ["plain SFT"]),
+    ("libero_pilot", ["plain SFT"]),
 ]
 
 
