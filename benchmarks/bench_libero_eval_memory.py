@@ -15,7 +15,9 @@ import argparse
 import resource
 
 import numpy as np
+import torch
 
+from capvector.callbacks.step_cost import peak_memory_mib
 from capvector.eval.episodes import libero_specs
 from capvector.eval.rollout import RolloutEvaluator
 
@@ -24,10 +26,6 @@ def resident_gib() -> float:
     with open("/proc/self/statm") as f:
         pages = int(f.read().split()[1])
     return pages * resource.getpagesize() / 2**30
-
-
-def peak_gib() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB on Linux
 
 
 def hold(observation: dict) -> np.ndarray:
@@ -53,7 +51,7 @@ def main() -> None:
     print(f"| {len(specs)} episodes, {args.batch} in flight, 2 cameras {args.size} px | GiB |")
     print("|---|---:|")
     print(f"| resident before | {before:.2f} |")
-    print(f"| peak during | {peak_gib():.2f} |")
+    print(f"| peak during | {peak_memory_mib(torch.device('cpu')) / 1024:.2f} |")
     print(f"| resident after | {resident_gib():.2f} |")
 
 

@@ -382,10 +382,11 @@ class RolloutEvaluator:
                 self._release_envs()
 
     def _release_envs(self) -> None:
-        """Close the cached envs after a run with LIBERO's: a stepped LIBERO env holds ~1 GB, and
-        a run builds each task's env anyway (building one closes the last task's), so keeping them
-        would hold gigabytes through training until the next validation (4 episodes in flight: 5.9
-        GiB resident after the run, 2.1 with them closed; benchmarks/bench_libero_eval_memory.py)."""
+        """Close the cached envs (and worker processes) after a run with LIBERO's: a stepped
+        LIBERO env holds ~1 GB, and a run builds each task's env anyway (building one closes the
+        last task's), so keeping them would hold gigabytes through training until the next
+        validation (4 episodes in flight: 6.2 GiB resident after the run, 2.2 with them closed;
+        benchmarks/bench_libero_eval_memory.py)."""
         close_envs()
         if self.envs is not None:
             self.envs.close()
