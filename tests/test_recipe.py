@@ -238,6 +238,9 @@ def test_only_runs_the_named_stages_and_what_they_wait_for(tmp_path: Path) -> No
     assert required_stages(waits_for, ["c", "d_s1"]) == {"a", "b", "c", "d_s1"}
     with pytest.raises(CapVectorError, match="--only names 'f', which is no stage"):
         required_stages(waits_for, ["f"])
+    # What only finished stages wait for is not needed (a study moved without its demos).
+    assert required_stages(waits_for, ["e"], done={"d_s0", "d_s1"}) == {"d_s0", "d_s1", "e"}
+    assert required_stages(waits_for, ["e"], done={"d_s0"}) == {"a", "d_s0", "d_s1", "e"}
 
     (tmp_path / "run" / "b").mkdir(parents=True)
     (tmp_path / "run" / "b" / ".done").write_text("{}")  # finished in an earlier run
@@ -263,3 +266,12 @@ def test_only_runs_the_named_stages_and_what_they_wait_for(tmp_path: Path) -> No
         "  e     not started; waits for d_s0, d_s1",
     ]
     assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["b"]
+
+    for seed in "01":  # d's fits finished, their input a gone: e runs, a does not
+        (tmp_path / "run" / f"d_s{seed}").mkdir()
+        (tmp_path / "run" / f"d_s{seed}" / ".done").write_text("{}")
+    completed = capvector("recipe", "--config", str(path), "--dry-run", "--only", "e")
+    assert completed.returncode == 0, completed.stderr[-3000:]
+    assert "[recipe 1/3] d_s0 (fit): done earlier, skipped" in completed.stdout
+    assert "[recipe 3/3] e (report) started; 0 more to run" in completed.stdout
+    assert " a (" not in completed.stdout

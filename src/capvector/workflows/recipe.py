@@ -35,7 +35,8 @@ names (``--ckpt ${out.down.export}`` in a seeded ``evaluate`` stage evaluates ea
 ``down``). An ``after:`` list that names ``<name>`` waits for all of its seeds.
 
 ``--only STAGE ...`` runs those stages and what they wait for, nothing else (a seeded stage's
-name stands for all of its seeds), e.g. one report of a large recipe. ``--status`` runs nothing
+name stands for all of its seeds), e.g. one report of a large recipe; what only finished stages
+waited for is not needed again. ``--status`` runs nothing
 and says where each of them stands: done (in how long), a fit's last logged step and whether it
 resumes from a checkpoint, or what it waits for.
 """
@@ -48,7 +49,7 @@ import json
 import re
 import sys
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Collection, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -296,9 +297,14 @@ def check_order(waits_for: dict[str, set[str]], path: str | Path) -> None:
         visit(name, [])
 
 
-def required_stages(waits_for: dict[str, set[str]], targets: list[str]) -> set[str]:
-    """The ``targets`` and every stage they wait for, directly or not. A target that names a
-    seeded stage (``<name>`` of ``<name>_s0``, ``<name>_s1``, ...) stands for all of its seeds."""
+def required_stages(
+    waits_for: dict[str, set[str]], targets: list[str], done: Collection[str] = ()
+) -> set[str]:
+    """The ``targets`` and every stage they wait for, directly or not, but not through a stage in
+    ``done``: a finished stage needs its inputs no more (a study carried to another machine
+    without its demos does not record again the demos only finished fits used). A target that
+    names a seeded stage (``<name>`` of ``<name>_s0``, ``<name>_s1``, ...) stands for all of its
+    seeds."""
     wanted: list[str] = []
     for target in targets:
         seeded = [n for n in waits_for if re.fullmatch(rf"{re.escape(target)}_s\d+", n)]
@@ -312,7 +318,8 @@ def required_stages(waits_for: dict[str, set[str]], targets: list[str]) -> set[s
         name = wanted.pop()
         if name not in required:
             required.add(name)
-            wanted += waits_for[name]
+            if name not in done:
+                wanted += waits_for[name]
     return required
 
 
@@ -354,7 +361,8 @@ def run(
     for i in range(len(names)):  # every interpolation resolves: a typo fails now, not hours in
         runner.check(names[i], resolve_stage(raw, i, run_dir, recipe).resources)
     if only:
-        required = required_stages(waits_for, only)
+        done = {n for n in names if (run_dir / n / DONE).is_file()}
+        required = required_stages(waits_for, only, done)
         names = [n for n in names if n in required]
     index = {str(s.name): i for i, s in enumerate(raw.stages)}
     if status:
@@ -402,11 +410,14 @@ def run(
     try:
         while len(finished) < len(names) and not failed:
             for name in names:
-                if name in finished or name in running or not waits_for[name] <= finished:
+                if name in finished or name in running:
                     continue
+                done_earlier = (run_dir / name / DONE).is_file()
+                if not (done_earlier or waits_for[name] <= finished):
+                    continue  # a finished stage waits for nothing: its inputs may be gone
                 # Resolved only now, so the arguments can use what earlier stages produced.
                 stages[name] = resolve_stage(raw, index[name], run_dir, recipe)
-                if stages[name].done_marker.is_file():
+                if done_earlier:
                     print(f"{label(name)}: done earlier, skipped", flush=True)
                     finished.add(name)
                 elif runner.has_room(stages[name].resources):
@@ -515,7 +526,8 @@ def recipe_cli(
             `jobs`, 1)
         threads: torch threads of every stage (default: the recipe's `threads`, 1); results
             depend on it, not on --jobs
-        only: run only these stages and the stages they wait for
+        only: run only these stages and the stages they wait for (not those that only
+            finished stages wait for)
         launcher: local (child processes), slurm (a SLURM job per stage, through submitit) or
             submitit-local (the slurm path, jobs as local processes); default: the recipe's
             `launcher`, local
