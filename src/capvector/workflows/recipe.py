@@ -36,9 +36,9 @@ names (``--ckpt ${out.down.export}`` in a seeded ``evaluate`` stage evaluates ea
 
 ``--only STAGE ...`` runs those stages and what they wait for, nothing else (a seeded stage's
 name stands for all of its seeds), e.g. one report of a large recipe; what only finished stages
-waited for is not needed again. ``--status`` runs nothing
-and says where each of them stands: done (in how long), a fit's last logged step and whether it
-resumes from a checkpoint, or what it waits for.
+waited for is not needed again. ``--status`` runs nothing and says where each of them stands:
+done (in how long), a fit's last logged step and whether it resumes from a checkpoint, or what it
+waits for.
 """
 
 from __future__ import annotations
