@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -15,7 +16,7 @@ import pytest
 
 from capvector.errors import CapVectorError
 from capvector.io.cpus import cgroup_cpu_quota, usable_cpus
-from capvector.workflows.launchers import LocalLauncher, Resources
+from capvector.workflows.launchers import LocalLauncher, Resources, running_pid
 from capvector.workflows.recipe import run
 
 REPO = Path(__file__).resolve().parents[1]
@@ -190,3 +191,59 @@ def test_a_sigtermed_fit_does_not_exit_as_finished(tmp_path: Path, demo_file: Pa
     _, stderr = fit.communicate(timeout=120)
     assert fit.returncode == 128 + signal.SIGTERM
     assert "capvector fit: stopped by SIGTERM before its end" in stderr
+
+
+def test_a_stopped_recipe_stops_its_fit_and_a_rerun_names_one_still_running(
+    tmp_path: Path, demo_file: Path
+) -> None:
+    """`kill` (SIGTERM) to the recipe alone stops its local fit with it; a recipe killed outright
+    leaves its fit running, and a rerun names that fit instead of starting a second process that
+    would write into the same folder."""
+    recipe = write_recipe(tmp_path / "recipe.yaml", [fit_stage(demo_file, steps=100_000)])
+    command = [sys.executable, "-m", "capvector.cli", "recipe", "--config", str(recipe)]
+    stage = tmp_path / "run" / "fit"
+    checkpoint = stage / "fit" / "version_0" / "checkpoints" / "last.ckpt"
+    log = tmp_path / "recipe.log"
+
+    def start_recipe() -> tuple[subprocess.Popen, int]:
+        """The recipe, once its fit runs and has a checkpoint; the fit's pid (from its lock)."""
+        with log.open("w") as out:  # a file, not a pipe: a fit left running never blocks on it
+            recipe_run = subprocess.Popen(command, stdout=out, stderr=subprocess.STDOUT, cwd=REPO)
+        before = checkpoint.stat().st_mtime_ns if checkpoint.is_file() else None
+        deadline = time.time() + 300
+        while not (checkpoint.is_file() and checkpoint.stat().st_mtime_ns != before):
+            assert recipe_run.poll() is None, log.read_text()[-3000:]
+            assert time.time() < deadline
+            time.sleep(0.5)
+        pid = running_pid(stage)
+        assert pid and pid != recipe_run.pid
+        return recipe_run, pid
+
+    first, fit = start_recipe()
+    first.terminate()
+    assert first.wait(timeout=120) == 128 + signal.SIGTERM
+    assert "capvector recipe: stopping fit; run the same command again to resume" in log.read_text()
+    assert running_pid(stage) is None  # the fit ended with the recipe: nothing holds its lock
+    with pytest.raises(ProcessLookupError):
+        os.kill(fit, 0)
+
+    second, fit = start_recipe()  # resumes the fit from its checkpoint
+    second.kill()  # nothing runs in a SIGKILLed recipe: its fit goes on without it
+    second.wait()
+    try:
+        assert running_pid(stage) == fit
+        status = subprocess.run([*command, "--status"], capture_output=True, text=True, cwd=REPO)
+        assert re.search(rf"  fit  running \(pid {fit}\): step \d+ logged; resumes", status.stdout)
+        again = subprocess.run(command, capture_output=True, text=True, cwd=REPO, timeout=300)
+        assert again.returncode == 2
+        assert (
+            "stage(s) still running from an earlier `capvector recipe` run: fit "
+            f"(pid {fit}). Wait for them to end, or stop them (`kill -INT <pid>`"
+        ) in again.stderr
+        assert running_pid(stage) == fit  # the rerun started nothing and left the fit alone
+    finally:
+        os.kill(fit, signal.SIGINT)
+        deadline = time.time() + 120
+        while running_pid(stage) is not None and time.time() < deadline:
+            time.sleep(0.5)
+    assert running_pid(stage) is None and not (stage / ".done").exists()

@@ -16,12 +16,19 @@ submitit and runs again.
 A recipe run again while a stage's SLURM job is still queued or running (the recipe on a login
 node was stopped, its jobs were not) waits for that job instead of submitting a second one.
 
+A local stage runs in its own process group and holds ``<stage>/.lock`` while it runs: a recipe
+that stops (Ctrl-C, ``kill``, an error) stops its stages as Ctrl-C in their terminal would, and a
+recipe run again while an earlier run's stage is still running (its recipe was killed with
+``SIGKILL``, its terminal closed) names that stage instead of starting a second process that writes
+into the same folder.
+
 ``submitit-local``: the ``slurm`` path with each job a local process (submitit's
 ``LocalExecutor``), to try a cluster recipe, resources, pickling and all, without a cluster.
 """
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import signal
@@ -41,6 +48,7 @@ from capvector.io.outputs import atomic_write_bytes
 LAUNCHERS = ("local", "slurm", "submitit-local")
 DONE = ".done"
 LOG = "log.txt"
+LOCK = ".lock"
 REQUEUE_SIGNAL = signal.SIGUSR2
 """What submitit has SLURM send a job before its time limit (``--signal=USR2@90``) and, where the
 cluster sends it on preemption, before that."""
@@ -102,6 +110,10 @@ class Started(Protocol):
     def failure(self) -> str:
         """What went wrong, for the recipe to print."""
 
+    def stop(self) -> bool:
+        """The recipe stops: ask the stage to stop with it. True if it will (then ``wait``), False
+        if it goes on without the recipe (a SLURM job)."""
+
 
 def stage_environment(threads: int, cores: int, gpus: list[str] | None = None) -> dict[str, str]:
     """A stage process's environment: ``threads`` torch (OpenMP, MKL) threads, fixed so results do
@@ -120,6 +132,43 @@ def write_done(directory: Path, command: list[str], began: float, **facts: Any) 
     marker = {"command": command[2:], **facts, "seconds": round(time.time() - began, 1),
               "finished": time.ctime()}  # fmt: skip
     atomic_write_bytes(directory / DONE, json.dumps(marker, indent=2).encode())
+
+
+def running_pid(directory: Path) -> int | None:
+    """The process id of a local stage still running in ``directory`` (0 if it has not written
+    it yet), or None when none is: the stage's process holds ``.lock`` until it ends."""
+    path = directory / LOCK
+    if not path.is_file():
+        return None
+    with path.open() as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            text = f.read().strip()
+            return int(text) if text.isdigit() else 0
+    return None  # the lock was free; closing the file released it
+
+
+def lock_stage(directory: Path, name: str) -> int:
+    """The open file descriptor of ``directory/.lock``, locked for the stage about to start, or a
+    clear error when a process of an earlier run still holds it."""
+    fd = os.open(directory / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        raise CapVectorError(still_running({name: running_pid(directory) or 0})) from None
+    return fd
+
+
+def still_running(pids: Mapping[str, int]) -> str:
+    """The error for stages whose process from an earlier recipe run has not ended."""
+    stages = ", ".join(f"{name} (pid {pid})" if pid else name for name, pid in pids.items())
+    return (
+        f"stage(s) still running from an earlier `capvector recipe` run: {stages}. Wait for them "
+        "to end, or stop them (`kill -INT <pid>`; a fit resumes from its last checkpoint), then run "
+        "this again: a second process would write into the same folder"
+    )
 
 
 def log_tail(path: Path, size: int = 3000) -> str:
@@ -184,8 +233,9 @@ class LocalLauncher:
         env = stage_environment(self.threads, cores, gpus if gpus or count == 0 else None)
         directory.mkdir(parents=True, exist_ok=True)
         log = None if self.jobs == 1 else directory / LOG
+        stage = LocalStage(self, directory, command(), env, log, gpus, cores)
         self.running += 1
-        return LocalStage(self, directory, command(), env, log, gpus, cores)
+        return stage
 
 
 class LocalStage:
@@ -195,12 +245,20 @@ class LocalStage:
     ) -> None:  # fmt: skip
         self.launcher, self.directory, self.command, self.log = launcher, directory, command, log
         self.gpus, self.cores, self.began = gpus, cores, time.time()
+        lock = lock_stage(directory, directory.name)
         out = None if log is None else log.open("ab")
         try:
+            # Its own process group: Ctrl-C reaches the recipe alone, which then stops its stages
+            # (``stop``), so a stage never outlives a recipe that was stopped unless it is killed.
+            # The child inherits the locked descriptor and holds the lock until it ends.
             self.process = subprocess.Popen(
-                command, env=env, stdout=out, stderr=None if out is None else subprocess.STDOUT
-            )
+                command, env=env, stdout=out, stderr=None if out is None else subprocess.STDOUT,
+                start_new_session=True, pass_fds=(lock,),
+            )  # fmt: skip
+            os.ftruncate(lock, 0)
+            os.pwrite(lock, f"{self.process.pid}\n".encode(), 0)
         finally:
+            os.close(lock)
             if out is not None:
                 out.close()  # the child holds its own copy
         self.code: int | None = None
@@ -221,6 +279,14 @@ class LocalStage:
 
     def where(self) -> str:
         return f"log: {self.log}"
+
+    def stop(self) -> bool:
+        """SIGINT to the stage's process group, as Ctrl-C in its terminal: a fit ends cleanly
+        (Lightning's graceful shutdown; it resumes from its last checkpoint), another command
+        removes its half-written outputs."""
+        if self.process.poll() is None:
+            os.killpg(self.process.pid, signal.SIGINT)
+        return True
 
     def failure(self) -> str:
         return f"exit {self.code}" + ("" if self.log is None else "\n" + log_tail(self.log))
@@ -320,6 +386,11 @@ class SubmititStage:
     def failure(self) -> str:
         tail = log_tail(self.directory / LOG) or self.error
         return f"job {self.job.job_id}; submitit's logs in {self.directory / 'submitit'}\n{tail}"
+
+    def stop(self) -> bool:
+        """A job goes on without the recipe (stopped on a login node); run again, the recipe
+        waits for it."""
+        return False
 
 
 class StageJob:

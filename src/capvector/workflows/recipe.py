@@ -64,6 +64,8 @@ from capvector.workflows.launchers import (
     Resources,
     Started,
     make_launcher,
+    running_pid,
+    still_running,
 )
 
 OUT_REFERENCE = re.compile(r"\$\{out\.([A-Za-z0-9_]+)\.([A-Za-z0-9_]*)")
@@ -370,6 +372,11 @@ def run(
             run_dir, [resolve_stage(raw, index[n], run_dir, recipe) for n in names], waits_for
         )
         return []
+    if not dry_run:  # before anything starts: an earlier run's stage may still be running
+        pids = {n: running_pid(run_dir / n) for n in names if not (run_dir / n / DONE).is_file()}
+        busy = {n: pid for n, pid in pids.items() if pid is not None}
+        if busy:
+            raise CapVectorError(still_running(busy))
     run_dir.mkdir(parents=True, exist_ok=True)
     stages: dict[str, Stage] = {}
     finished: set[str] = set()
@@ -429,12 +436,16 @@ def run(
                 code = running[name].poll()
                 if code is not None:
                     reap(name, code)
-    except KeyboardInterrupt:
-        if launcher != "local" and running:  # jobs outlive the recipe: say which
-            jobs_left = ", ".join(
-                f"{name} ({started.where()})" for name, started in running.items()
-            )
-            print(f"capvector recipe: stopped waiting; still queued or running: {jobs_left}")
+    except BaseException:  # Ctrl-C, SIGTERM, an error: the local stages stop with the recipe
+        stopping = [name for name, started in running.items() if started.stop()]
+        if stopping:
+            print(f"capvector recipe: stopping {', '.join(stopping)}; run the same command "
+                  "again to resume", flush=True)  # fmt: skip
+            for name in stopping:
+                running[name].wait()
+        left = ", ".join(f"{n} ({s.where()})" for n, s in running.items() if n not in stopping)
+        if left:  # SLURM jobs outlive the recipe: say which
+            print(f"capvector recipe: stopped waiting; still queued or running: {left}")
         raise
     for name in list(running):  # a stage failed: let the others finish their work, then stop
         reap(name, running[name].wait())
@@ -461,16 +472,18 @@ def print_status(run_dir: Path, stages: list[Stage], waits_for: dict[str, set[st
 
 
 def stage_status(stage: Stage) -> str:
-    """Where a stage stands, from its folder: done (in how long), a fit's last logged step and
-    whether it would resume from a checkpoint, started, or not started. (A stage that is not done
-    may be running or stopped: the folder cannot tell.)"""
+    """Where a stage stands, from its folder: done (in how long), running (a local process holds
+    its lock) or started and stopped, a fit's last logged step and whether it would resume from a
+    checkpoint, or not started."""
     if stage.done_marker.is_file():
         seconds = json.loads(stage.done_marker.read_text() or "{}").get("seconds")
         return "done" if seconds is None else f"done in {seconds:.0f} s"
     if not stage.directory.exists():
         return "not started"
+    pid = running_pid(stage.directory)
+    state = "started, not done" if pid is None else f"running (pid {pid})" if pid else "running"
     if stage.command != "fit":
-        return "started, not done"
+        return state
     outputs = stage_outputs(stage.directory.parent, stage.name)
     checkpoint = Path(outputs["ckpt"])
     metrics = (
@@ -485,7 +498,7 @@ def stage_status(stage: Stage) -> str:
         "resumes from its last checkpoint" if checkpoint.is_file()
         else "no checkpoint yet: starts again"
     )  # fmt: skip
-    return f"started, not done: {logged}; {resumes}"
+    return f"{state}: {logged}; {resumes}"
 
 
 def collect_results(stages: list[Stage]) -> list[SuccessRow]:
