@@ -28,6 +28,7 @@ into the same folder.
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import json
 import os
@@ -149,15 +150,15 @@ def running_pid(directory: Path) -> int | None:
     return None  # the lock was free; closing the file released it
 
 
-def lock_stage(directory: Path, name: str) -> int:
-    """The open file descriptor of ``directory/.lock``, locked for the stage about to start, or a
-    clear error when a process of an earlier run still holds it."""
+def lock_stage(directory: Path) -> int:
+    """The open file descriptor of ``directory/.lock``, locked for the stage about to start (the
+    stage of that folder's name), or a clear error when a process of an earlier run holds it."""
     fd = os.open(directory / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
         os.close(fd)
-        raise CapVectorError(still_running({name: running_pid(directory) or 0})) from None
+        raise CapVectorError(still_running({directory.name: running_pid(directory) or 0})) from None
     return fd
 
 
@@ -245,7 +246,7 @@ class LocalStage:
     ) -> None:  # fmt: skip
         self.launcher, self.directory, self.command, self.log = launcher, directory, command, log
         self.gpus, self.cores, self.began = gpus, cores, time.time()
-        lock = lock_stage(directory, directory.name)
+        lock = lock_stage(directory)
         out = None if log is None else log.open("ab")
         try:
             # Its own process group: Ctrl-C reaches the recipe alone, which then stops its stages
@@ -285,7 +286,8 @@ class LocalStage:
         (Lightning's graceful shutdown; it resumes from its last checkpoint), another command
         removes its half-written outputs."""
         if self.process.poll() is None:
-            os.killpg(self.process.pid, signal.SIGINT)
+            with contextlib.suppress(ProcessLookupError):  # it ended since
+                os.killpg(self.process.pid, signal.SIGINT)
         return True
 
     def failure(self) -> str:
