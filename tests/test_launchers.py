@@ -193,6 +193,7 @@ def test_a_sigtermed_fit_does_not_exit_as_finished(tmp_path: Path, demo_file: Pa
     assert "capvector fit: stopped by SIGTERM before its end" in stderr
 
 
+@pytest.mark.slow
 def test_a_stopped_recipe_stops_its_fit_and_a_rerun_names_one_still_running(
     tmp_path: Path, demo_file: Path
 ) -> None:
