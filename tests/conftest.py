@@ -92,7 +92,7 @@ def run_fit_script(out: Path, data: Path, *args: str) -> list[float]:
 
     A run whose process crashed (a signal, such as SIGSEGV) is run once more from scratch, with a
     warning that carries its stderr: gloo on CPU (torch 2.14.1) crashed once in ~40 CI runs, rank 0
-    with SIGSEGV inside FSDP2's full-state-dict gather, and 15 reruns of that fit did not reproduce
+    with SIGSEGV inside FSDP2's full-state-dict gather, and 13 reruns of that fit did not reproduce
     it. A native crash in the collective library, not in our code; a second crash, or any error a
     Python exception reports, fails. ``PYTHONFAULTHANDLER`` (inherited by the ranks Lightning
     starts) prints where a crash was, and marks a crash of rank 1, which rank 0 sees as an error."""
