@@ -197,19 +197,25 @@ def test_a_sigtermed_fit_does_not_exit_as_finished(tmp_path: Path, demo_file: Pa
 def test_a_stopped_recipe_stops_its_fit_and_a_rerun_names_one_still_running(
     tmp_path: Path, demo_file: Path
 ) -> None:
-    """`kill` (SIGTERM) to the recipe alone stops its local fit with it; a recipe killed outright
-    leaves its fit running, and a rerun names that fit instead of starting a second process that
-    would write into the same folder."""
+    """`kill` (SIGTERM) to the recipe alone stops its local fit with it, and so does `kill -INT`
+    when the recipe was started as a shell starts a background job (SIGINT ignored, which its
+    children inherit); a recipe killed outright leaves its fit running, and a rerun names that fit
+    instead of starting a second process that would write into the same folder."""
     recipe = write_recipe(tmp_path / "recipe.yaml", [fit_stage(demo_file, steps=100_000)])
     command = [sys.executable, "-m", "capvector.cli", "recipe", "--config", str(recipe)]
+    # `capvector recipe ... &` in a script: the recipe's own process, with SIGINT ignored.
+    in_background = [
+        sys.executable, "-c", "import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "
+        "os.execv(sys.executable, [sys.executable, *sys.argv[1:]])", *command[1:],
+    ]  # fmt: skip
     stage = tmp_path / "run" / "fit"
     checkpoint = stage / "fit" / "version_0" / "checkpoints" / "last.ckpt"
     log = tmp_path / "recipe.log"
 
-    def start_recipe() -> tuple[subprocess.Popen, int]:
+    def start_recipe(how: list[str] = command) -> tuple[subprocess.Popen, int]:
         """The recipe, once its fit runs and has a checkpoint; the fit's pid (from its lock)."""
         with log.open("w") as out:  # a file, not a pipe: a fit left running never blocks on it
-            recipe_run = subprocess.Popen(command, stdout=out, stderr=subprocess.STDOUT, cwd=REPO)
+            recipe_run = subprocess.Popen(how, stdout=out, stderr=subprocess.STDOUT, cwd=REPO)
         before = checkpoint.stat().st_mtime_ns if checkpoint.is_file() else None
         deadline = time.time() + 300
         while not (checkpoint.is_file() and checkpoint.stat().st_mtime_ns != before):
@@ -221,17 +227,27 @@ def test_a_stopped_recipe_stops_its_fit_and_a_rerun_names_one_still_running(
         return recipe_run, pid
 
     first, fit = start_recipe()
-    first.terminate()
-    assert first.wait(timeout=120) == 128 + signal.SIGTERM
-    assert "capvector recipe: stopping fit; run the same command again to resume" in log.read_text()
-    assert running_pid(stage) is None  # the fit ended with the recipe: nothing holds its lock
-    with pytest.raises(ProcessLookupError):
-        os.kill(fit, 0)
-
-    second, fit = start_recipe()  # resumes the fit from its checkpoint
-    second.kill()  # nothing runs in a SIGKILLed recipe: its fit goes on without it
-    second.wait()
     try:
+        first.terminate()
+        assert first.wait(timeout=120) == 128 + signal.SIGTERM
+        assert (
+            "capvector recipe: stopping fit; run the same command again to resume"
+            in log.read_text()
+        )
+        assert running_pid(stage) is None  # the fit ended with the recipe: nothing holds its lock
+        with pytest.raises(ProcessLookupError):
+            os.kill(fit, 0)
+
+        background, fit = start_recipe(in_background)  # resumes the fit from its checkpoint
+        background.send_signal(signal.SIGINT)
+        assert background.wait(timeout=120) == 130  # `capvector recipe: interrupted`
+        assert running_pid(stage) is None
+        with pytest.raises(ProcessLookupError):
+            os.kill(fit, 0)
+
+        second, fit = start_recipe()
+        second.kill()  # nothing runs in a SIGKILLed recipe: its fit goes on without it
+        second.wait()
         assert running_pid(stage) == fit
         status = subprocess.run([*command, "--status"], capture_output=True, text=True, cwd=REPO)
         assert re.search(rf"  fit  running \(pid {fit}\): step \d+ logged; resumes", status.stdout)
@@ -242,9 +258,11 @@ def test_a_stopped_recipe_stops_its_fit_and_a_rerun_names_one_still_running(
             f"(pid {fit}). Wait for them to end, or stop them (`kill -INT <pid>`"
         ) in again.stderr
         assert running_pid(stage) == fit  # the rerun started nothing and left the fit alone
-    finally:
         os.kill(fit, signal.SIGINT)
         deadline = time.time() + 120
         while running_pid(stage) is not None and time.time() < deadline:
             time.sleep(0.5)
-    assert running_pid(stage) is None and not (stage / ".done").exists()
+        assert running_pid(stage) is None and not (stage / ".done").exists()
+    finally:  # a failed check leaves no fit running on (SIGTERM: heard where SIGINT is ignored)
+        if (left := running_pid(stage)) is not None:
+            os.kill(left, signal.SIGTERM)

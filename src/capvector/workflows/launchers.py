@@ -35,6 +35,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields
@@ -196,6 +197,18 @@ def make_launcher(
     return SubmititLauncher("slurm" if launcher == "slurm" else "local", threads, jobs)
 
 
+def hear_interrupts() -> None:
+    """Handle SIGINT (Ctrl-C) in this process if it was ignored. A shell without job control (a
+    script) starts a background job (`cmd &`) with SIGINT ignored, and a child inherits an ignored
+    signal: the stages would not hear ``LocalStage.stop``, and the recipe, stopped, would wait for
+    them forever. A handled signal is reset to its default at exec, so the stages hear it again."""
+    if (
+        threading.current_thread() is threading.main_thread()
+        and signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    ):
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
 class LocalLauncher:
     """Stages as child processes, up to ``jobs`` at once, sharing the GPUs and CPUs."""
 
@@ -206,6 +219,7 @@ class LocalLauncher:
         self.free_gpus = visible_gpus() if gpus is None else list(gpus)
         self.total_gpus = len(self.free_gpus)
         self.running = 0
+        hear_interrupts()
 
     def gpus_of(self, resources: Resources) -> int:
         """A stage's GPUs; unless it says, an equal share among ``jobs`` (at least one)."""
