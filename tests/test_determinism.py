@@ -84,16 +84,24 @@ def fit_process(root: Path, data: Path, *extra: str) -> int:
     return completed.returncode
 
 
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, torch.Tensor]]:
+    """Demos and the weights of the 8-step fit on them that no stop interrupted (run once)."""
+    root = tmp_path_factory.mktemp("uninterrupted")
+    data = write_demo_file(root / "demos.hdf5")  # 22 samples: 5 batches of 4 per epoch
+    assert fit_process(root / "whole", data) == 0
+    return data, exported(root / "whole")
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("stop_after", [3, 5])  # mid-epoch; at the end of the first epoch
 def test_a_fit_stopped_and_resumed_gives_the_uninterrupted_weights(
-    tmp_path: Path, stop_after: int
+    tmp_path: Path, stop_after: int, uninterrupted: tuple[Path, dict[str, torch.Tensor]]
 ) -> None:
     # Resumed mid-epoch, Lightning restarted the epoch's order from its first batch and torch's
     # random state from the seed (other batches, other augmentations): other weights. The
     # training loader now resumes both (capvector.data.resumable).
-    data = write_demo_file(tmp_path / "demos.hdf5")  # 22 samples: 5 batches of 4 per epoch
-    assert fit_process(tmp_path / "whole", data) == 0
+    data, whole = uninterrupted
     stopped = tmp_path / "stopped"
     stop = [
         "--trainer.callbacks+=stop_fit.StopAfterStep", f"--trainer.callbacks.step={stop_after}",
@@ -103,7 +111,7 @@ def test_a_fit_stopped_and_resumed_gives_the_uninterrupted_weights(
     assert not (stopped / "fit/version_0/export").exists()
     resume = f"--ckpt_path={stopped / 'checkpoints/last.ckpt'}"
     assert fit_process(stopped, data, *stop, resume) == 0
-    assert_bit_identical(exported(tmp_path / "whole"), exported(stopped))
+    assert_bit_identical(whole, exported(stopped))
 
 
 @pytest.mark.slow
