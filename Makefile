@@ -34,10 +34,11 @@ demo: $(VENV)/.installed
 # Two pytest-xdist workers, a test file on one worker (its module fixtures built once; the install
 # tests' one environment); `-m "install or not install"` adds the install tests, left out of a
 # plain run: a fresh `pip install capvector[lerobot]` without the simulator, on numpy 2, trains
-# from a LeRobot folder (minutes, beside the other tests).
+# from a LeRobot folder (minutes, beside the other tests). The 25 slowest tests are listed at the
+# end, so a CI log says where the suite's time goes.
 test: $(VENV)/.installed
 	tools/slurm/install.sh
-	$(PY) -m pytest -q -n 2 --dist loadfile -m "install or not install"
+	$(PY) -m pytest -q -n 2 --dist loadfile -m "install or not install" --durations=25
 
 lint: $(VENV)/.installed
 	$(VENV)/bin/ruff check . && $(VENV)/bin/ruff format --check .
