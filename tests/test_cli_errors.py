@@ -94,6 +94,14 @@ CASES: dict[str, tuple[Callable[[Path, Path], list[str]], str]] = {
         lambda i, o: ["demos", "--suite", "libero_spatial", "--episodes", "2", "--out", str(o / "d")],
         r"--suite records LIBERO tasks: give --tasks ID ... and --episodes-per-task",
     ),
+    "demos: --workers for a robosuite task": (
+        lambda i, o: ["demos", "--task", "Lift", "--episodes", "2", "--workers", "2", "--out", str(o / "d.hdf5")],
+        r"--workers go with --suite; with --task give --episodes",
+    ),
+    "demos: negative --workers, before simulating": (
+        lambda i, o: ["demos", "--suite", "libero_spatial", "--episodes-per-task", "2", "--workers", "-1", "--out", str(o / "d")],
+        r"--workers must be 0 \(this process\) or more, got -1",
+    ),
     "import-original: --override that is not JSON": (
         lambda i, o: ["import-original", "--preset", "openvla-oft-tiny", "--folder", str(i), "--override", "{depth: 2", "--out", str(o / "x")],
         r"--override is not JSON",

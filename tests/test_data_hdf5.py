@@ -235,6 +235,8 @@ def test_a_folder_in_train_files_stands_for_its_hdf5_files(tmp_path: Path) -> No
     for name in ("b_task_demo.hdf5", "a_task_demo.hdf5"):
         write_demo_file(folder / name)
     (folder / "notes.txt").write_text("not a demo file")
+    # what `capvector demos` killed mid-file leaves (io.outputs.atomic_write_file's temporary)
+    (folder / ".c_task_demo.hdf5.tmp-4242-x1y2.hdf5").write_bytes(b"half an HDF5 file")
     dm = RobotDataModule(train_files=[str(folder)], cameras=CAMERAS, proprio_keys=PROPRIO)
     assert dm.hparams.train_files == [
         str(folder / "a_task_demo.hdf5"),

@@ -8,6 +8,8 @@ states is in docs/evaluation.md (``python -m capvector.sim.libero_experts``), to
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import h5py
@@ -162,6 +164,41 @@ def test_demos_suite_writes_libero_layout_that_trains(demo_file: Path) -> None:
     # read as the LIBERO evaluation sees the live images: rotated 180 degrees
     expected = libero.flip_image(frame).transpose(2, 0, 1) / 255.0
     np.testing.assert_allclose(sample["images"][0].numpy(), expected, atol=1e-6)
+
+
+def test_workers_record_the_same_demos_side_by_side(demo_file: Path, tmp_path: Path) -> None:
+    """--workers 2 records tasks 0 and 1 in two processes; task 0's file holds what the fixture's
+    in-process recording holds (by tools/libero/demo_hashes.py, which a moved study checks)."""
+    argv = ["demos", "--suite", "libero_spatial", "--tasks", "0", "1", "--episodes-per-task", "1"]
+    out = tmp_path / "side_by_side"
+    assert capvector([*argv, "--workers", "2", "--image-size", "32", "--no-progress", "--out", str(out)]) == 0  # fmt: skip
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        demo_file_name("libero_spatial", t) for t in (0, 1)
+    )
+    tool = Path(__file__).resolve().parents[1] / "tools" / "libero" / "demo_hashes.py"
+    hashes = json.loads(
+        subprocess.run(
+            [sys.executable, str(tool), str(demo_file.parent), str(out)],
+            capture_output=True, text=True, check=True,
+        ).stdout
+    )  # fmt: skip
+    assert hashes[str(out / demo_file.name)] == hashes[str(demo_file)]
+
+
+def test_a_failed_task_stops_the_workers_and_leaves_no_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Each task needs 2 demos in 1 attempt: the first to fail ends the command with its error,
+    the other is stopped mid-recording and removes its temporary file."""
+    argv = ["demos", "--suite", "libero_spatial", "--tasks", "0", "1", "--episodes-per-task", "2"]
+    out = tmp_path / "failed"
+    code = capvector(
+        [*argv, "--max-attempts", "1", "--workers", "2", "--image-size", "32", "--no-progress",
+         "--out", str(out)]
+    )  # fmt: skip
+    assert code == 2
+    assert "raise --max-attempts" in capsys.readouterr().err
+    assert list(out.iterdir()) == []
 
 
 def test_evaluation_gives_the_policy_what_training_read_at_the_same_state(demo_file: Path) -> None:

@@ -50,7 +50,8 @@ class DemoGeneration:
 
 
 def demo_files(paths: Sequence[str] | None, option: str) -> list[str] | None:
-    """``paths`` with each existing folder replaced by its ``*.hdf5`` files, sorted; other
+    """``paths`` with each existing folder replaced by its ``*.hdf5`` files, sorted, hidden ones
+    left out (``.NAME.tmp-PID-*.hdf5``: what a writer killed mid-file leaves behind); other
     entries (files, or files ``data.generate`` will record) as given."""
     if paths is None:
         return None
@@ -59,7 +60,7 @@ def demo_files(paths: Sequence[str] | None, option: str) -> list[str] | None:
         if not Path(path).is_dir():
             files.append(str(path))
             continue
-        found = sorted(str(f) for f in Path(path).glob("*.hdf5"))
+        found = sorted(str(f) for f in Path(path).glob("*.hdf5") if not f.name.startswith("."))
         if not found:
             raise DatasetError(f"{option}: folder {path} holds no *.hdf5 files")
         files.extend(found)
@@ -98,7 +99,8 @@ class RobotDataModule(L.LightningDataModule):
         """
         Args:
             train_files: HDF5 files in the robomimic/LIBERO layout; a folder stands for every
-                ``*.hdf5`` in it (a LIBERO suite's released datasets: one file per task).
+                ``*.hdf5`` in it but hidden ones (a LIBERO suite's released datasets: one file
+                per task).
             val_files: held-out files (or folders); validation then reports the action L1 on them.
             eval_tasks: MuJoCo rollout episodes for the validation loop (success rates):
                 robosuite tasks (``{task: Lift, episodes: 20}``) and LIBERO trials under the

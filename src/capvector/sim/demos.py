@@ -333,6 +333,7 @@ def demos_cli(
     max_attempts: int | None = None,
     fovy: Sequence[str] = (),
     progress: bool = True,
+    workers: int = 0,
 ) -> None:
     """Record scripted-expert demonstrations: robosuite tasks (--task) to robomimic-layout HDF5,
     or a LIBERO suite (--suite) to LIBERO's released layout, one file per task.
@@ -357,19 +358,21 @@ def demos_cli(
         fovy: CAMERA=DEG: override a camera's vertical field of view (task defaults: Lift/Stack
             agentview=35)
         progress: show the progress bar
+        workers: with --suite, processes recording tasks side by side, a task each (0: this
+            one); the files are the same either way
     """
     if suite is not None:
         _libero_demos(suite, tasks, episodes_per_task, out, task, episodes, image_size, cameras,
-                      depth, seed, max_attempts, progress)  # fmt: skip
+                      depth, seed, max_attempts, progress, workers)  # fmt: skip
         return
     if task is None or episodes is None:
         raise CapVectorError(
             "give --task and --episodes (robosuite), or --suite and --episodes-per-task (LIBERO) "
             "(see capvector demos --help)"
         )
-    if tasks or episodes_per_task is not None:
+    if tasks or episodes_per_task is not None or workers:
         raise CapVectorError(
-            "--tasks and --episodes-per-task go with --suite; with --task give --episodes"
+            "--tasks, --episodes-per-task and --workers go with --suite; with --task give --episodes"
         )
     image_size = DEFAULT_IMAGE_SIZE if image_size is None else image_size
     summary = record_demos(
@@ -399,6 +402,7 @@ def _libero_demos(
     seed: int,
     max_attempts: int | None,
     progress: bool,
+    workers: int,
 ) -> None:
     if task is not None or episodes is not None:
         raise CapVectorError(
@@ -411,7 +415,7 @@ def _libero_demos(
     summaries = record_suite(
         suite, episodes_per_task, out, tasks=tasks, cameras=cameras, depth=depth, seed=seed,
         image_size=LIBERO_IMAGE_SIZE if image_size is None else image_size,
-        max_attempts=max_attempts, progress=progress,
+        max_attempts=max_attempts, progress=progress, workers=workers,
     )  # fmt: skip
     for s in summaries:
         print(

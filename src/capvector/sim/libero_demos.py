@@ -41,8 +41,13 @@ intrinsics alike, so back-projecting its depth with its intrinsics gives camera-
 
 from __future__ import annotations
 
+import contextlib
 import json
+import multiprocessing as mp
 import os
+import queue
+import signal
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -367,14 +372,19 @@ def record_suite(
     seed: int = 0,
     max_attempts: int | None = None,
     progress: bool = True,
+    workers: int = 0,
 ) -> list[TaskDemos]:
-    """Demos of every task in ``tasks`` (default: the whole suite), one file per task in ``out``."""
+    """Demos of every task in ``tasks`` (default: the whole suite), one file per task in ``out``;
+    ``workers`` processes record tasks side by side (0: this process). A task's demos depend only
+    on its id and ``seed``, so the files are the same either way."""
     if suite not in LIBERO_NUM_TASKS:
         from capvector.errors import unknown_name
 
         raise unknown_name("LIBERO suite", suite, LIBERO_NUM_TASKS)
     if episodes_per_task < 1:
         raise CapVectorError(f"--episodes-per-task must be at least 1, got {episodes_per_task}")
+    if workers < 0:
+        raise CapVectorError(f"--workers must be 0 (this process) or more, got {workers}")
     task_ids = list(range(LIBERO_NUM_TASKS[suite])) if not tasks else list(tasks)
     for task_id in task_ids:
         libero_task(suite, task_id)  # a bad id fails before any simulation
@@ -390,22 +400,68 @@ def record_suite(
         unit="demo",
         disable=not progress,
     )
+    task_args = dict(
+        suite=suite, episodes=episodes_per_task, out_dir=out_dir, image_size=image_size,
+        cameras=cameras, depth=depth, seed=seed, max_attempts=max_attempts,
+    )  # fmt: skip
     try:
-        summaries = [
-            record_task(
-                suite,
-                task_id,
-                episodes_per_task,
-                out_dir,
-                image_size=image_size,
-                cameras=cameras,
-                depth=depth,
-                seed=seed,
-                max_attempts=max_attempts,
-                bar=bar,
-            )  # fmt: skip
-            for task_id in task_ids
-        ]
+        if workers > 0 and len(task_ids) > 1:
+            return _record_in_workers(task_ids, min(workers, len(task_ids)), bar, task_args)
+        return [record_task(task_id=task_id, bar=bar, **task_args) for task_id in task_ids]
     finally:
         bar.close()
-    return summaries
+
+
+class _QueueBar:
+    """A worker's stand-in for the progress bar: each demo recorded is a message to the parent."""
+
+    def __init__(self, messages: Any) -> None:
+        self.messages = messages
+
+    def update(self, n: int = 1) -> None:
+        self.messages.put(n)
+
+    def set_postfix(self, **_: Any) -> None:
+        pass
+
+
+_worker_bar: _QueueBar | None = None
+
+
+def _start_worker(messages: Any) -> None:
+    global _worker_bar
+    _worker_bar = _QueueBar(messages)
+    # the pool stops its workers with SIGTERM when a task fails: exit through Python, so a task
+    # being written removes its temporary file instead of leaving it in the demo folder
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
+
+
+def _record_task_in_worker(**task_args: Any) -> TaskDemos:
+    return record_task(bar=_worker_bar, **task_args)
+
+
+def _record_in_workers(
+    task_ids: list[int], workers: int, bar: Any, task_args: dict[str, Any]
+) -> list[TaskDemos]:
+    """Each task in a spawned process (no GL context or threads of this one copied), ``workers``
+    at a time; the bar advances as demos land. A failed task stops the others (the pool's exit
+    terminates them; their files are written atomically, so none is left half-written)."""
+    context = mp.get_context("spawn")
+    messages = context.Queue()
+    with context.Pool(workers, initializer=_start_worker, initargs=(messages,)) as pool:
+        pending = [
+            pool.apply_async(_record_task_in_worker, kwds={"task_id": t, **task_args})
+            for t in task_ids
+        ]
+        shown = 0
+        while not all(result.ready() for result in pending):
+            with contextlib.suppress(queue.Empty):
+                bar.update(messages.get(timeout=0.5))
+                shown += 1
+            for result in pending:
+                if result.ready() and not result.successful():
+                    result.get()  # raises the task's error
+        summaries = [result.get() for result in pending]
+        for _ in range(sum(summary.demos for summary in summaries) - shown):
+            bar.update(messages.get(timeout=60))  # the last demos' messages, still in flight
+        return summaries
