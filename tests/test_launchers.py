@@ -250,7 +250,9 @@ def test_a_stopped_recipe_stops_its_fit_and_a_rerun_names_one_still_running(
         second.wait()
         assert running_pid(stage) == fit
         status = subprocess.run([*command, "--status"], capture_output=True, text=True, cwd=REPO)
-        assert re.search(rf"  fit  running \(pid {fit}\): step \d+ logged; resumes", status.stdout)
+        assert re.search(
+            rf"  fit  running \(pid {fit}\): step \d+ of \d+ logged.*; resumes", status.stdout
+        )
         again = subprocess.run(command, capture_output=True, text=True, cwd=REPO, timeout=300)
         assert again.returncode == 2
         assert (

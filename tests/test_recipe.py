@@ -19,6 +19,7 @@ from capvector.workflows.recipe import (
     load_recipe,
     required_stages,
     run,
+    stage_status,
 )
 
 REPO = Path(__file__).resolve().parents[1]
@@ -80,7 +81,7 @@ def test_recipe_runs_resumes_and_never_redoes_a_stage(tmp_path: Path, demo_file:
     assert f"{tmp_path / 'run'}: 3 of 4 stages done" in status.stdout
     assert "  extract     done\n" in status.stdout
     assert (
-        "  downstream  started, not done: step 1 logged; resumes from its last checkpoint"
+        "  downstream  started, not done: step 1 of 2 logged; resumes from its last checkpoint"
         in status.stdout
     )
 
@@ -102,6 +103,26 @@ def test_recipe_runs_resumes_and_never_redoes_a_stage(tmp_path: Path, demo_file:
     status = capvector("recipe", "--config", str(recipe), "--status").stdout
     assert "4 of 4 stages done" in status
     assert re.search(r"  downstream  done in \d+ s\n", status)
+
+
+def test_status_gives_a_fits_step_of_its_max_steps_and_its_recent_step_time(tmp_path: Path) -> None:
+    """What `--status` says of a stopped fit, from the files Lightning and StepCost wrote."""
+    recipe = tmp_path / "recipe.yaml"
+    recipe.write_text(f"run_dir: {tmp_path}\nstages:\n  - {{name: sft, command: fit, args: []}}\n")
+    (stage,) = load_recipe(recipe)[1]
+    fit_dir = stage.directory / "fit" / "version_0"
+    fit_dir.mkdir(parents=True)
+    (fit_dir / "config.yaml").write_text("trainer:\n  max_steps: 8000\n")
+    rows = ["epoch,perf/step_seconds,step,train/loss"]
+    rows += [f"0,{seconds},{step},0.5" for step, seconds in ((49, 2.0), (99, 0.9), (149, 0.8))]
+    rows += ["0,,149,"]  # a validation row: no step time
+    (fit_dir / "metrics.csv").write_text("\n".join(rows) + "\n")
+    assert stage_status(stage) == (
+        "started, not done: step 149 of 8000 logged (0.90 s per step lately); "
+        "no checkpoint yet: starts again"
+    )
+    (fit_dir / "config.yaml").write_text("trainer:\n  max_steps: -1\n")  # no limit: no total
+    assert stage_status(stage).startswith("started, not done: step 149 logged (0.90 s")
 
 
 def test_recipe_errors_are_clear(tmp_path: Path) -> None:

@@ -47,12 +47,15 @@ import csv
 import functools
 import json
 import re
+import statistics
 import sys
 import time
 from collections.abc import Collection, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+import yaml
 
 from capvector.errors import CapVectorError, config_error, did_you_mean
 from capvector.eval.results import SuccessRow, format_success_table
@@ -489,16 +492,34 @@ def stage_status(stage: Stage) -> str:
     metrics = (
         Path(outputs["export"]).parent / "metrics.csv"
     )  # beside the export, in the fit's folder
-    steps = []
+    steps, seconds = [], []
     if metrics.is_file():
         with metrics.open(newline="") as f:
-            steps = [int(row["step"]) for row in csv.DictReader(f) if row.get("step")]
-    logged = f"step {max(steps)} logged" if steps else "no step logged"
+            for row in csv.DictReader(f):
+                if row.get("step"):
+                    steps.append(int(row["step"]))
+                if row.get("perf/step_seconds"):
+                    seconds.append(float(row["perf/step_seconds"]))
+    total = _max_steps(metrics.with_name("config.yaml"))
+    logged = (
+        f"step {max(steps)}{f' of {total}' if total else ''} logged" if steps else "no step logged"
+    )
+    if seconds:  # the StepCost callback's, over the last few logs: what the rest will cost
+        logged += f" ({statistics.median(seconds[-5:]):.2f} s per step lately)"
     resumes = (
         "resumes from its last checkpoint" if checkpoint.is_file()
         else "no checkpoint yet: starts again"
     )  # fmt: skip
     return f"{state}: {logged}; {resumes}"
+
+
+def _max_steps(config: Path) -> int | None:
+    """``trainer.max_steps`` of the config a fit saved in its folder (None if unknown or -1)."""
+    try:
+        steps = (yaml.safe_load(config.read_text()) or {}).get("trainer", {}).get("max_steps")
+    except (OSError, yaml.YAMLError, AttributeError):
+        return None
+    return steps if isinstance(steps, int) and steps > 0 else None
 
 
 def collect_results(stages: list[Stage]) -> list[SuccessRow]:
