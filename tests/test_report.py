@@ -143,6 +143,7 @@ COMMITTED = [
     ("pilot_few_demos/demos_10", ["plain SFT", "aux-SFT"]),
     ("pilot_few_demos/demos_5", ["plain SFT"]),
     ("libero_pilot", ["plain SFT"]),
+    ("libero_demos50", ["plain SFT"]),
 ]
 
 
