@@ -88,7 +88,13 @@ FIT_SCRIPT = Path(__file__).with_name("distributed_fit.py")
 
 
 def run_fit_script(out: Path, data: Path, *args: str) -> list[float]:
-    """Run tests/distributed_fit.py (Lightning launches the processes); the per-step global losses.
+    """Run tests/distributed_fit.py for one preset; the per-step global losses."""
+    launch_fit_script(out, data, *args)
+    return json.loads((out / "losses.json").read_text())
+
+
+def launch_fit_script(out: Path, data: Path, *args: str) -> None:
+    """Run tests/distributed_fit.py (Lightning launches the processes).
 
     A run whose process crashed (a signal, such as SIGSEGV) is run once more from scratch, with a
     warning that carries its stderr: gloo on CPU (torch 2.14.1) crashed once in ~40 CI runs, rank 0
@@ -110,7 +116,6 @@ def run_fit_script(out: Path, data: Path, *args: str) -> list[float]:
         )
         shutil.rmtree(out, ignore_errors=True)
     assert result.returncode == 0, result.stderr[-4000:]
-    return json.loads((out / "losses.json").read_text())
 
 
 def cpu_trainer(max_steps: int, root: Path | None = None, **overrides: object) -> L.Trainer:

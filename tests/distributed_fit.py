@@ -1,7 +1,9 @@
 """A short fit run as its own program, so Lightning can launch 2 CPU processes (gloo) for it.
 
 Used by tests/test_distributed.py: the same run on 1 process and on 2 processes (DDP or FSDP2 via
-``ModelParallelStrategy``) must give the same loss curve and the same exported weights.
+``ModelParallelStrategy``) must give the same loss curve and the same exported weights. Several
+``--backbone`` presets fit one after another in the same processes (each into ``OUT/<preset>``,
+each with its own ``--vector``), so a test covering every preset starts its processes once.
 """
 
 from __future__ import annotations
@@ -39,7 +41,7 @@ class RecordGlobalLoss(L.Callback):
             self.path.write_text(json.dumps(self.losses))
 
 
-def main() -> None:
+def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser()
     parser.add_argument("--data", required=True)
     parser.add_argument("--out", required=True)
@@ -47,11 +49,13 @@ def main() -> None:
     parser.add_argument("--strategy", default="auto", choices=["auto", "ddp", "fsdp2"])
     parser.add_argument("--global-batch", type=int, default=4)
     parser.add_argument("--steps", type=int, default=4)
-    parser.add_argument("--backbone", default="openvla-oft-tiny")
+    parser.add_argument("--backbone", nargs="+", default=["openvla-oft-tiny"])
     parser.add_argument("--pretrained", default=None)
     parser.add_argument("--activation-checkpointing", action="store_true")
     parser.add_argument("--ckpt-path", default=None)
-    parser.add_argument("--vector", default=None, help="merge this capability vector at fit start")
+    parser.add_argument(
+        "--vector", nargs="+", default=None, help="merge at fit start (one per --backbone)"
+    )
     parser.add_argument("--scale", type=float, default=1.0)
     parser.add_argument("--orth-weight", type=float, default=0.0, help="orthogonal regularization")
     parser.add_argument("--export-initial", default=None, help="export the weights before training")
@@ -61,9 +65,27 @@ def main() -> None:
         "--validate-episodes", type=int, default=0, help="only run rollout validation"
     )
     args = parser.parse_args()
+    if args.vector is not None and len(args.vector) != len(args.backbone):
+        parser.error("give one --vector per --backbone")
+    one_run_only = args.pretrained, args.ckpt_path, args.export_initial, args.validate_episodes
+    if len(args.backbone) > 1 and any(one_run_only):
+        parser.error(
+            "--pretrained, --ckpt-path, --export-initial and --validate-episodes take one --backbone"
+        )
+    return args
+
+
+def main() -> None:
+    args = parse_args()
     torch.set_num_threads(1)
-    L.seed_everything(0)
-    out = Path(args.out)
+    vectors = args.vector or [None] * len(args.backbone)
+    for backbone, vector in zip(args.backbone, vectors, strict=True):
+        out = Path(args.out) if len(args.backbone) == 1 else Path(args.out) / backbone
+        L.seed_everything(0)  # each preset's run is the one it would be alone
+        run(args, backbone, vector, out)
+
+
+def run(args: argparse.Namespace, backbone: str, vector: str | None, out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
     eval_tasks = [{"task": "Lift", "episodes": args.validate_episodes, "max_steps": 16}]
     dm = RobotDataModule(
@@ -74,7 +96,7 @@ def main() -> None:
         eval_tasks=eval_tasks if args.validate_episodes else None,
     )
     module = VLAModule(
-        backbone=args.backbone,
+        backbone=backbone,
         pretrained=args.pretrained,
         data_spec=dm.spec,
         lora=LoraSettings(r=4, alpha=8),
@@ -87,12 +109,10 @@ def main() -> None:
         RecordGlobalLoss(out / "losses.json"),
         ExportOnFitEnd(str(out / "export")),
     ]
-    if args.vector:
-        callbacks.append(MergeCapabilityVector(args.vector, scale=args.scale))
+    if vector:
+        callbacks.append(MergeCapabilityVector(vector, scale=args.scale))
         if args.orth_weight:
-            callbacks.append(
-                OrthogonalRegularization(args.vector, weight=args.orth_weight, mode="lora")
-            )
+            callbacks.append(OrthogonalRegularization(vector, weight=args.orth_weight, mode="lora"))
     strategy: object = args.strategy
     if args.strategy == "fsdp2":
         from lightning.pytorch.strategies import ModelParallelStrategy
