@@ -265,6 +265,8 @@ def test_a_stopped_recipe_stops_its_fit_and_a_rerun_names_one_still_running(
         while running_pid(stage) is not None and time.time() < deadline:
             time.sleep(0.5)
         assert running_pid(stage) is None and not (stage / ".done").exists()
+        # The runs their recipe stopped count towards the stage's time; the killed one's cannot.
+        assert json.loads((stage / ".runs.json").read_text())["runs"] == 2
     finally:  # a failed check leaves no fit running on (SIGTERM: heard where SIGINT is ignored)
         if (left := running_pid(stage)) is not None:
             os.kill(left, signal.SIGTERM)

@@ -7,11 +7,13 @@ import json
 import re
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
 
 from capvector.errors import CapVectorError
+from capvector.workflows.launchers import record_run, write_done
 from capvector.workflows.recipe import (
     command_line,
     dependencies,
@@ -123,6 +125,21 @@ def test_status_gives_a_fits_step_of_its_max_steps_and_its_recent_step_time(tmp_
     )
     (fit_dir / "config.yaml").write_text("trainer:\n  max_steps: -1\n")  # no limit: no total
     assert stage_status(stage).startswith("started, not done: step 149 logged (0.90 s")
+
+
+def test_a_stage_stopped_and_resumed_is_done_in_the_time_of_all_its_runs(tmp_path: Path) -> None:
+    """A fit stopped once and resumed: `--status` gives its two runs' time, not its last run's."""
+    recipe = tmp_path / "recipe.yaml"
+    recipe.write_text(f"run_dir: {tmp_path}\nstages:\n  - {{name: sft, command: fit, args: []}}\n")
+    (stage,) = load_recipe(recipe)[1]
+    stage.directory.mkdir(parents=True)
+    now = time.time()
+    record_run(stage.directory, began=now - 100)  # stopped after 100 s
+    write_done(stage.directory, ["python", "-m", "capvector.cli", "fit"], began=now - 30)
+    marker = json.loads(stage.done_marker.read_text())
+    assert marker["runs"] == 2 and marker["seconds"] == pytest.approx(30, abs=1)
+    assert marker["seconds_all_runs"] == pytest.approx(130, abs=1)
+    assert re.fullmatch(r"done in 1[23]\d s over 2 runs \(the last [23]\d s\)", stage_status(stage))
 
 
 def test_recipe_errors_are_clear(tmp_path: Path) -> None:

@@ -49,6 +49,7 @@ from capvector.io.outputs import atomic_write_bytes
 
 LAUNCHERS = ("local", "slurm", "submitit-local")
 DONE = ".done"
+RUNS = ".runs.json"
 LOG = "log.txt"
 LOCK = ".lock"
 REQUEUE_SIGNAL = signal.SIGUSR2
@@ -129,9 +130,24 @@ def stage_environment(threads: int, cores: int, gpus: list[str] | None = None) -
     return env
 
 
+def record_run(directory: Path, began: float) -> dict[str, float]:
+    """Add the stage's run that began at ``began`` and ended now to its ``.runs.json``; the
+    totals (``runs``, ``seconds``). A fit stopped and resumed runs several times, and its time is
+    theirs together. A run whose recipe was killed outright (SIGKILL) is not counted: no process
+    was left to see it end."""
+    path = directory / RUNS
+    earlier = json.loads(path.read_text()) if path.is_file() else {"runs": 0, "seconds": 0.0}
+    totals = {"runs": earlier["runs"] + 1, "seconds": earlier["seconds"] + time.time() - began}
+    atomic_write_bytes(path, json.dumps(totals).encode())
+    return totals
+
+
 def write_done(directory: Path, command: list[str], began: float, **facts: Any) -> None:
-    """The ``.done`` marker: what ran, how long, where."""
+    """The ``.done`` marker: what ran, how long (this run, and all its runs), where. Records the
+    run first (``record_run``)."""
+    totals = record_run(directory, began)
     marker = {"command": command[2:], **facts, "seconds": round(time.time() - began, 1),
+              "runs": totals["runs"], "seconds_all_runs": round(totals["seconds"], 1),
               "finished": time.ctime()}  # fmt: skip
     atomic_write_bytes(directory / DONE, json.dumps(marker, indent=2).encode())
 
@@ -286,6 +302,8 @@ class LocalStage:
             if code == 0:
                 write_done(self.directory, self.command, self.began, launcher="local",
                            threads=self.launcher.threads, gpus=self.gpus, cores=self.cores)  # fmt: skip
+            else:
+                record_run(self.directory, self.began)
         return self.code
 
     def wait(self) -> int:
@@ -454,6 +472,8 @@ class StageJob:
                 if process.poll() is None:
                     process.terminate()
                     process.wait()
+                if process.returncode != 0 and rank == 0:
+                    record_run(self.directory, began)
         if code == 0:
             if rank == 0:
                 job = submitit.JobEnvironment().job_id

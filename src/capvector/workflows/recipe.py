@@ -414,8 +414,8 @@ def run(
             return
         finished.add(name)
         if not quiet:
-            seconds = json.loads(stages[name].done_marker.read_text())["seconds"]
-            print(f"{label(name)} finished in {seconds:.0f} s", flush=True)
+            marker = json.loads(stages[name].done_marker.read_text())
+            print(f"{label(name)} finished{took(marker)}", flush=True)
 
     try:
         while len(finished) < len(names) and not failed:
@@ -474,13 +474,23 @@ def print_status(run_dir: Path, stages: list[Stage], waits_for: dict[str, set[st
         print(f"  {stage.name:<{width}}  {line}")
 
 
+def took(marker: dict) -> str:
+    """How long a finished stage took, from its ``.done`` marker: " in T s", and over how many
+    runs when it was stopped and resumed ("" for a marker without times)."""
+    if "seconds" not in marker:
+        return ""
+    if marker.get("runs", 1) == 1:
+        return f" in {marker['seconds']:.0f} s"
+    total, runs, last = marker["seconds_all_runs"], marker["runs"], marker["seconds"]
+    return f" in {total:.0f} s over {runs} runs (the last {last:.0f} s)"
+
+
 def stage_status(stage: Stage) -> str:
     """Where a stage stands, from its folder: done (in how long), running (a local process holds
     its lock) or started and stopped, a fit's last logged step and whether it would resume from a
     checkpoint, or not started."""
     if stage.done_marker.is_file():
-        seconds = json.loads(stage.done_marker.read_text() or "{}").get("seconds")
-        return "done" if seconds is None else f"done in {seconds:.0f} s"
+        return "done" + took(json.loads(stage.done_marker.read_text() or "{}"))
     if not stage.directory.exists():
         return "not started"
     pid = running_pid(stage.directory)
