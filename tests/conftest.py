@@ -90,6 +90,11 @@ FIT_SCRIPT = Path(__file__).with_name("distributed_fit.py")
 def run_fit_script(out: Path, data: Path, *args: str) -> list[float]:
     """Run tests/distributed_fit.py for one preset; the per-step global losses."""
     launch_fit_script(out, data, *args)
+    return fit_losses(out)
+
+
+def fit_losses(out: Path) -> list[float]:
+    """The per-step global losses a run of tests/distributed_fit.py wrote into ``out``."""
     return json.loads((out / "losses.json").read_text())
 
 

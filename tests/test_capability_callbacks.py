@@ -17,7 +17,7 @@ from capvector.data.datamodule import RobotDataModule
 from capvector.errors import CapVectorError
 from capvector.module import VLAModule
 from capvector.vectors import extract, merge
-from conftest import cpu_trainer, launch_fit_script, run_fit_script, write_demo_file
+from conftest import cpu_trainer, fit_losses, launch_fit_script, run_fit_script, write_demo_file
 
 run = run_fit_script
 
@@ -119,10 +119,10 @@ def test_lora_merge_and_orthogonality_under_fsdp2_match_one_process(
     launch_fit_script(tmp_path / "single", setup["data"], *recipe)
     launch_fit_script(tmp_path / "fsdp2", setup["data"], *recipe, *FSDP2)
     for preset in presets:
-        single, sharded = (tmp_path / run / preset for run in ("single", "fsdp2"))
+        single, sharded = tmp_path / "single" / preset, tmp_path / "fsdp2" / preset
         torch.testing.assert_close(
-            torch.tensor(losses(sharded)),
-            torch.tensor(losses(single)),
+            torch.tensor(fit_losses(sharded)),
+            torch.tensor(fit_losses(single)),
             rtol=1e-5,
             atol=1e-6,
             msg=lambda m, preset=preset: f"{preset}: {m}",
@@ -156,10 +156,6 @@ def test_a_lora_fit_under_fsdp2_resumes_without_merging_again(setup: dict, tmp_p
         torch.tensor(resumed), torch.tensor(single[6:]), rtol=1e-5, atol=1e-6
     )
     assert_same_weights(tmp_path / "resumed" / "export", tmp_path / "single" / "export")
-
-
-def losses(out: Path) -> list[float]:
-    return json.loads((out / "losses.json").read_text())
 
 
 def fit(
