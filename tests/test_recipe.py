@@ -120,11 +120,15 @@ def test_status_gives_a_fits_step_of_its_max_steps_and_its_recent_step_time(tmp_
     rows += ["0,,149,"]  # a validation row: no step time
     (fit_dir / "metrics.csv").write_text("\n".join(rows) + "\n")
     assert stage_status(stage) == (
-        "started, not done: step 149 of 8000 logged (0.90 s per step lately); "
-        "no checkpoint yet: starts again"
+        "started, not done: step 149 of 8000 logged (0.90 s per step lately: 2.0 h of steps "
+        "left); no checkpoint yet: starts again"
     )
+    (fit_dir / "config.yaml").write_text("trainer:\n  max_steps: 1000\n")
+    assert "(0.90 s per step lately: 13 min of steps left)" in stage_status(stage)
     (fit_dir / "config.yaml").write_text("trainer:\n  max_steps: -1\n")  # no limit: no total
-    assert stage_status(stage).startswith("started, not done: step 149 logged (0.90 s")
+    assert stage_status(stage).startswith(
+        "started, not done: step 149 logged (0.90 s per step lately)"
+    )
 
 
 def test_a_stage_stopped_and_resumed_is_done_in_the_time_of_all_its_runs(tmp_path: Path) -> None:

@@ -487,8 +487,9 @@ def took(marker: dict) -> str:
 
 def stage_status(stage: Stage) -> str:
     """Where a stage stands, from its folder: done (in how long), running (a local process holds
-    its lock) or started and stopped, a fit's last logged step and whether it would resume from a
-    checkpoint, or not started."""
+    its lock) or started and stopped, a fit's last logged step, what its remaining steps cost at
+    its recent step time (validation not counted) and whether it would resume from a checkpoint,
+    or not started."""
     if stage.done_marker.is_file():
         return "done" + took(json.loads(stage.done_marker.read_text() or "{}"))
     if not stage.directory.exists():
@@ -515,12 +516,19 @@ def stage_status(stage: Stage) -> str:
         f"step {max(steps)}{f' of {total}' if total else ''} logged" if steps else "no step logged"
     )
     if seconds:  # the StepCost callback's, over the last few logs: what the rest will cost
-        logged += f" ({statistics.median(seconds[-5:]):.2f} s per step lately)"
+        lately = statistics.median(seconds[-5:])
+        cost = max(0, (total or 0) - max(steps)) * lately
+        left = f": {_hours_or_minutes(cost)} of steps left" if total else ""
+        logged += f" ({lately:.2f} s per step lately{left})"
     resumes = (
         "resumes from its last checkpoint" if checkpoint.is_file()
         else "no checkpoint yet: starts again"
     )  # fmt: skip
     return f"{state}: {logged}; {resumes}"
+
+
+def _hours_or_minutes(seconds: float) -> str:
+    return f"{seconds / 3600:.1f} h" if seconds >= 3600 else f"{seconds / 60:.0f} min"
 
 
 def _max_steps(config: Path) -> int | None:
