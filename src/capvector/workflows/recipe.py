@@ -517,8 +517,9 @@ def stage_status(stage: Stage) -> str:
     )
     if seconds:  # the StepCost callback's, over the last few logs: what the rest will cost
         lately = statistics.median(seconds[-5:])
-        cost = max(0, (total or 0) - max(steps)) * lately
-        left = f": {_hours_or_minutes(cost)} of steps left" if total else ""
+        left = ""
+        if total:  # past the last step (its final validation), nothing is left to train
+            left = f": {_hours_or_minutes(max(0, total - max(steps)) * lately)} of steps left"
         logged += f" ({lately:.2f} s per step lately{left})"
     resumes = (
         "resumes from its last checkpoint" if checkpoint.is_file()
