@@ -144,6 +144,7 @@ COMMITTED = [
     ("pilot_few_demos/demos_5", ["plain SFT"]),
     ("libero_pilot", ["plain SFT"]),
     ("libero_demos50", ["plain SFT"]),
+    ("libero_steps16k", ["plain SFT"]),
 ]
 
 
