@@ -276,29 +276,58 @@ def test_recipe_configs_differ_only_in_auxiliary_callbacks() -> None:
     assert len(extra) == 2
 
 
+def resolved_aux_sft(capsys: pytest.CaptureFixture[str], data: Path, *extra: str) -> dict:
+    """aux_sft.yaml with ``extra`` options after it, as `capvector fit --print_config` resolves it."""
+    args = ["fit", "--config", str(REPO / "configs/recipes/aux_sft.yaml"), *extra]
+    with pytest.raises(SystemExit):
+        main([*args, f"--data.train_files=[{data}]", "--print_config"])
+    return yaml.safe_load(capsys.readouterr().out)
+
+
+def objective_callbacks(config: dict) -> list[dict]:
+    return [c for c in config["trainer"]["callbacks"] if "objective" in c.get("init_args", {})]
+
+
 def test_the_alignment_layer_lever_changes_only_the_layer(
     capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:
     # configs/recipes/aux_sft_layer2.yaml repeats aux_sft.yaml's callbacks (a config replaces the
     # list): resolved, the two configs differ in the spatial alignment's layer and nothing else.
     data = write_demo_file(tmp_path / "demos.hdf5")
-
-    def resolved(*extra: str) -> dict:
-        args = ["fit", "--config", str(REPO / "configs/recipes/aux_sft.yaml"), *extra]
-        with pytest.raises(SystemExit):
-            main([*args, f"--data.train_files=[{data}]", "--print_config"])
-        return yaml.safe_load(capsys.readouterr().out)
-
-    base = resolved()
-    lever = resolved("--config", str(REPO / "configs/recipes/aux_sft_layer2.yaml"))
+    base = resolved_aux_sft(capsys, data)
+    lever = resolved_aux_sft(
+        capsys, data, "--config", str(REPO / "configs/recipes/aux_sft_layer2.yaml")
+    )
     objectives = [
-        c["init_args"]["objective"]
-        for config in (base, lever)
-        for c in config["trainer"]["callbacks"]
-        if "objective" in c.get("init_args", {})
+        c["init_args"]["objective"] for config in (base, lever) for c in objective_callbacks(config)
     ]
     spatial = [o["init_args"] for o in objectives if o["class_path"].endswith("SpatialAlignment")]
     assert [s.pop("layer") for s in spatial] == [None, 2]
+    assert lever == base
+
+
+@pytest.mark.parametrize(
+    ("config", "kept"),
+    [
+        ("aux_sft_spatial_only.yaml", "SpatialAlignment"),
+        ("aux_sft_reasoning_only.yaml", "ReasoningCoTraining"),
+    ],
+)
+def test_each_single_objective_lever_drops_the_other_objective_and_nothing_else(
+    config: str, kept: str, capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    # Lever 6 of the LIBERO study: aux-SFT with one of its two objectives; data, optimizer and the
+    # kept objective's settings are aux_sft.yaml's.
+    data = write_demo_file(tmp_path / "demos.hdf5")
+    base = resolved_aux_sft(capsys, data)
+    lever = resolved_aux_sft(capsys, data, "--config", str(REPO / "configs/recipes" / config))
+    dropped = [
+        c
+        for c in objective_callbacks(base)
+        if not c["init_args"]["objective"]["class_path"].endswith(kept)
+    ]
+    assert len(dropped) == 1
+    base["trainer"]["callbacks"].remove(dropped[0])
     assert lever == base
 
 
