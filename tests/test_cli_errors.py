@@ -156,3 +156,15 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(
     assert re.search(message, errors[0]), errors[0]
     assert not out.exists(), sorted(out.rglob("*"))
     assert tree_digest(inputs) == before
+
+
+@pytest.mark.parametrize("command", ["test", "predict"])
+def test_lightning_subcommands_the_module_cannot_run_are_unknown(
+    command: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """VLAModule has no test or predict step, so `capvector test` would only fail inside Lightning:
+    it is an unknown command, and the usage lists what trains and validates."""
+    assert main([command]) == 2
+    err = capsys.readouterr().err
+    assert f"unknown command {command!r}" in err
+    assert "  fit\n  validate\n" in err

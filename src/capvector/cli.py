@@ -1,4 +1,4 @@
-"""``capvector``: LightningCLI for training (fit/validate/test) plus the recipe's tools.
+"""``capvector``: LightningCLI for training (fit/validate) plus the recipe's tools.
 
 Training subcommands go to LightningCLI (YAML configs, omegaconf interpolation). Tool subcommands
 are looked up in ``TOOLS`` and imported only when called, so ``capvector extract`` does not pay for
@@ -32,7 +32,9 @@ if TYPE_CHECKING:
 
     from capvector.backbones import VLABackbone
 
-LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
+# VLAModule has no test_step or predict_step (evaluation is the validation loop; `capvector
+# evaluate` and `serve` run a policy), so LightningCLI's test and predict are not offered.
+LIGHTNING_SUBCOMMANDS = ("fit", "validate")
 
 TOOLS: dict[str, tuple[str, str]] = {  # name: ("module:function", help), imported when called
     "backbone-info": ("capvector.cli:backbone_info_main", "parameter counts of a preset"),

@@ -195,8 +195,8 @@ class VLABackbone(nn.Module, ABC):
 
     @property
     def alignment_layer(self) -> int:
-        """Default hidden-state layer for spatial alignment: deep but not deepest (Spatial Forcing
-        aligns OFT's layer 24 of 32, pi0 12 of 18)."""
+        """Default hidden-state layer for spatial alignment: deep but not deepest, 3/4 of the depth
+        (Spatial Forcing aligns OFT's layer 24 of 32; Pi0.5 overrides it with pi0's 12 of 18)."""
         return round(0.75 * self.num_layers)
 
     def language_model_logits(

@@ -57,7 +57,7 @@ class SpatialAlignment(Objective):
                 ``module:Class``) to build with its defaults; default ``GeometricTeacher``
                 (depth-based, no download).
             layer: hidden-state index of the student (default: the backbone's ``alignment_layer``,
-                3/4 of the depth, e.g. 24 of 32 for OpenVLA-OFT).
+                3/4 of the depth for OpenVLA-OFT, 24 of 32; 2/3 for Pi0.5, 12 of 18).
             weight: α in L = L_action + α·L_align (0.5 in Spatial Forcing).
             projector_layernorm: LayerNorm before the projector (Spatial Forcing's use_vlm_norm).
             shift_one_token: pair student token k+1 with teacher token k, as the original code.

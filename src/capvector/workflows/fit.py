@@ -15,9 +15,9 @@ CSV_LOGGER = "capvector.training.loggers.CSVLogger"
 
 
 def run_lightning_cli(args: list[str] | None, run: bool = True) -> object:
-    """``capvector fit``/``validate``/``test``/``predict``. With ``run=False``, ``args`` are a fit's
-    options without the subcommand, only parsed: the returned CLI's ``parser`` and ``config``
-    build the model, data module and trainer settings when the caller asks
+    """``capvector fit``/``validate``. With ``run=False``, ``args`` are a fit's options without
+    the subcommand, only parsed: the returned CLI's ``parser`` and ``config`` build the model,
+    data module and trainer settings when the caller asks
     (``cli.parser.instantiate_classes(cli.config)``; ``capvector sweep-scale``, once per λ)."""
     from argparse import ArgumentError
 
