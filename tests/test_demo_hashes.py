@@ -15,7 +15,12 @@ TOOL = Path(__file__).resolve().parents[1] / "tools" / "libero" / "demo_hashes.p
 
 
 def write_demo(
-    path: Path, bddl_path: str, action: float = 0.0, proprio_offset: float = 0.0, steps: int = 3
+    path: Path,
+    bddl_path: str,
+    action: float = 0.0,
+    proprio_offset: float = 0.0,
+    steps: int = 3,
+    gripper_offset: float = 0.0,
 ) -> None:
     with h5py.File(path, "w") as f:
         data = f.create_group("data")
@@ -25,6 +30,9 @@ def write_demo(
         demo.create_dataset("actions", data=np.full((steps, 7), action, np.float32))
         proprio = np.linspace(0.5, 1.5, steps * 8).reshape(steps, 8) + proprio_offset
         demo.create_dataset("obs/ee_states", data=proprio)
+        # fingers' opening: mean ~0 (as LIBERO's gripper_states), spread 0.026
+        fingers = np.array([[0.026, -0.026]] * steps) + 1.7e-7 + gripper_offset
+        demo.create_dataset("obs/gripper_states", data=fingers)
         demo.create_dataset(
             "annotations", data=["bowl left of plate"] * steps, dtype=h5py.string_dtype()
         )
@@ -55,8 +63,14 @@ def test_check_passes_for_the_same_demos_and_names_a_changed_file(tmp_path: Path
     recomputed = tool("--check", str(recorded))
     assert recomputed.returncode == 0, recomputed.stderr
     assert "0 identical, 1 recomputed" in recomputed.stdout
+    # ... and a mean near 0 off in its last bits (measured on a third machine: 1.8e-10 of the
+    # fingers' mean of 1.7e-7, 1e-3 of itself but 7e-9 of their spread)
+    write_demo(first / "task_demo.hdf5", "/machine/a/task.bddl", gripper_offset=1.8e-10)
+    near_zero = tool("--check", str(recorded))
+    assert near_zero.returncode == 0, near_zero.stderr
 
-    for changed in ({"action": 0.5}, {"proprio_offset": 1e-3}, {"steps": 4}):
+    changes = ({"action": 0.5}, {"proprio_offset": 1e-3}, {"steps": 4}, {"gripper_offset": 1e-3})
+    for changed in changes:
         write_demo(first / "task_demo.hdf5", "/machine/a/task.bddl", **changed)
         result = tool("--check", str(recorded))
         assert result.returncode == 1, changed
