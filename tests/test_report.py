@@ -145,6 +145,7 @@ COMMITTED = [
     ("libero_pilot", ["plain SFT"]),
     ("libero_demos50", ["plain SFT"]),
     ("libero_steps16k", ["plain SFT"]),
+    ("libero_layer2", ["plain SFT"]),
 ]
 
 
