@@ -13,8 +13,8 @@ values differ in their last bits (this study's demos recorded on two machines: p
 7.2e-8, action statistics within 1e-15). So a file is *identical* when ``hash`` matches,
 *recomputed* when ``shapes`` matches and every dataset's moments agree to 1e-5 (relative), and
 differs otherwise. A mean is compared relative to its dataset's spread when that is larger: a
-mean near 0 (the gripper fingers' mean opening, ~1.7e-7 against a spread of 0.026) has no last
-bits to compare, and its rounding moves it by 1e-3 of itself.
+mean near 0 sums values of both signs, so its rounding scales with their spread, not with itself
+(the gripper fingers' mean opening, ~1.7e-7 against a spread of 0.026, moved by 1e-3 of itself).
 """
 
 from __future__ import annotations
