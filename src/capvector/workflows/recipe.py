@@ -476,10 +476,13 @@ def print_status(run_dir: Path, stages: list[Stage], waits_for: dict[str, set[st
 
 def took(marker: dict) -> str:
     """How long a finished stage took, from its ``.done`` marker: " in T s", and over how many
-    runs when it was stopped and resumed ("" for a marker without times)."""
+    runs when it was stopped and resumed ("" for a marker without times). A marker written before
+    runs were counted (no ``runs``) knows only its last run's time, and says so."""
     if "seconds" not in marker:
         return ""
-    if marker.get("runs", 1) == 1:
+    if "runs" not in marker:
+        return f" in {marker['seconds']:.0f} s (its last run; earlier runs were not counted)"
+    if marker["runs"] == 1:
         return f" in {marker['seconds']:.0f} s"
     total, runs, last = marker["seconds_all_runs"], marker["runs"], marker["seconds"]
     return f" in {total:.0f} s over {runs} runs (the last {last:.0f} s)"
