@@ -4,6 +4,7 @@ from capvector.callbacks.auxiliary import AuxiliaryObjective
 from capvector.callbacks.capability import MergeCapabilityVector, OrthogonalRegularization
 from capvector.callbacks.checkpoint import CheckpointAfterValidation
 from capvector.callbacks.export import ExportOnFitEnd
+from capvector.callbacks.requeue import RequeueAtStepEnd
 from capvector.callbacks.step_cost import StepCost
 from capvector.callbacks.threads import ShareCores
 
@@ -13,6 +14,7 @@ __all__ = [
     "ExportOnFitEnd",
     "MergeCapabilityVector",
     "OrthogonalRegularization",
+    "RequeueAtStepEnd",
     "ShareCores",
     "StepCost",
 ]

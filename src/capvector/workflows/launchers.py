@@ -9,7 +9,7 @@ submitit) with the stage's ``resources``; the recipe waits on the jobs as it wai
 The job itself runs the stage's command, appends its output to ``<stage>/log.txt`` and writes the
 ``.done`` marker, so a stage that finished is skipped on rerun even when the recipe stopped
 waiting. Preemption and time limits: SLURM signals the job (submitit asks for ``USR2`` 90 s
-ahead); a ``fit`` stage's Lightning (its ``SLURMEnvironment`` with auto-requeue, on that signal)
+ahead); a ``fit`` stage (``RequeueAtStepEnd``, at the end of the step that signal lands in)
 saves a checkpoint and requeues the job, which resumes from it; any other stage is requeued by
 submitit and runs again.
 
@@ -433,8 +433,8 @@ class StageJob:
     and the ``.done`` marker when it succeeds.
 
     submitit calls ``checkpoint`` on its requeue signal: the job is requeued as it is, and the
-    stage runs again. A ``fit`` stage on SLURM leaves that signal to the fit: its Lightning saves a
-    checkpoint and requeues the job itself (``SLURMEnvironment`` with auto-requeue). A job ended
+    stage runs again. A ``fit`` stage on SLURM leaves that signal to the fit: it saves a
+    checkpoint and requeues the job itself (``RequeueAtStepEnd``). A job ended
     from outside (that signal, or SIGTERM: a requeue, a preemption, a cancel) leaves no result, so
     the recipe waits for a requeued job and takes a cancelled one as failed."""
 

@@ -206,7 +206,7 @@ def resolve_stage(raw: Any, index: int, run_dir: Path, path: str | Path) -> Stag
 def command_line(stage: Stage, launcher: str = "local") -> list[str]:
     """The ``capvector`` command of a stage; fit stages get their folder, their CSV logger (beside
     the config's loggers) and the checkpoint to resume from, if any; on SLURM, Lightning's
-    auto-requeue on the signal submitit asks SLURM for."""
+    auto-requeue on the signal submitit asks SLURM for, acted on at a step's end."""
     args = [stage.command, *stage.args]
     if stage.command == "fit":
         args += [
@@ -225,6 +225,9 @@ def command_line(stage: Stage, launcher: str = "local") -> list[str]:
             args += [
                 "--trainer.plugins+=lightning.pytorch.plugins.environments.SLURMEnvironment",
                 f"--trainer.plugins.init_args.requeue_signal={REQUEUE_SIGNAL.name}",
+                # Lightning's requeue, at the end of the step the signal lands in (not mid-step).
+                "--trainer.callbacks+=capvector.callbacks.RequeueAtStepEnd",
+                f"--trainer.callbacks.requeue_signal={REQUEUE_SIGNAL.name}",
             ]
         resume = resume_point(stage)
         if resume is not None:
