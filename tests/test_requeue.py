@@ -19,6 +19,7 @@ from lightning.pytorch.loggers import CSVLogger
 from lightning.pytorch.plugins.environments import SLURMEnvironment
 
 from capvector.callbacks import RequeueAtStepEnd
+from capvector.errors import CapVectorError
 from conftest import cpu_trainer
 
 STEPS = 12
@@ -130,3 +131,8 @@ def test_a_signal_during_validation_saves_no_checkpoint(
     fit(tmp_path, 0, signal_once)
     assert signal_once.sent and not list(tmp_path.glob("hpc_ckpt_*.ckpt"))
     assert "no new checkpoint (validation); not a SLURM job" in capfd.readouterr().err
+
+
+def test_a_misspelt_signal_is_named() -> None:
+    with pytest.raises(CapVectorError, match="unknown signal 'USR2'.*'SIGUSR2'"):
+        RequeueAtStepEnd("USR2")

@@ -14,6 +14,7 @@ from typing import Any
 import lightning as L
 
 from capvector.callbacks.checkpoint import validation_follows
+from capvector.errors import CapVectorError
 
 
 class RequeueAtStepEnd(L.Callback):
@@ -36,6 +37,11 @@ class RequeueAtStepEnd(L.Callback):
     """
 
     def __init__(self, requeue_signal: str = "SIGUSR2") -> None:
+        if requeue_signal not in signal.Signals.__members__:
+            raise CapVectorError(
+                f"RequeueAtStepEnd: unknown signal {requeue_signal!r}; name one as the signal "
+                "module does, e.g. 'SIGUSR2' (what submitit has SLURM send)"
+            )
         self.requeue_signal = signal.Signals[requeue_signal]
         self._trainer: L.Trainer | None = None
         self._pending = False
