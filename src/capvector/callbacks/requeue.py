@@ -87,12 +87,11 @@ class RequeueAtStepEnd(L.Callback):
             logger.save()
         if not trainer.is_global_zero:
             return
-        name = self.requeue_signal.name
         saved = f"saved {checkpoint}" if checkpoint else "no new checkpoint (validation)"
+        said = f"capvector fit: {self.requeue_signal.name} at step {trainer.global_step}: {saved}"
         job = slurm_job_id()
         if job is None:
-            print(f"capvector fit: {name} at step {trainer.global_step}: {saved}; not a SLURM "
-                  "job, nothing to requeue", file=sys.stderr, flush=True)  # fmt: skip
+            print(f"{said}; not a SLURM job, nothing to requeue", file=sys.stderr, flush=True)
             return
         try:
             done = subprocess.run(["scontrol", "requeue", job], capture_output=True, text=True)
@@ -100,12 +99,11 @@ class RequeueAtStepEnd(L.Callback):
         except FileNotFoundError:
             failure = "scontrol not found"
         if failure:
-            print(f"capvector fit: {name} at step {trainer.global_step}: {saved}; could not "
-                  f"requeue SLURM job {job} ({failure}): the fit goes on until SLURM ends it, "
-                  "then the recipe run again resumes it", file=sys.stderr, flush=True)  # fmt: skip
+            said += (f"; could not requeue SLURM job {job} ({failure}): the fit goes on until "
+                     "SLURM ends it, then the recipe run again resumes it")  # fmt: skip
         else:
-            print(f"capvector fit: {name} at step {trainer.global_step}: {saved}; requeued "
-                  f"SLURM job {job}", file=sys.stderr, flush=True)  # fmt: skip
+            said += f"; requeued SLURM job {job}"
+        print(said, file=sys.stderr, flush=True)
 
 
 def slurm_job_id() -> str | None:
