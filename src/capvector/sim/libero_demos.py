@@ -464,4 +464,9 @@ def _record_in_workers(
         summaries = [result.get() for result in pending]
         for _ in range(sum(summary.demos for summary in summaries) - shown):
             bar.update(messages.get(timeout=60))  # the last demos' messages, still in flight
+        # Every task is done: the workers exit on the pool's sentinels, not on the SIGTERM that
+        # leaving the block sends (an idle worker once outlived that SIGTERM, blocked on the
+        # pool's task lock, and the pool's join waited for it forever after the last file).
+        pool.close()
+        pool.join()
         return summaries
