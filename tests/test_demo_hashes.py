@@ -75,5 +75,7 @@ def test_check_passes_for_the_same_demos_and_names_a_changed_file(tmp_path: Path
         result = tool("--check", str(recorded))
         assert result.returncode == 1, changed
         assert f"differs: {first / 'task_demo.hdf5'}" in result.stderr
+        lengths = "other lengths" if "steps" in changed else "the same seeds and lengths"
+        assert f"({lengths}; moments differ by up to" in result.stderr, changed
     (first / "task_demo.hdf5").unlink()
     assert f"missing: {first / 'task_demo.hdf5'}" in tool("--check", str(recorded)).stderr

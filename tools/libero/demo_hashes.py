@@ -102,18 +102,19 @@ def moments_difference(recorded: dict[str, list[float]], now: dict[str, list[flo
     return max((difference(key) for key in recorded), default=0.0)
 
 
-def compare(path: str, recorded: dict[str, Any]) -> tuple[str, float]:
-    """``identical``, ``recomputed`` or ``differs`` (or ``missing``), and the moments' largest
-    relative difference."""
+def compare(path: str, recorded: dict[str, Any]) -> tuple[str, float, bool]:
+    """``identical``, ``recomputed`` or ``differs`` (or ``missing``), the moments' largest
+    relative difference, and whether the seeds and lengths (``shapes``) are the recorded ones."""
     if not Path(path).is_file():
-        return "missing", math.inf
+        return "missing", math.inf, False
     now = fingerprint(Path(path))
     difference = moments_difference(recorded["moments"], now["moments"])
+    same_lengths = now["shapes"] == recorded["shapes"]
     if now["hash"] == recorded["hash"]:
-        return "identical", difference
-    if now["shapes"] == recorded["shapes"] and difference <= MOMENTS_TOLERANCE:
-        return "recomputed", difference
-    return "differs", difference
+        return "identical", difference, same_lengths
+    if same_lengths and difference <= MOMENTS_TOLERANCE:
+        return "recomputed", difference, same_lengths
+    return "differs", difference, same_lengths
 
 
 def main() -> int:
@@ -128,14 +129,23 @@ def main() -> int:
         return 0
     expected: dict[str, dict[str, Any]] = json.loads(Path(args.check).read_text())
     verdicts = {path: compare(path, recorded) for path, recorded in expected.items()}
-    for path, (verdict, difference) in verdicts.items():
-        if verdict in ("differs", "missing"):
-            print(f"{verdict}: {path} (moments differ by up to {difference:.2g})", file=sys.stderr)
+    for path, (verdict, difference, same_lengths) in verdicts.items():
+        if verdict == "missing":
+            print(f"missing: {path}", file=sys.stderr)
+        elif verdict == "differs":
+            # a demo whose length changed has diverged, not just been rounded differently
+            lengths = "the same seeds and lengths" if same_lengths else "other lengths"
+            print(
+                f"differs: {path} ({lengths}; moments differ by up to {difference:.2g})",
+                file=sys.stderr,
+            )
     counts = {
-        v: sum(verdict == v for verdict, _ in verdicts.values())
+        v: sum(verdict == v for verdict, *_ in verdicts.values())
         for v in ("identical", "recomputed")
     }
-    largest = max((d for verdict, d in verdicts.values() if verdict == "recomputed"), default=0.0)
+    largest = max(
+        (d for verdict, d, _ in verdicts.values() if verdict == "recomputed"), default=0.0
+    )
     print(
         f"{counts['identical'] + counts['recomputed']} of {len(expected)} demo files as recorded "
         f"before: {counts['identical']} identical, {counts['recomputed']} recomputed (the same "
