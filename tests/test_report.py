@@ -146,6 +146,7 @@ COMMITTED = [
     ("libero_demos50", ["plain SFT"]),
     ("libero_steps16k", ["plain SFT"]),
     ("libero_layer2", ["plain SFT"]),
+    ("libero_objectives", ["plain SFT", "aux-SFT"]),
 ]
 
 
