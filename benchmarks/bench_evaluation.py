@@ -32,8 +32,8 @@ from capvector.backbones.base import build_backbone
 from capvector.data.spec import DataSpec
 from capvector.data.statistics import compute_statistics
 from capvector.eval.episodes import eval_specs
-from capvector.eval.policy import VLAPolicy
 from capvector.eval.rollout import EnvCache, RolloutEvaluator, close_envs, default_workers
+from capvector.policy import VLAPolicy
 
 
 def tiny_policy() -> VLAPolicy:

@@ -57,7 +57,7 @@ class WallClock(L.Callback):
 
 
 def record(out: Path, episodes: int) -> Path:
-    from capvector.sim.demos import record_demos
+    from capvector.envs.robosuite.demos import record_demos
 
     record_demos("Lift", episodes, out, depth=True, progress=False)
     return out

@@ -10,9 +10,9 @@ wrist camera sees the objects close up), so rows differ only in how a step is co
 (a) LIBERO as shipped: ``OffScreenRenderEnv``, robosuite's renderer (4x MSAA, shadows,
     reflections), robosuite's controller code on every substep (``rendering="official",
     fast_step=False``); the reference of every ratio
-(b) robosuite's renderer, fast controller substeps (:mod:`capvector.sim.fast_control`)
+(b) robosuite's renderer, fast controller substeps (:mod:`capvector.envs.robosuite.fast_control`)
 (c) no cameras, robosuite's controller; (d) no cameras, fast substeps: the physics share
-(e) the fast renderer (:mod:`capvector.sim.libero_render`) and fast substeps: the default on a
+(e) the fast renderer (:mod:`capvector.envs.libero.render`) and fast substeps: the default on a
     machine without a GPU renderer
 (f) as (e), with depth in metres too (``camera_depths=True``: ``capvector demos --suite --depth``)
 
@@ -37,9 +37,9 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from capvector.sim.envs import CameraRenderer
-from capvector.sim.libero import NUM_WAIT_STEPS, WAIT_ACTION, initial_states, make_libero_env
-from capvector.sim.libero_render import DRAWN_GROUPS, FAST_CELLS, render_model
+from capvector.envs.libero.env import NUM_WAIT_STEPS, WAIT_ACTION, initial_states, make_libero_env
+from capvector.envs.libero.render import DRAWN_GROUPS, FAST_CELLS, render_model
+from capvector.envs.robosuite.env import CameraRenderer
 
 CAMERAS = ("agentview", "robot0_eye_in_hand")
 

@@ -29,11 +29,11 @@ from collections.abc import Callable
 
 import numpy as np
 
+from capvector.envs.robosuite.annotations import Annotator
+from capvector.envs.robosuite.demos import record_episode
+from capvector.envs.robosuite.env import SimEnv, suite
+from capvector.envs.robosuite.experts import make_expert
 from capvector.eval.rollout import EnvCache, Episode, EpisodeSpec, run_episode
-from capvector.sim.annotations import Annotator
-from capvector.sim.demos import record_episode
-from capvector.sim.envs import SimEnv, suite
-from capvector.sim.experts import make_expert
 
 CAMERAS = ["agentview", "robot0_eye_in_hand"]
 CHUNK = 8

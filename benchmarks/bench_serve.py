@@ -32,8 +32,8 @@ from openpi_client.websocket_client_policy import WebsocketClientPolicy
 
 from capvector.data.spec import DataSpec
 from capvector.data.statistics import compute_statistics
-from capvector.eval.policy import VLAPolicy
 from capvector.module import VLAModule, load_module
+from capvector.policy import VLAPolicy
 from capvector.serve.schema import ObservationSchema
 
 LISTENING = re.compile(r"listening on ws://([\d.]+):(\d+)")

@@ -84,7 +84,7 @@ def test_the_vla_policy_batched_forward_matches_one_observation_at_a_time() -> N
     from capvector.backbones.base import build_backbone
     from capvector.data.spec import DataSpec
     from capvector.data.statistics import compute_statistics
-    from capvector.eval.policy import VLAPolicy
+    from capvector.policy import VLAPolicy
 
     torch.manual_seed(0)
     rng = np.random.default_rng(0)

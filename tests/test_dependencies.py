@@ -1,6 +1,6 @@
 """Every package the code imports is declared in pyproject.toml, and in the right place: what the
 training path imports at module level is a core dependency, an extra's package is imported lazily
-or behind the extra's boundary (``capvector.sim`` for the simulator)."""
+or behind the extra's boundary (``capvector.envs`` for the simulator)."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ tomllib = pytest.importorskip("tomllib", reason="reads pyproject.toml with Pytho
 ROOT = Path(__file__).resolve().parents[1]
 SRC = ROOT / "src" / "capvector"
 
-EXTRA_HOMES = {"sim": "capvector.sim", "libero": "capvector.sim"}
+EXTRA_HOMES = {"sim": "capvector.envs", "libero": "capvector.envs"}
 """Packages where an extra's modules may be imported at module level: they need the extra (and
 raise ``missing_extra`` when it is absent); everywhere else an extra is imported inside functions."""
 

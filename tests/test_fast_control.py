@@ -2,7 +2,7 @@
 
 The referee is robosuite itself: the same actions from the same seed run once through robosuite's
 full step (its controller code on every substep, every observable) and once through the fast step
-(:mod:`capvector.sim.fast_control`, only the observables SimEnv reads), and the simulator states
+(:mod:`capvector.envs.robosuite.fast_control`, only the observables SimEnv reads), and the simulator states
 and observations after every step must be equal, not close: a trajectory that differs in the last
 bit anywhere drifts apart within a few steps of contact.
 """
@@ -42,7 +42,7 @@ def _episodes(sim, actions: np.ndarray) -> list[np.ndarray]:
      ("Stack", "Panda", None)],
 )  # fmt: skip
 def test_the_same_states_and_observations_as_robosuite_s_full_step(task, robot, gripper) -> None:
-    from capvector.sim.envs import SimEnv
+    from capvector.envs.robosuite.env import SimEnv
 
     actions = _actions(60)
     runs = []
@@ -59,7 +59,7 @@ def test_the_same_states_and_observations_as_robosuite_s_full_step(task, robot, 
 
 
 def test_the_fast_step_skips_only_what_sim_env_does_not_read() -> None:
-    from capvector.sim.envs import SimEnv
+    from capvector.envs.robosuite.env import SimEnv
 
     fast, full = SimEnv("Lift", cameras=()), SimEnv("Lift", cameras=(), fast_step=False)
     try:
@@ -78,8 +78,8 @@ def test_controllers_it_does_not_cover_keep_robosuite_s_code() -> None:
 
     import robosuite
 
-    from capvector.sim import fast_control
-    from capvector.sim.envs import SimEnv
+    from capvector.envs import fast_control
+    from capvector.envs.robosuite.env import SimEnv
 
     sim = SimEnv("Lift", cameras=())
     kwargs = copy.deepcopy(sim.env_kwargs)

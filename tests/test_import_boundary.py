@@ -12,13 +12,13 @@ TRAINING_MODULES = [
     "capvector.cli",
     "capvector.callbacks",
     "capvector.vectors",
-    "capvector.sim",
+    "capvector.envs",
     "capvector.eval",
     "capvector.eval.episodes",
-    "capvector.eval.policy",
+    "capvector.policy",
     "capvector.eval.results",
     "capvector.training.resume",
-    "capvector.serve.cli",
+    "capvector.workflows.serve",
     "capvector.serve.server",
 ]
 

@@ -29,7 +29,7 @@ MUJOCO_TO_OPENCV = np.diag([1.0, -1.0, -1.0])  # MuJoCo cameras look down -z wit
 def test_fast_depth_matches_robosuite_depth() -> None:
     from robosuite.utils.camera_utils import get_real_depth_map
 
-    from capvector.sim.libero import initial_states, make_libero_env
+    from capvector.envs.libero.env import initial_states, make_libero_env
 
     init = initial_states(SUITE, 0)[0]
     depth = {}
@@ -78,8 +78,8 @@ def scene(recorded: Path):
     import h5py
 
     from capvector.data.hdf5 import HDF5RobotDataset
-    from capvector.sim.libero import make_libero_env
-    from capvector.sim.libero_experts import task_env
+    from capvector.envs.libero.env import make_libero_env
+    from capvector.envs.libero.experts import task_env
 
     dataset = HDF5RobotDataset(
         [recorded], list(CAMERAS), ["ee_states", "gripper_states"], chunk_size=1,
@@ -173,7 +173,7 @@ def test_read_depth_and_rgb_stay_aligned(scene) -> None:
 
 def test_annotations_state_where_the_objects_are(scene) -> None:
     # Every movable object's "x=.., y=.." in the step's annotation is where MuJoCo has it.
-    from capvector.sim.annotations import readable_names
+    from capvector.envs.libero.annotations import readable_names
 
     for t, (sample, objects, _) in zip((0, 60), scene, strict=True):
         text = sample["annotation"]

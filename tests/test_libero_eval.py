@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 from capvector.cli import main
+from capvector.envs import libero
 from capvector.errors import CapVectorError
 from capvector.eval.episodes import LiberoEpisodeSpec, libero_specs
 from capvector.eval.rollout import RolloutEvaluator, close_envs
-from capvector.sim import libero
 
 SUITE = "libero_spatial"
 
@@ -198,8 +198,8 @@ def test_no_libero_env_outlives_its_evaluation() -> None:
 @pytest.mark.sim
 def test_rendering_is_one_option_away_from_the_official_renderer() -> None:
     """`rendering` reaches the env: official is LIBERO's own renderer, fast ours; a typo is named."""
-    from capvector.eval.libero import build_libero_env
-    from capvector.sim.libero_render import FastRenderEnv
+    from capvector.envs.libero.episode import build_libero_env
+    from capvector.envs.libero.render import FastRenderEnv
 
     for rendering, fast in (("official", False), ("fast", True)):
         env = build_libero_env(SUITE, 0, ("agentview",), 32, rendering)

@@ -2,7 +2,7 @@
 
 A task of every suite the experts serve is built, its official initial state loaded, and the expert
 run to LIBERO's own success predicate (the env's ``done``). The full per-task success over 50 init
-states is in docs/evaluation.md (``python -m capvector.sim.libero_experts``), too slow for a test.
+states is in docs/evaluation.md (``python -m capvector.workflows.expert_success``), too slow for a test.
 """
 
 from __future__ import annotations
@@ -20,18 +20,18 @@ import torch
 from capvector.cli import main as capvector
 from capvector.data.datamodule import RobotDataModule
 from capvector.data.hdf5 import HDF5RobotDataset
-from capvector.errors import CapVectorError
-from capvector.eval.episodes import LiberoEpisodeSpec
-from capvector.eval.libero import POLICY_GRIPPER, build_libero_env, start_trial
-from capvector.eval.policy import VLAPolicy
-from capvector.module import VLAModule
-from capvector.sim import libero
-from capvector.sim.libero_demos import (
+from capvector.envs import libero
+from capvector.envs.libero.demos import (
     _object_qpos,
     demo_file_name,
     is_official_state,
 )
-from capvector.sim.libero_experts import FIXTURE_SEED_START, PlaceGoal, place_goal, run_trial
+from capvector.envs.libero.episode import POLICY_GRIPPER, build_libero_env, start_trial
+from capvector.envs.libero.experts import FIXTURE_SEED_START, PlaceGoal, place_goal, run_trial
+from capvector.errors import CapVectorError
+from capvector.eval.episodes import LiberoEpisodeSpec
+from capvector.module import VLAModule
+from capvector.policy import VLAPolicy
 
 # One task per suite: its goal as LIBERO's BDDL parser reads it.
 TASKS = {

@@ -48,7 +48,7 @@ def _normals(vert: np.ndarray, face: np.ndarray) -> np.ndarray:
 
 
 def test_decimation_keeps_the_shape_and_the_winding() -> None:
-    from capvector.sim.libero_render import decimate_mesh
+    from capvector.envs.libero.render import decimate_mesh
 
     vert, face = _sphere_mesh(48)
     cells = 8
@@ -69,7 +69,7 @@ def test_decimation_keeps_the_shape_and_the_winding() -> None:
 
 
 def test_decimation_leaves_a_mesh_coarser_than_the_grid_alone() -> None:
-    from capvector.sim.libero_render import decimate_mesh
+    from capvector.envs.libero.render import decimate_mesh
 
     vert, face = _sphere_mesh(4)
     kept, faces, moved, positions = decimate_mesh(vert, face, 64)
@@ -94,7 +94,7 @@ def _model_xml() -> str:
 
 
 def test_render_model_changes_a_copy_and_only_the_drawn_meshes() -> None:
-    from capvector.sim.libero_render import render_model
+    from capvector.envs.libero.render import render_model
 
     model = mujoco.MjModel.from_xml_string(_model_xml())
     before = {name: np.copy(getattr(model, name)) for name in ("mesh_face", "mesh_vert")}
@@ -112,7 +112,7 @@ def test_render_model_changes_a_copy_and_only_the_drawn_meshes() -> None:
 
 
 def test_fast_rendering_is_the_default_on_a_software_renderer(monkeypatch) -> None:
-    from capvector.sim import libero_render
+    from capvector.envs import libero_render
 
     for name, fast in [
         ("llvmpipe (LLVM 15.0.6, 256 bits)", True),
@@ -127,7 +127,7 @@ def test_fast_rendering_is_the_default_on_a_software_renderer(monkeypatch) -> No
 
 
 def test_bad_rendering_options_name_the_problem() -> None:
-    from capvector.sim.libero import make_libero_env
+    from capvector.envs.libero.env import make_libero_env
 
     with pytest.raises(UnknownNameError, match="rendering 'fastt'.*did you mean fast"):
         make_libero_env("libero_spatial", 0, rendering="fastt")
@@ -137,7 +137,7 @@ def test_bad_rendering_options_name_the_problem() -> None:
 
 def _actions(steps: int) -> np.ndarray:
     # The protocol's 10 wait steps, then down to the table, sideways, gripper closing halfway.
-    from capvector.sim.libero import NUM_WAIT_STEPS, WAIT_ACTION
+    from capvector.envs.libero.env import NUM_WAIT_STEPS, WAIT_ACTION
 
     t = np.linspace(0, 1, steps)[:, None]
     move = np.zeros((steps, 7))
@@ -150,7 +150,7 @@ def _actions(steps: int) -> np.ndarray:
 def _replay(**kwargs) -> dict[str, list]:
     """States, low-dim observations and upright images after every step of two episodes from
     init states 0 and 1 (a hard reset between them)."""
-    from capvector.sim.libero import initial_states, make_libero_env
+    from capvector.envs.libero.env import initial_states, make_libero_env
 
     inits = initial_states("libero_spatial", 0)
     env = make_libero_env("libero_spatial", 0, image_size=128, cameras=CAMERAS, **kwargs)

@@ -60,11 +60,11 @@ def replay(key: str, requests: int) -> dict[str, Any]:
     with ours rotated once more (what a missing or doubled flip would give); per request, the
     state's max absolute difference and the end effector's distance (mm); the first chunk's max
     absolute difference."""
+    from capvector.envs.libero.episode import LiberoEpisode
     from capvector.eval.episodes import LiberoEpisodeSpec
-    from capvector.eval.libero import LiberoEpisode
-    from capvector.eval.policy import VLAPolicy
     from capvector.eval.rollout import EnvCache
     from capvector.module import load_module
+    from capvector.policy import VLAPolicy
 
     suite, task_id, trial = key.split("/")
     recorded = episodes("client.json")[key]
@@ -118,8 +118,8 @@ def test_the_served_run_on_robosuite_14_agrees_with_evaluate() -> None:
 def test_the_served_chunks_are_the_exports_own() -> None:
     """What the server answered each trial's first request is what the export computes on it
     in-process: the client's run is the asset's, through the server unchanged."""
-    from capvector.eval.policy import VLAPolicy
     from capvector.module import load_module
+    from capvector.policy import VLAPolicy
 
     module = load_module(str(EXPORT)).eval()
     policy = VLAPolicy(module.backbone, module.data_spec)

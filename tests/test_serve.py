@@ -34,12 +34,12 @@ from openpi_client.websocket_client_policy import WebsocketClientPolicy
 from capvector.cli import main
 from capvector.data.spec import DataSpec
 from capvector.data.statistics import compute_statistics
-from capvector.eval.policy import VLAPolicy
 from capvector.module import VLAModule, load_module
-from capvector.serve.cli import ServedPolicy
+from capvector.policy import VLAPolicy
 from capvector.serve.schema import ObservationError, ObservationSchema
 from capvector.serve.server import PolicyServer
 from capvector.serve.wire import WireError, packb, unpackb
+from capvector.workflows.serve import ServedPolicy
 
 CAMERAS = ["agentview", "robot0_eye_in_hand"]
 SIZE = 64

@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 
 from capvector.cli import main as capvector
+from capvector.envs.robosuite.demos import record_demos
+from capvector.envs.robosuite.env import SimEnv, camera_intrinsics
 from capvector.errors import CapVectorError
-from capvector.sim.demos import main, record_demos
-from capvector.sim.envs import SimEnv, camera_intrinsics
+from capvector.workflows.demos import main
 
 SIZE = 32
 CAMERAS = ["agentview", "robot0_eye_in_hand"]

@@ -9,7 +9,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from capvector.sim.envs import (
+from capvector.envs.robosuite.env import (
     TASKS,
     CameraRenderer,
     SimEnv,

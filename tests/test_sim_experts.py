@@ -5,14 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from capvector.sim.annotations import Annotator
-from capvector.sim.demos import record_episode
-from capvector.sim.envs import TASKS, SimEnv
-from capvector.sim.experts import EXPERTS, PHASES, ExpertAction, make_expert
+from capvector.envs.robosuite.annotations import Annotator
+from capvector.envs.robosuite.demos import record_episode
+from capvector.envs.robosuite.env import TASKS, SimEnv
+from capvector.envs.robosuite.experts import EXPERTS, PHASES, ExpertAction, make_expert
 
 # (task, arm, gripper): every expert on the Panda, and Lift on two other arms with the same
 # 7-d OSC action space (the transfer setting); success rates measured over 100-200 seeds are in
-# the module docs of capvector.sim.experts.
+# the module docs of capvector.envs.robosuite.experts.
 CASES = [
     ("Lift", "Panda", None),
     ("Stack", "Panda", None),

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from capvector.sim import libero
+from capvector.envs import libero
 
 
 def test_step_limits_follow_oft() -> None:
@@ -242,7 +242,7 @@ def test_missing_asset_packages_are_named(tmp_path: Path) -> None:
     src = Path(libero.__file__).parents[2]
     code = (
         f"import sys; sys.path[:0] = [{str(src)!r}, {str(packages)!r}]\n"
-        "from capvector.sim.libero import load_libero\n"
+        "from capvector.envs.libero.env import load_libero\n"
         "try:\n    load_libero()\nexcept ImportError as e:\n    print(e)\n"
     )
     out = subprocess.run(

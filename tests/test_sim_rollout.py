@@ -9,6 +9,7 @@ import imageio.v2 as imageio
 import numpy as np
 import pytest
 
+from capvector.envs.robosuite.demos import record_demos
 from capvector.eval.rollout import (
     EVAL_SEED_START,
     EnvCache,
@@ -20,7 +21,6 @@ from capvector.eval.rollout import (
     to_env_action,
 )
 from capvector.eval.video import write_video
-from capvector.sim.demos import record_demos
 
 SIZE = 32
 CAMERAS = ["agentview", "robot0_eye_in_hand"]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from capvector.sim.variants import VARIANTS, get_variant, variant_seed
+from capvector.envs.robosuite.variants import VARIANTS, get_variant, variant_seed
 
 pytestmark = pytest.mark.sim
 
@@ -14,7 +14,7 @@ SEED = 1_000_000
 
 @pytest.fixture(scope="module")
 def sim():
-    from capvector.sim.envs import SimEnv
+    from capvector.envs.robosuite.env import SimEnv
 
     env = SimEnv("Lift", cameras=("agentview", "robot0_eye_in_hand"), image_size=48)
     yield env
@@ -28,7 +28,7 @@ def _frame(sim) -> np.ndarray:
 
 @pytest.mark.parametrize("name", [n for n, v in VARIANTS.items() if v.visual])
 def test_visual_variant_is_fixed_by_seed_and_changes_only_the_picture(sim, name: str) -> None:
-    from capvector.sim.variants import SceneRandomizer
+    from capvector.envs.robosuite.variants import SceneRandomizer
 
     sim.reset(SEED)
     base, state = _frame(sim), sim.flat_state()

@@ -92,8 +92,8 @@ def test_argparse_spellings_keep_their_meaning(
 
 
 def test_records_reach_the_function_as_records() -> None:
-    from capvector.vectors.cli import ScaledVector, merge_cli
     from capvector.workflows.report import Arm, report_cli
+    from capvector.workflows.vectors import ScaledVector, merge_cli
 
     argv = ["--run-dir", "R", "--arm", "a", "a_s*", "eval_pre", "--out", "O"]
     assert Tool(report_cli, "report").parse(argv)["arm"] == [Arm("a", "a_s*", "eval_pre")]

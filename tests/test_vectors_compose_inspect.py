@@ -11,10 +11,10 @@ from safetensors.torch import save_file
 
 from capvector.cli import main
 from capvector.vectors import CapVectorError, compose, extract, inspect_vector, load_vector
-from capvector.vectors.cli import compose_main, extract_main, merge_main, parse_size
 from capvector.vectors.compose import ties, trim
 from capvector.vectors.inspect import group_of
 from capvector.workflows.inspection import main as inspect_main
+from capvector.workflows.vectors import compose_main, extract_main, merge_main, parse_size
 from test_vectors_common import finetune, tiny_state, write_export
 
 

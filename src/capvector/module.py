@@ -31,7 +31,6 @@ from capvector.data.spec import DataSpec
 from capvector.errors import CapVectorError
 from capvector.eval.episodes import AnyEpisodeSpec
 from capvector.eval.metrics import SuccessRate
-from capvector.eval.policy import VLAPolicy
 from capvector.eval.results import metric_key
 from capvector.io.hub import local_folder
 from capvector.io.loading import load_torch, read_json
@@ -46,6 +45,7 @@ from capvector.io.names import (
 )
 from capvector.io.weights import dtype_name
 from capvector.objectives.base import Objective
+from capvector.policy import VLAPolicy
 from capvector.training.distributed import full_state_dict, is_rank_zero, parallelize
 from capvector.training.loggers import log_video
 from capvector.training.lora import (

@@ -198,7 +198,7 @@ class RobotDataModule(L.LightningDataModule):
         """Record the missing demo files (``data.generate``). Lightning calls it once per node."""
         if self.generate is None:
             return
-        from capvector.sim.demos import record_demos  # the simulator only when recording
+        from capvector.envs.robosuite.demos import record_demos  # the simulator only when recording
 
         hp, gen = self.hparams, self.generate
         files = [*(hp.train_files or []), *(hp.val_files or [])]

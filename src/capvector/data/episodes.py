@@ -37,13 +37,13 @@ class EvalTask:
     """Gripper override for arms whose own gripper lacks 2 finger joints (IIWA, UR5e, Kinova3,
     Jaco take PandaGripper), as the demos were recorded."""
     variant: str | None = None
-    """A zero-shot scene variant (``capvector.sim.variants``: camera, lighting, color, all,
+    """A zero-shot scene variant (``capvector.envs.robosuite.variants``: camera, lighting, color, all,
     sawyer, ur5e, ...); None evaluates the scene as trained."""
 
 
 @dataclass
 class LiberoEvalTask:
-    """Trials of LIBERO tasks under the official protocol (``capvector.eval.libero``): trial i
+    """Trials of LIBERO tasks under the official protocol (``capvector.envs.libero.episode``): trial i
     starts from the task's official initial state i, which no demo of ours starts from."""
 
     suite: str
@@ -56,7 +56,7 @@ class LiberoEvalTask:
     """Step limit after the wait steps; None: the suite's (220 spatial, 280 object, ...)."""
     rendering: str = "auto"
     """Who draws the images: auto (the fast renderer on a CPU's OpenGL, robosuite's on a GPU),
-    fast, or official (LIBERO's own; ``capvector.sim.libero.make_libero_env``)."""
+    fast, or official (LIBERO's own; ``capvector.envs.libero.env.make_libero_env``)."""
     from_demos: str | None = None
     """A folder of demos (``capvector demos``): trial i starts where the task's demo i started,
     not from official state i (success from the placements trained on: a diagnostic)."""

@@ -14,7 +14,7 @@ Layout read here (robomimic ``docs/datasets/overview.md``; LIBERO ``scripts/crea
 
 LIBERO's files (``data`` attr ``macros_image_convention="opengl"``) hold the images as the
 simulator renders them; they are rotated 180 degrees when read, as the LIBERO evaluation rotates
-the live images (``capvector.sim.libero.flip_image``; OpenVLA-OFT's RLDS conversion and
+the live images (``capvector.envs.libero.env.flip_image``; OpenVLA-OFT's RLDS conversion and
 ``get_libero_image``), so training and evaluation see the same orientation. Depth maps are rotated
 with them, and the intrinsics (``data`` attrs ``<camera>_intrinsics``, of the frames as stored) are
 rotated to match (:func:`rotate_intrinsics`), so depth back-projects to camera-frame points. Their 8-d proprio is

@@ -20,10 +20,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar, get_args
 
+from capvector.envs.libero.env import LIBERO_MAX_STEPS, LIBERO_NUM_TASKS, LIBERO_TRIALS, Rendering
+from capvector.envs.robosuite.tasks import get_task
+from capvector.envs.robosuite.variants import get_variant
 from capvector.errors import CapVectorError, unknown_name
-from capvector.sim.libero import LIBERO_MAX_STEPS, LIBERO_NUM_TASKS, LIBERO_TRIALS, Rendering
-from capvector.sim.tasks import get_task
-from capvector.sim.variants import get_variant
 
 LIBERO_RENDERINGS: tuple[str, ...] = get_args(Rendering)
 
@@ -46,7 +46,7 @@ class EpisodeSpec:
     gripper: str | None = None
     """Gripper override for arms whose default gripper lacks 2 finger joints, e.g. PandaGripper."""
     variant: str | None = None
-    """A visual scene variant (``capvector.sim.variants``) drawn from the seed; None: as trained."""
+    """A visual scene variant (``capvector.envs.robosuite.variants``) drawn from the seed; None: as trained."""
 
     @property
     def step_limit(self) -> int:
@@ -95,7 +95,7 @@ class LiberoEpisodeSpec:
     max_steps: int | None = None
     """Step limit after the wait steps; None: the suite's (220 spatial, 280 object, ...)."""
     rendering: Rendering = "auto"
-    """Who draws the images (``capvector.sim.libero.Rendering``): auto, fast or official."""
+    """Who draws the images (``capvector.envs.libero.env.Rendering``): auto, fast or official."""
     from_demos: str | None = None
     """A folder of demos (``capvector demos``): the trial starts where demo ``trial`` of the
     task's file started instead (a diagnostic: success from the placements a policy trained on)."""

@@ -16,7 +16,7 @@ success or at the step limit (``EpisodeSpec.max_steps``, else the task's default
 
 Episodes are described by :class:`~capvector.eval.episodes.EpisodeSpec` (seeds, arm, scene
 variant; no simulator import), LIBERO trials by :class:`~capvector.eval.episodes.LiberoEpisodeSpec`
-(run as :class:`~capvector.eval.libero.LiberoEpisode`, LIBERO's protocol). :class:`RolloutEvaluator`
+(run as :class:`~capvector.envs.libero.episode.LiberoEpisode`, LIBERO's protocol). :class:`RolloutEvaluator`
 is the one loop every evaluation runs: the validation loop of ``VLAModule``, ``capvector evaluate``
 and ``capvector sweep-scale``. It drives episodes one at a time (``batch_size=1``) or batched:
 ``batch_size`` episodes in flight in :class:`Slots` (here, or in :mod:`capvector.eval.workers`
@@ -37,6 +37,10 @@ from typing import Any
 
 import numpy as np
 
+from capvector.envs.base import EpisodeResult, Observation, Policy, as_chunk
+from capvector.envs.libero.episode import LiberoEpisode, build_libero_env
+from capvector.envs.robosuite.env import SimEnv, SimulationFault
+from capvector.envs.robosuite.variants import SceneRandomizer, get_variant
 from capvector.eval.episodes import (
     EVAL_SEED_START,
     AnyEpisodeSpec,
@@ -44,13 +48,9 @@ from capvector.eval.episodes import (
     LiberoEpisodeSpec,
     eval_specs,
 )
-from capvector.eval.libero import LiberoEpisode, build_libero_env
 from capvector.eval.workers import close_pools, worker_pool
 from capvector.io.cpus import usable_cpus
 from capvector.io.names import STAGE_CORES
-from capvector.sim.envs import SimEnv, SimulationFault
-from capvector.sim.policy import EpisodeResult, Observation, Policy, as_chunk
-from capvector.sim.variants import SceneRandomizer, get_variant
 
 __all__ = [
     "EVAL_SEED_START",
@@ -122,7 +122,7 @@ class EnvCache:
     def libero(
         self, suite: str, task_id: int, *, cameras: Sequence[str], image_size: int, rendering: str
     ) -> Any:
-        """LIBERO's env of a task (:func:`~capvector.eval.libero.build_libero_env`); building it
+        """LIBERO's env of a task (:func:`~capvector.envs.libero.episode.build_libero_env`); building it
         closes the LIBERO env of another task first."""
         key = ("libero", suite, task_id, tuple(cameras), image_size, rendering)
         if key in self._envs:
@@ -312,7 +312,7 @@ def close_envs() -> None:
 
 def act(policy: Policy, observations: Sequence[Observation]) -> list[np.ndarray]:
     """One chunk per observation; one call of ``policy.act_batch`` when the policy has it
-    (``capvector.eval.policy.VLAPolicy``: one batched forward), else one call per observation."""
+    (``capvector.policy.VLAPolicy``: one batched forward), else one call per observation."""
     batched = getattr(policy, "act_batch", None)
     chunks = batched(observations) if batched is not None else [policy(o) for o in observations]
     if len(chunks) != len(observations):

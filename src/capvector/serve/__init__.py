@@ -4,5 +4,6 @@ simulator in another environment drives it with ``openpi_client.WebsocketClientP
 - :mod:`~capvector.serve.wire`: openpi's msgpack-numpy messages
 - :mod:`~capvector.serve.schema`: the observation schema (our keys and openpi's LIBERO client's)
 - :mod:`~capvector.serve.server`: ``PolicyServer``, the asyncio server that batches requests
-- :mod:`~capvector.serve.cli`: ``capvector serve``: load once, device, precision, signals
+
+``capvector serve`` (load once, device, precision, signals) is :mod:`capvector.workflows.serve`.
 """

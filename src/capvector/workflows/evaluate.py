@@ -13,10 +13,10 @@ from capvector.data.episodes import EpisodeDataset, EvalTask, LiberoEvalTask
 from capvector.errors import CapVectorError
 from capvector.eval.device import Precision, resolve_device, resolve_precision
 from capvector.eval.episodes import LIBERO_TRIALS, AnyEpisodeSpec, Rendering
-from capvector.eval.policy import VLAPolicy
 from capvector.eval.results import SuccessRow, format_success_table, pooled_row, success_rows
 from capvector.io.outputs import atomic_write_bytes, check_output
 from capvector.module import load_module
+from capvector.policy import VLAPolicy
 from capvector.tool_cli import run_tool
 
 if TYPE_CHECKING:
@@ -127,7 +127,7 @@ def evaluate_cli(
     )  # fmt: skip
     specs = EpisodeDataset(eval_tasks).specs
     if from_demos is not None:  # every trial's demo is there, before minutes of rollouts
-        from capvector.eval.libero import check_trial_starts
+        from capvector.envs.libero.episode import check_trial_starts
 
         check_trial_starts(specs)
     if batch_size is None:
@@ -143,7 +143,7 @@ def evaluate_cli(
     rows = success_rows(results)
     table = rows
     if suite is not None:
-        from capvector.eval.libero import libero_task
+        from capvector.envs.libero.episode import libero_task
 
         def instruction(row: SuccessRow) -> str:
             spec = by_row[row.task, row.robot, row.variant][0][0]

@@ -1,5 +1,5 @@
 """LIBERO: its task suites as environments, and the OpenVLA-OFT / openpi evaluation protocol's
-constants and pure helpers (the episodes themselves run in :mod:`capvector.eval.libero`, batched
+constants and pure helpers (the episodes themselves run in :mod:`capvector.envs.libero.episode`, batched
 like robosuite's).
 
 Two installs work. With this project's robosuite 1.5: ``pip install 'capvector[libero]'``, which
@@ -45,8 +45,8 @@ from typing import Any, Literal
 
 import numpy as np
 
+from capvector.envs.base import Observation
 from capvector.errors import CapVectorError, unknown_name
-from capvector.sim.policy import Observation
 
 LIBERO_MAX_STEPS: dict[str, int] = {
     "libero_spatial": 220,  # longest training demo: 193 steps
@@ -74,7 +74,7 @@ LIBERO_CAMERAS = {"agentview": "agentview_image", "robot0_eye_in_hand": "robot0_
 
 Rendering = Literal["auto", "fast", "official"]
 """Who draws the camera images: ``official`` robosuite's renderer (LIBERO as shipped), ``fast``
-:mod:`capvector.sim.libero_render` (same physics, decimated visual meshes; a step with two 128 px
+:mod:`capvector.envs.libero.render` (same physics, decimated visual meshes; a step with two 128 px
 cameras ~13x cheaper on a CPU), ``auto`` fast where OpenGL runs on the CPU, official on a GPU."""
 
 GripperConvention = Literal["close_positive", "open_is_one"]
@@ -421,7 +421,7 @@ def load_libero() -> LiberoBackend:
     name = _backend(robosuite, _version("rpent-libero"))
     asset_root = _asset_root(package_dir)
     _write_default_config(package_dir, asset_root)
-    os.environ.setdefault("MUJOCO_GL", "egl")  # headless; see capvector.sim.envs
+    os.environ.setdefault("MUJOCO_GL", "egl")  # headless; see capvector.envs.robosuite.env
     try:
         from libero.libero import benchmark
         from libero.libero.envs.env_wrapper import ControlEnv, OffScreenRenderEnv
@@ -492,9 +492,9 @@ def make_libero_env(
     ``render=False`` builds no renderer and no camera observations (state-only experts, physics
     tests): the observation dict then holds only proprio and object states. ``rendering`` picks
     who draws the images (:data:`Rendering`); the fast renderer's env is a
-    :class:`~capvector.sim.libero_render.FastRenderEnv` with the same observation keys
+    :class:`~capvector.envs.libero.render.FastRenderEnv` with the same observation keys
     (``camera_depths=True`` there gives ``<camera>_depth`` in metres, not robosuite's raw buffer).
-    ``fast_step`` runs the controller substeps through :mod:`capvector.sim.fast_control` (the
+    ``fast_step`` runs the controller substeps through :mod:`capvector.envs.robosuite.fast_control` (the
     same states to the bit, ~40% less physics time); ``rendering="official", fast_step=False`` is
     LIBERO exactly as shipped. Both fast paths need robosuite 1.5. ``seed`` is passed to
     ``env.seed`` as OFT/openpi do ("seed seems to affect object positions even when using fixed
@@ -514,7 +514,7 @@ def make_libero_env(
         )
     fast_render = render and not upstream and rendering != "official"
     if fast_render and rendering == "auto":
-        from capvector.sim.libero_render import fast_rendering_default
+        from capvector.envs.libero.render import fast_rendering_default
 
         fast_render = fast_rendering_default()
     if fast_render and env_kwargs.get("camera_segmentations"):
@@ -543,11 +543,11 @@ def make_libero_env(
     if libero.name == "rpent-libero":
         _hold_orientation_goal_like_robosuite_14(env.env)
     if fast_step and not upstream:
-        from capvector.sim.fast_control import install
+        from capvector.envs.robosuite.fast_control import install
 
         install(env.env)
     if fast_render:
-        from capvector.sim.libero_render import FastRenderEnv
+        from capvector.envs.libero.render import FastRenderEnv
 
         env = FastRenderEnv(env, cameras, image_size, depth=fast_depth)
     env.seed(seed)

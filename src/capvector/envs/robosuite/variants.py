@@ -35,7 +35,7 @@ import numpy as np
 from capvector.errors import unknown_name
 
 if TYPE_CHECKING:
-    from capvector.sim.envs import SimEnv
+    from capvector.envs.robosuite.env import SimEnv
 
 # robosuite 1.5.2 robosuite/wrappers/domain_randomization_wrapper.py, copied as values (importing
 # them would import robosuite): DEFAULT_CAMERA_ARGS, DEFAULT_LIGHTING_ARGS, DEFAULT_COLOR_ARGS.

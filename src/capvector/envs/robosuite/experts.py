@@ -10,7 +10,7 @@ the red cube with no finger towards the green one; the can is gripped with the f
 away from the bin's side walls); a descent that drifts off the object or stalls goes back up and
 lines up again; and an object that slips out of the gripper sends the expert back to approach.
 
-The phase names are a shared vocabulary that :mod:`capvector.sim.annotations` turns into text.
+The phase names are a shared vocabulary that :mod:`capvector.envs.robosuite.annotations` turns into text.
 
 Measured success (DART noise 0.1, seeds 0..N-1, success = the env's own ``_check_success``,
 still true 6 steps later; robosuite 1.5.2, mujoco 3.9.0)::
@@ -27,7 +27,7 @@ still true 6 steps later; robosuite 1.5.2, mujoco 3.9.0)::
     Stack         IIWA (PandaGripper)      50/50    104 / 124
     PickPlaceCan  IIWA (PandaGripper)      50/50    186 / 271
 
-Reproduce with ``python -m capvector.sim.demos --task Lift --episodes 200 --out lift.hdf5
+Reproduce with ``python -m capvector.envs.robosuite.demos --task Lift --episodes 200 --out lift.hdf5
 --cameras`` (low-dim only; images do not change the physics) and read the printed success.
 """
 
@@ -40,8 +40,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from capvector.envs.robosuite.env import SimEnv
 from capvector.errors import missing_extra
-from capvector.sim.envs import SimEnv
 
 try:
     from robosuite.utils import transform_utils as T

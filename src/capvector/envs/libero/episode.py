@@ -26,9 +26,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from capvector.errors import CapVectorError
-from capvector.eval.episodes import AnyEpisodeSpec, LiberoEpisodeSpec
-from capvector.sim.libero import (
+from capvector.envs.base import EpisodeResult, Observation, as_chunk
+from capvector.envs.libero.env import (
     NUM_WAIT_STEPS,
     WAIT_ACTION,
     GripperConvention,
@@ -41,7 +40,8 @@ from capvector.sim.libero import (
     seeded_reset,
     to_libero_action,
 )
-from capvector.sim.policy import EpisodeResult, Observation, as_chunk
+from capvector.errors import CapVectorError
+from capvector.eval.episodes import AnyEpisodeSpec, LiberoEpisodeSpec
 
 log = logging.getLogger(__name__)
 
@@ -77,7 +77,7 @@ def start_trial(env: Any, spec: LiberoEpisodeSpec) -> dict[str, Any]:
     if spec.from_demos is None:
         seed, state = spec.fixture_seed, initial_states(spec.suite, spec.task_id)[spec.trial]
     else:
-        from capvector.sim.libero_demos import demo_start
+        from capvector.envs.libero.demos import demo_start
 
         seed, state = demo_start(spec.from_demos, spec.suite, spec.task_id, spec.trial)
     seeded_reset(env, seed)
@@ -86,7 +86,7 @@ def start_trial(env: Any, spec: LiberoEpisodeSpec) -> dict[str, Any]:
 
 def check_trial_starts(specs: Sequence[AnyEpisodeSpec]) -> None:
     """Every trial that starts from a demo (``from_demos``) finds it; a clear error if not."""
-    from capvector.sim.libero_demos import demo_start
+    from capvector.envs.libero.demos import demo_start
 
     for spec in specs:
         if isinstance(spec, LiberoEpisodeSpec) and spec.from_demos is not None:

@@ -12,7 +12,7 @@ Facts this module relies on (measured on the project's 2-core CPU machines, see
   randomness (object placement, joint noise) is reseeded on every :meth:`SimEnv.reset`.
 - Success is ``env._check_success()`` after every step: robosuite's ``done`` only marks the horizon.
 - ``fast_step`` (the default) leaves out of robosuite's step what changes nothing we read: the
-  controller substeps between policy actions run through :mod:`capvector.sim.fast_control`
+  controller substeps between policy actions run through :mod:`capvector.envs.robosuite.fast_control`
   (robosuite's arithmetic without its per-call overhead: identical controls), and only the
   observables :class:`SimEnv` reads are computed. States and observations are identical to
   robosuite's full step (``tests/test_fast_control.py``); ``fast_step=False`` runs the full step.
@@ -47,7 +47,7 @@ try:
     import mujoco
 except ImportError as err:  # training from files needs no simulator; this module does
     raise missing_extra("the simulator", "sim", err) from err
-from capvector.sim.tasks import TASKS, TaskSpec, get_task  # noqa: E402,F401 (re-exported)
+from capvector.envs.robosuite.tasks import TASKS, TaskSpec, get_task  # noqa: E402,F401 (re-exported)
 
 # robosuite logs five notices at import and one per controller load; none applies to us (no
 # private macro file is needed, robosuite_models and mink only matter for GR1/humanoids).
@@ -82,7 +82,7 @@ def _import_robosuite() -> ModuleType:
 suite = _import_robosuite()
 from robosuite.utils.transform_utils import quat2axisangle  # noqa: E402  (needs the filter first)
 
-from capvector.sim.fast_control import install as install_fast_control  # noqa: E402
+from capvector.envs.robosuite.fast_control import install as install_fast_control  # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -157,7 +157,7 @@ _FAULT_WARNINGS = (
 
 def _gl_context_class() -> type:
     # mujoco.gl_context binds its backend when mujoco is first imported, which may have happened
-    # before capvector.sim set MUJOCO_GL (e.g. `import mujoco` at the top of a script): it then
+    # before capvector.envs set MUJOCO_GL (e.g. `import mujoco` at the top of a script): it then
     # picks GLFW and fails without a display. Choosing the backend here, from the variable as it
     # is now, makes rendering independent of import order.
     backend = os.environ.get("MUJOCO_GL", "egl").lower()

@@ -19,7 +19,7 @@ datasets), so a user's real LIBERO data and these demos load through the same re
         obs/agentview_rgb, obs/eye_in_hand_rgb   (T, H, W, 3) uint8, as the env renders them
                           (OpenGL convention: rows bottom-up, like LIBERO's)
         ours: annotations (T,) str   what the expert does at step t, where every movable object
-                          is and what it stands on (:class:`~capvector.sim.annotations.LiberoAnnotator`)
+                          is and what it stands on (:class:`~capvector.envs.libero.annotations.LiberoAnnotator`)
         ours (--depth): obs/agentview_depth, obs/eye_in_hand_depth   (T, H, W) float32 metres
                           along the optical axis, in the orientation of the ``_rgb`` frames
         obs/ee_states (T, 6) eef pos + axis-angle, obs/ee_pos (T, 3), obs/ee_ori (T, 3),
@@ -32,7 +32,7 @@ object coordinate) is skipped, so no demo starts where an evaluation trial does.
 steps of the evaluation protocol run first (objects settle) and are not recorded; recording stops
 at the first step LIBERO's success predicate holds, as a released demo ends when the task is done.
 
-Depth is drawn by the fast renderer (:class:`~capvector.sim.libero_render.FastRenderEnv`) in
+Depth is drawn by the fast renderer (:class:`~capvector.envs.libero.render.FastRenderEnv`) in
 metres, or converted from robosuite's depth buffer with its ``get_real_depth_map`` when robosuite
 renders. The reader (:class:`capvector.data.hdf5.HDF5RobotDataset`) rotates RGB, depth and
 intrinsics alike, so back-projecting its depth with its intrinsics gives camera-frame points
@@ -58,12 +58,8 @@ import numpy as np
 from robosuite.utils import transform_utils as T
 from tqdm import tqdm
 
-from capvector.errors import CapVectorError
-from capvector.io.frames import write_frames
-from capvector.io.outputs import atomic_write_file, check_output
-from capvector.sim.annotations import LiberoAnnotator
-from capvector.sim.envs import camera_intrinsics
-from capvector.sim.libero import (
+from capvector.envs.libero.annotations import LiberoAnnotator
+from capvector.envs.libero.env import (
     LIBERO_NUM_TASKS,
     initial_states,
     libero_task,
@@ -71,7 +67,11 @@ from capvector.sim.libero import (
     max_steps,
     seeded_reset,
 )
-from capvector.sim.libero_experts import LiberoPlaceExpert, place_goal, run_trial, task_env
+from capvector.envs.libero.experts import LiberoPlaceExpert, place_goal, run_trial, task_env
+from capvector.envs.robosuite.env import camera_intrinsics
+from capvector.errors import CapVectorError
+from capvector.io.frames import write_frames
+from capvector.io.outputs import atomic_write_file, check_output
 
 LIBERO_IMAGE_SIZE = 128
 """The released datasets' image size (``create_dataset.py``: ``camera_heights=128``)."""
@@ -99,7 +99,7 @@ def stored_intrinsics(fovy_degrees: float, image_size: int) -> np.ndarray:
 def _metric_depth(env: Any, obs: Any, camera: str) -> np.ndarray:
     """(H, W) float32 metres: the fast renderer's as is, robosuite's buffer through its own
     ``camera_utils.get_real_depth_map``."""
-    from capvector.sim.libero_render import FastRenderEnv
+    from capvector.envs.libero.render import FastRenderEnv
 
     depth = np.asarray(obs[f"{camera}_depth"])
     if not isinstance(env, FastRenderEnv):
@@ -246,7 +246,7 @@ def _write_data_attrs(
     task = libero_task(suite, task_id)
     inner = task_env(env)
     model = inner.sim.model
-    for camera in depth_cameras:  # the attribute names capvector.sim.demos writes
+    for camera in depth_cameras:  # the attribute names capvector.envs.robosuite.demos writes
         fovy = float(model.cam_fovy[model.camera_name2id(camera)])
         data.attrs[f"{camera}_intrinsics"] = stored_intrinsics(fovy, image_size)
     problem = inner.parsed_problem

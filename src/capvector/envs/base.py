@@ -46,7 +46,7 @@ class EpisodeResult:
     task: str
     robot: str
     variant: str | None = None
-    """The scene variant the episode ran in (``capvector.sim.variants``); None: as trained."""
+    """The scene variant the episode ran in (``capvector.envs.robosuite.variants``); None: as trained."""
     final_proprio: tuple[float, ...] | None = None
     """The robot's raw proprio after the last step (eef pos, axis-angle, fingers): where it ended,
     comparable across simulators (``capvector evaluate --json``)."""

@@ -3,7 +3,7 @@
 An expert reads what to do from the task's BDDL goal as LIBERO's parser returns it
 (``env.parsed_problem["goal_state"]``, e.g. ``[["on", "akita_black_bowl_1", "plate_1"]]``): the
 first argument is the object to move, the second an object or a region site to put it on or in.
-It then runs the phase machine of :mod:`capvector.sim.experts` (approach, descend, grasp, lift,
+It then runs the phase machine of :mod:`capvector.envs.robosuite.experts` (approach, descend, grasp, lift,
 carry, lower, release, retreat) over the simulator's state, with OSC_POSE delta actions:
 translation ``clip(10 * (target - eef), -1, 1)``, the gripper held at its reset orientation turned
 by the chosen grasp yaw, gripper -1 open / +1 closed.
@@ -28,13 +28,12 @@ what lies on its way, not over everything in the scene (the Spatial step limit i
 
 Measured success, the 50 official initial states of every task, LIBERO's protocol (10 wait
 steps, the suite's step limit; robosuite 1.5.2 through rpent-libero): see docs/evaluation.md;
-reproduce with ``python -m capvector.sim.libero_experts --suite libero_spatial``.
+reproduce with ``python -m capvector.workflows.expert_success --suite libero_spatial``.
 """
 
 from __future__ import annotations
 
 import math
-import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -42,8 +41,8 @@ from typing import Any
 import numpy as np
 from robosuite.utils import transform_utils as T
 
+from capvector.envs.robosuite.experts import GRIPPER_CLOSED, GRIPPER_OPEN
 from capvector.errors import CapVectorError
-from capvector.sim.experts import GRIPPER_CLOSED, GRIPPER_OPEN
 
 RIM_GRASP = ("bowl",)
 """Object names containing one of these are grasped at the rim wall, not at the centre."""
@@ -557,7 +556,7 @@ def run_trial(
     step acts on) (demo recording). ``fixture_seed`` seeds numpy's global RNG for the reset,
     from which LIBERO places the fixtures (cabinets, stoves; restored after).
     """
-    from capvector.sim.libero import NUM_WAIT_STEPS, WAIT_ACTION
+    from capvector.envs.libero.env import NUM_WAIT_STEPS, WAIT_ACTION
 
     if init_state is not None:
         saved = np.random.get_state()
@@ -594,7 +593,12 @@ def evaluate_expert(
     ``on_task(task_id, results)`` is called as each task finishes."""
     from tqdm import tqdm
 
-    from capvector.sim.libero import LIBERO_NUM_TASKS, initial_states, make_libero_env, max_steps
+    from capvector.envs.libero.env import (
+        LIBERO_NUM_TASKS,
+        initial_states,
+        make_libero_env,
+        max_steps,
+    )
 
     tasks = list(range(LIBERO_NUM_TASKS[suite])) if tasks is None else list(tasks)
     results: dict[int, list[TrialResult]] = {}
@@ -624,7 +628,7 @@ def evaluate_expert(
 
 def success_table(suite: str, results: Mapping[int, Sequence[TrialResult]]) -> str:
     """A Markdown table: per task its instruction, successes over trials and mean steps."""
-    from capvector.sim.libero import libero_task
+    from capvector.envs.libero.env import libero_task
 
     lines = ["| task | instruction | success | mean steps (successes) |", "|---|---|---|---|"]
     for task_id, trials in sorted(results.items()):
@@ -636,34 +640,3 @@ def success_table(suite: str, results: Mapping[int, Sequence[TrialResult]]) -> s
     count = sum(len(trials) for trials in results.values())
     lines.append(f"| all | | {total}/{count} | |")
     return "\n".join(lines)
-
-
-def expert_success(
-    suite: str, tasks: Sequence[int] = (), trials: int = 50, progress: bool = True
-) -> None:
-    """Run the scripted expert on the official initial states of a LIBERO suite and print the
-    per-task success (LIBERO's predicate) as a Markdown table.
-
-    Args:
-        suite: libero_spatial, libero_object, libero_goal, ...
-        tasks: task ids (default: every task of the suite)
-        trials: initial states per task, the first N of the official 50
-        progress: show the progress bar
-    """
-
-    def report(task_id: int, results: list[TrialResult]) -> None:  # a long run shows as it goes
-        wins = sum(r.success for r in results)
-        print(f"{suite} task {task_id}: {wins}/{len(results)}", file=sys.stderr, flush=True)
-
-    results = evaluate_expert(suite, list(tasks) or None, trials, progress=progress, on_task=report)
-    print(success_table(suite, results))
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    from capvector.tool_cli import run_tool
-
-    return run_tool(expert_success, argv, "python -m capvector.sim.libero_experts")
-
-
-if __name__ == "__main__":
-    sys.exit(main())

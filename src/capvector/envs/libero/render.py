@@ -14,7 +14,7 @@ differently, and nothing else:
   (:func:`render_model`); physics runs on robosuite's model, untouched, so the states are those of
   the official env to the bit (``tests/test_libero_render.py``). The copy has the same bodies,
   geoms, cameras and lights, so ``mjv_updateScene`` draws it from the physics data as it is.
-- Drawn as the project's :class:`~capvector.sim.envs.CameraRenderer` draws: both cameras into one
+- Drawn as the project's :class:`~capvector.envs.robosuite.env.CameraRenderer` draws: both cameras into one
   buffer with one readback, no multisampling (robosuite's default is 4 samples), no reflections,
   shadows, skybox or haze, geoms wholly outside a camera's view skipped. The geom groups drawn
   are robosuite's (visual, and the controller's target markers). Reflections cost the most
@@ -48,8 +48,8 @@ from typing import Any
 
 import numpy as np
 
+from capvector.envs.robosuite.env import CameraRenderer, _gl_context_class
 from capvector.errors import CapVectorError, missing_extra
-from capvector.sim.envs import CameraRenderer, _gl_context_class
 
 try:
     import mujoco

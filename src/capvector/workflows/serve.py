@@ -18,8 +18,8 @@ import torch
 
 from capvector.errors import CapVectorError
 from capvector.eval.device import Precision, resolve_device, resolve_precision
-from capvector.eval.policy import VLAPolicy
 from capvector.module import load_module
+from capvector.policy import VLAPolicy
 from capvector.serve.schema import (
     IMAGES,
     INSTRUCTION,
