@@ -78,7 +78,7 @@ def test_controllers_it_does_not_cover_keep_robosuite_s_code() -> None:
 
     import robosuite
 
-    from capvector.envs import fast_control
+    from capvector.envs.robosuite import fast_control
     from capvector.envs.robosuite.env import SimEnv
 
     sim = SimEnv("Lift", cameras=())

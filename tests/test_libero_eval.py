@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from capvector.cli import main
-from capvector.envs import libero
+from capvector.envs.libero import env as libero
 from capvector.errors import CapVectorError
 from capvector.eval.episodes import LiberoEpisodeSpec, libero_specs
 from capvector.eval.rollout import RolloutEvaluator, close_envs

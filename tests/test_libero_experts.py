@@ -20,7 +20,7 @@ import torch
 from capvector.cli import main as capvector
 from capvector.data.datamodule import RobotDataModule
 from capvector.data.hdf5 import HDF5RobotDataset
-from capvector.envs import libero
+from capvector.envs.libero import env as libero
 from capvector.envs.libero.demos import (
     _object_qpos,
     demo_file_name,

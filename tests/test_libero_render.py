@@ -112,7 +112,7 @@ def test_render_model_changes_a_copy_and_only_the_drawn_meshes() -> None:
 
 
 def test_fast_rendering_is_the_default_on_a_software_renderer(monkeypatch) -> None:
-    from capvector.envs import libero_render
+    from capvector.envs.libero import render as libero_render
 
     for name, fast in [
         ("llvmpipe (LLVM 15.0.6, 256 bits)", True),

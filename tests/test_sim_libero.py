@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from capvector.envs import libero
+from capvector.envs.libero import env as libero
 
 
 def test_step_limits_follow_oft() -> None:

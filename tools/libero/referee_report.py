@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from capvector.envs import libero
+from capvector.envs.libero import env as libero
 
 TEST = Path(__file__).resolve().parents[2] / "tests" / "test_sim_libero.py"
 
