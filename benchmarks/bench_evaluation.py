@@ -31,7 +31,7 @@ import torch
 from capvector.backbones.base import build_backbone
 from capvector.data.spec import DataSpec
 from capvector.data.statistics import compute_statistics
-from capvector.eval.episodes import eval_specs
+from capvector.envs.robosuite.spec import eval_specs
 from capvector.eval.rollout import EnvCache, RolloutEvaluator, close_envs, default_workers
 from capvector.policy import VLAPolicy
 

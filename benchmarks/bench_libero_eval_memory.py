@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from capvector.callbacks.step_cost import peak_memory_mib
-from capvector.eval.episodes import libero_specs
+from capvector.envs.libero.spec import libero_specs
 from capvector.eval.rollout import RolloutEvaluator
 
 

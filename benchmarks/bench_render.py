@@ -32,8 +32,10 @@ import numpy as np
 from capvector.envs.robosuite.annotations import Annotator
 from capvector.envs.robosuite.demos import record_episode
 from capvector.envs.robosuite.env import SimEnv, suite
+from capvector.envs.robosuite.episode import Episode, robosuite_env
 from capvector.envs.robosuite.experts import make_expert
-from capvector.eval.rollout import EnvCache, Episode, EpisodeSpec, run_episode
+from capvector.envs.robosuite.spec import EpisodeSpec
+from capvector.eval.rollout import EnvCache, run_episode
 
 CAMERAS = ["agentview", "robot0_eye_in_hand"]
 CHUNK = 8
@@ -149,7 +151,7 @@ def main() -> None:
 
     # Whole evaluation episodes through run_episode (env cached, reset included).
     envs = EnvCache()
-    envs.get("Lift", cameras=CAMERAS, image_size=size).render()
+    robosuite_env(envs, "Lift", cameras=CAMERAS, image_size=size).render()
     durations, lengths = [], []
     for seed, actions in episodes:
         cursor = {"t": 0}

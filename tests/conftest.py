@@ -141,14 +141,17 @@ def cpu_trainer(max_steps: int, root: Path | None = None, **overrides: object) -
 
 @contextmanager
 def restored_registry() -> Iterator[None]:
-    """Backbone families and presets registered inside the block are unregistered after it."""
-    with backbone_registry.FAMILIES.scoped(), backbone_registry.PRESETS.scoped():
+    """Backbone families and presets, and benchmark suites, registered inside the block are
+    unregistered after it."""
+    from capvector.envs.registry import SUITES
+
+    with backbone_registry.FAMILIES.scoped(), backbone_registry.PRESETS.scoped(), SUITES.scoped():
         yield
 
 
 @pytest.fixture
 def scoped_registry() -> Iterator[None]:
-    """Undo the test's backbone registrations (a preset would otherwise outlive its test)."""
+    """Undo the test's backbone and suite registrations (they would otherwise outlive it)."""
     with restored_registry():
         yield
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from capvector.eval.episodes import eval_specs
+from capvector.envs.robosuite.spec import eval_specs
 from capvector.eval.rollout import RolloutEvaluator, act, close_envs
 
 CAMERAS = ("agentview", "robot0_eye_in_hand")

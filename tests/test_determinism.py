@@ -154,7 +154,8 @@ def test_batched_rollouts_of_a_trained_policy_do_not_depend_on_the_workers(tmp_p
     # θ_pre's batched forward (which rounds differently for other batch sizes) on 4 episodes in 3
     # slots; their step limits differ, so batches shrink and slots take new episodes. With 2
     # workers, replies come worker by worker (slots 0, 2, then 1).
-    from capvector.eval.rollout import RolloutEvaluator, close_envs, eval_specs
+    from capvector.envs.robosuite.spec import eval_specs
+    from capvector.eval.rollout import RolloutEvaluator, close_envs
     from capvector.module import load_module
     from capvector.policy import VLAPolicy
 

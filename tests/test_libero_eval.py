@@ -17,8 +17,8 @@ import pytest
 
 from capvector.cli import main
 from capvector.envs.libero import env as libero
+from capvector.envs.libero.spec import LiberoEpisodeSpec, libero_specs
 from capvector.errors import CapVectorError
-from capvector.eval.episodes import LiberoEpisodeSpec, libero_specs
 from capvector.eval.rollout import RolloutEvaluator, close_envs
 
 SUITE = "libero_spatial"

@@ -28,8 +28,8 @@ from capvector.envs.libero.demos import (
 )
 from capvector.envs.libero.episode import POLICY_GRIPPER, build_libero_env, start_trial
 from capvector.envs.libero.experts import FIXTURE_SEED_START, PlaceGoal, place_goal, run_trial
+from capvector.envs.libero.spec import LiberoEpisodeSpec
 from capvector.errors import CapVectorError
-from capvector.eval.episodes import LiberoEpisodeSpec
 from capvector.module import VLAModule
 from capvector.policy import VLAPolicy
 

@@ -61,7 +61,7 @@ def replay(key: str, requests: int) -> dict[str, Any]:
     state's max absolute difference and the end effector's distance (mm); the first chunk's max
     absolute difference."""
     from capvector.envs.libero.episode import LiberoEpisode
-    from capvector.eval.episodes import LiberoEpisodeSpec
+    from capvector.envs.libero.spec import LiberoEpisodeSpec
     from capvector.eval.rollout import EnvCache
     from capvector.module import load_module
     from capvector.policy import VLAPolicy

@@ -9,17 +9,11 @@ import imageio.v2 as imageio
 import numpy as np
 import pytest
 
+from capvector.envs.base import EVAL_SEED_START
 from capvector.envs.robosuite.demos import record_demos
-from capvector.eval.rollout import (
-    EVAL_SEED_START,
-    EnvCache,
-    Episode,
-    EpisodeSpec,
-    Observation,
-    eval_specs,
-    run_episode,
-    to_env_action,
-)
+from capvector.envs.robosuite.episode import Episode, robosuite_env, to_env_action
+from capvector.envs.robosuite.spec import EpisodeSpec, eval_specs
+from capvector.eval.rollout import EnvCache, Observation, run_episode
 from capvector.eval.video import write_video
 
 SIZE = 32
@@ -122,7 +116,7 @@ def test_bad_actions_and_sim_faults_fail_only_their_episode(
     huge = _run(lambda obs: np.full((8, 7), 1e30), spec, envs)
     assert not huge.success and huge.reason == "step limit (20) reached"
     # A real MuJoCo blow-up: the policy kicks the arm to absurd joint velocities mid-episode.
-    sim = envs.get("Lift", cameras=CAMERAS, image_size=SIZE)
+    sim = robosuite_env(envs, "Lift", cameras=CAMERAS, image_size=SIZE)
     calls = []
 
     def kick(obs: Observation) -> np.ndarray:
@@ -150,13 +144,13 @@ def test_wrong_action_shape_is_a_bug_not_a_failure(envs) -> None:
 @pytest.mark.sim
 def test_envs_are_reused_per_configuration(demos, envs) -> None:
     before = len(envs)
-    sim = envs.get("Lift", cameras=CAMERAS, image_size=SIZE)
-    assert envs.get("Lift", cameras=CAMERAS, image_size=SIZE) is sim
+    sim = robosuite_env(envs, "Lift", cameras=CAMERAS, image_size=SIZE)
+    assert robosuite_env(envs, "Lift", cameras=CAMERAS, image_size=SIZE) is sim
     assert len(envs) == before
     small = EnvCache(max_envs=1)
     try:
-        a = small.get("Lift", cameras=["agentview"], image_size=16)
-        small.get("Lift", cameras=["agentview"], image_size=24)
+        a = robosuite_env(small, "Lift", cameras=["agentview"], image_size=16)
+        robosuite_env(small, "Lift", cameras=["agentview"], image_size=24)
         assert len(small) == 1 and a._renderer is None  # evicted and closed
     finally:
         small.close()

@@ -60,7 +60,7 @@ def test_unknown_variant_names_the_known_ones() -> None:
 
 
 def test_the_evaluator_runs_variants_and_names_them_in_rows_and_videos(tmp_path) -> None:
-    from capvector.eval.episodes import eval_specs
+    from capvector.envs.robosuite.spec import eval_specs
     from capvector.eval.results import format_success_table, success_rows
     from capvector.eval.rollout import RolloutEvaluator, close_envs
 

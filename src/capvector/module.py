@@ -28,8 +28,8 @@ from capvector.backbones.base import (
 from capvector.data.batch import Batch
 from capvector.data.episodes import EpisodeDataset, EpisodeItem, is_episode_batch
 from capvector.data.spec import DataSpec
+from capvector.envs.base import Spec
 from capvector.errors import CapVectorError
-from capvector.eval.episodes import AnyEpisodeSpec
 from capvector.eval.metrics import SuccessRate
 from capvector.eval.results import metric_key
 from capvector.io.hub import local_folder
@@ -464,7 +464,7 @@ def _as(cls: type[T], value: T | Mapping[str, Any] | None) -> T | None:
     return cls(**value) if isinstance(value, Mapping) else value
 
 
-def _task_key(spec: AnyEpisodeSpec) -> str:
+def _task_key(spec: Spec) -> str:
     return metric_key(spec.task, spec.robot, spec.variant)
 
 

@@ -26,7 +26,7 @@ this one and `capvector evaluate --suite` on our robosuite 1.5 port, differ only
 - Fixtures (stove, cabinet, ...) have no joints, so an initial state does not hold their pose:
   LIBERO draws it from numpy's global generator at every reset. openpi seeds it once per task,
   so a trial's fixtures depend on the trials before it; here, as in `capvector evaluate`, trial i
-  seeds it with 1_000_000 + i (`capvector.eval.episodes.EVAL_SEED_START`). robosuite 1.4's robot
+  seeds it with 1_000_000 + i (`capvector.envs.base.EVAL_SEED_START`). robosuite 1.4's robot
   reset draws its (zero) initialisation noise from that generator before LIBERO places the
   fixtures, robosuite 1.5 from the env's own: the generator is seeded again after the robot's
   reset, so both place the fixtures from the same draws (the same poses, checked).
@@ -65,7 +65,7 @@ MAX_STEPS = {  # openpi's examples/libero/main.py: the longest training demo plu
 }
 NUM_WAIT_STEPS = 10
 WAIT_ACTION = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0]
-FIXTURE_SEED_START = 1_000_000  # capvector.eval.episodes.EVAL_SEED_START
+FIXTURE_SEED_START = 1_000_000  # capvector.envs.base.EVAL_SEED_START
 
 
 def quat2axisangle(quat_xyzw: np.ndarray) -> np.ndarray:

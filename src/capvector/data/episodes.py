@@ -15,13 +15,9 @@ from typing import Any
 
 from torch.utils.data import Dataset, DistributedSampler
 
-from capvector.eval.episodes import (
-    DEFAULT_ROBOT,
-    EVAL_SEED_START,
-    AnyEpisodeSpec,
-    eval_specs,
-    libero_specs,
-)
+from capvector.envs.base import DEFAULT_ROBOT, EVAL_SEED_START, Spec
+from capvector.envs.libero.spec import libero_specs
+from capvector.envs.robosuite.spec import eval_specs
 
 
 @dataclass
@@ -39,6 +35,19 @@ class EvalTask:
     variant: str | None = None
     """A zero-shot scene variant (``capvector.envs.robosuite.variants``: camera, lighting, color, all,
     sawyer, ur5e, ...); None evaluates the scene as trained."""
+
+    def specs(self) -> list[Spec]:
+        return list(
+            eval_specs(
+                self.task,
+                self.episodes,
+                robot=self.robot,
+                start_seed=self.start_seed,
+                max_steps=self.max_steps,
+                gripper=self.gripper,
+                variant=self.variant,
+            )  # fmt: skip
+        )
 
 
 @dataclass
@@ -61,6 +70,18 @@ class LiberoEvalTask:
     """A folder of demos (``capvector demos``): trial i starts where the task's demo i started,
     not from official state i (success from the placements trained on: a diagnostic)."""
 
+    def specs(self) -> list[Spec]:
+        return list(
+            libero_specs(
+                self.suite,
+                self.tasks,
+                self.trials,
+                self.max_steps,
+                self.rendering,  # type: ignore[arg-type]
+                self.from_demos,
+            )
+        )
+
 
 def eval_task(entry: EvalTask | LiberoEvalTask | Mapping[str, Any]) -> EvalTask | LiberoEvalTask:
     """An ``eval_tasks`` entry as its dataclass: a mapping with ``suite`` is a LIBERO one."""
@@ -71,7 +92,7 @@ def eval_task(entry: EvalTask | LiberoEvalTask | Mapping[str, Any]) -> EvalTask 
 
 @dataclass(frozen=True)
 class EpisodeItem:
-    spec: AnyEpisodeSpec
+    spec: Spec
     index: int
     """Position in the full episode list (video naming, ordering)."""
     counted: bool = True
@@ -85,17 +106,7 @@ def is_episode_batch(batch: object) -> bool:
 
 class EpisodeDataset(Dataset):
     def __init__(self, tasks: list[EvalTask | LiberoEvalTask]) -> None:
-        self.specs: list[AnyEpisodeSpec] = []
-        for t in tasks:
-            if isinstance(t, LiberoEvalTask):
-                self.specs += libero_specs(
-                    t.suite, t.tasks, t.trials, t.max_steps, t.rendering, t.from_demos
-                )
-                continue
-            self.specs += eval_specs(
-                t.task, t.episodes, robot=t.robot, start_seed=t.start_seed, max_steps=t.max_steps,
-                gripper=t.gripper, variant=t.variant,
-            )  # fmt: skip
+        self.specs: list[Spec] = [spec for t in tasks for spec in t.specs()]
 
     def __len__(self) -> int:
         return len(self.specs)

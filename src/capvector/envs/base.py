@@ -1,19 +1,41 @@
-"""The policy interface shared by robosuite rollouts and the LIBERO adapter (no simulator imports).
+"""The contract every benchmark suite meets, and the policy interface they share (no simulator
+imports: specs, configs and training code use this module freely).
+
+A suite (:class:`Suite`, one package per benchmark under ``capvector.envs``, registered in
+:mod:`capvector.envs.registry`) turns an episode spec into a running episode:
+
+    spec (frozen dataclass, ``SUITE`` names its suite; no simulator import)
+      -> ``Suite.start(spec, envs, **settings)``: the env (built once, kept in ``envs``), reset to
+         the spec's initial state
+      -> ``episode.observe()`` -> policy -> ``episode.execute(chunk)``, until it returns
+      -> :class:`EpisodeResult`
 
 A policy is any callable ``policy(observation) -> (T, 7)`` array-like of actions: OSC deltas
 (dx, dy, dz, drx, dry, drz) and the gripper, in the convention the caller declares (our demos and
-robosuite: -1 open, +1 close).
+robosuite: -1 open, +1 close). The loop that drives episodes, batched or not, in worker processes
+or not, is suite-agnostic: :class:`capvector.eval.rollout.RolloutEvaluator`.
+
+Seeds: an episode's initial state is a function of its seed alone. Evaluation seeds must not be
+seeds a training demo used; demos start at ``--seed`` (default 0), evaluation at
+``EVAL_SEED_START`` = 1,000,000, and the λ sweep's validation episodes at
+``VALIDATION_SEED_START`` = 2,000,000, so choosing λ never looks at the reported episodes.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Hashable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, TypedDict
+from typing import Any, ClassVar, Protocol, TypedDict
 
 import numpy as np
 
 ACTION_DIM = 7
+EVAL_SEED_START = 1_000_000
+"""First default evaluation seed; keep demo seeds below it."""
+VALIDATION_SEED_START = 2_000_000
+"""First λ-sweep seed: disjoint from demo seeds and from evaluation seeds."""
+DEFAULT_ROBOT = "Panda"
 
 
 class Observation(TypedDict, total=False):
@@ -60,3 +82,120 @@ def as_chunk(actions: Any) -> np.ndarray:
     if chunk.ndim != 2 or chunk.shape[1] != ACTION_DIM or chunk.shape[0] == 0:
         raise ValueError(f"policy must return (T, {ACTION_DIM}) actions, got shape {chunk.shape}")
     return chunk
+
+
+class Spec(Protocol):
+    """One evaluation episode as data: a frozen, picklable dataclass of its suite's spec module,
+    which imports no simulator (specs travel to worker processes and through the validation
+    dataset). ``SUITE`` is the registered name of the suite that runs it."""
+
+    SUITE: ClassVar[str]
+
+    @property
+    def task(self) -> str:
+        """How results, metrics and ``episodes.csv`` name the task."""
+        ...
+
+    @property
+    def seed(self) -> int:
+        """What fixes the initial state (a seed, or the index of a fixed initial state)."""
+        ...
+
+    @property
+    def robot(self) -> str: ...
+
+    @property
+    def variant(self) -> str | None: ...
+
+    @property
+    def step_limit(self) -> int:
+        """Policy steps after which the episode fails."""
+        ...
+
+    def describe(self) -> dict[str, Any]:
+        """Which episode it is, as JSON fields (``capvector evaluate --json``)."""
+        ...
+
+
+class Episode(Protocol):
+    """One episode in progress, reset to its spec's initial state. The loop calls :meth:`observe`
+    for the policy's next chunk, then :meth:`execute` with it, until :meth:`execute` returns the
+    result. Simulator faults and non-finite actions fail the episode (a result with a
+    ``reason``), never the caller."""
+
+    def observe(self) -> Observation: ...
+
+    def execute(self, actions: Any) -> EpisodeResult | None:
+        """Run the chunk open loop; the result when the episode ended, else None."""
+        ...
+
+
+class EnvPool(Protocol):
+    """Where episodes get their environments: :class:`capvector.eval.rollout.EnvCache`, which
+    keeps built environments for reuse (building one costs seconds) and closes them."""
+
+    fast_step: bool
+    """Whether suites that have a fast step and a reference one use the fast one."""
+
+    def get(
+        self, key: tuple[Hashable, ...], build: Callable[[], Any], *, alone: bool = False
+    ) -> Any:
+        """The env cached under ``key``, else ``build()``'s (kept). ``key[0]`` names the suite;
+        ``alone``: close the suite's other cached envs first (envs that hold gigabytes)."""
+        ...
+
+
+class Suite(ABC):
+    """A benchmark: its episode specs, environments and episodes. Subclass it in the suite's own
+    package, register it in :data:`capvector.envs.registry.SUITES` (a built-in, a
+    ``capvector.envs`` entry point, or a ``module:Suite`` name), and the evaluation loop, the
+    validation loop, ``capvector evaluate`` and ``tests/test_env_contract.py`` run it.
+
+    The contract (docs/adding-a-benchmark.md):
+
+    - :meth:`specs`: the evaluation protocol of a task set: which tasks, which initial states
+      (seeds), which step limits, as specs (no simulator import).
+    - :meth:`start`: a spec to a running :class:`Episode` (reset deterministically from the spec),
+      its env taken from the pool.
+    - :meth:`check`: refuse bad specs before any episode runs (a missing file, ...).
+    - :meth:`instruction`: the task's instruction, for result tables (optional).
+    - ``release_envs``: close the envs after an evaluation (envs that hold gigabytes).
+    """
+
+    name: ClassVar[str]
+    """The registered name, the ``SUITE`` of its specs."""
+    release_envs: ClassVar[bool] = False
+    """Close the cached envs (and worker processes) after each evaluation that ran this suite."""
+    cameras: ClassVar[tuple[str, ...]]
+    """Camera names its envs render (the policy's data spec picks among them)."""
+    example: ClassVar[dict[str, Any]]
+    """``specs`` arguments of a small task set: what ``tests/test_env_contract.py`` runs."""
+
+    @abstractmethod
+    def specs(self, task_set: str, episodes: int, **options: Any) -> list[Spec]:
+        """``episodes`` evaluation episodes of each task of ``task_set`` under the suite's protocol
+        (a task, or a named set of tasks); ``options`` are the suite's own (e.g. ``max_steps``)."""
+
+    @abstractmethod
+    def start(
+        self,
+        spec: Spec,
+        envs: EnvPool,
+        *,
+        cameras: Sequence[str],
+        image_size: int,
+        video: bool = False,
+        execute_steps: int | None = None,
+        camera_fovy: Mapping[str, float] | None = None,
+    ) -> Episode:
+        """The episode of ``spec``, reset to its initial state. ``cameras``, ``image_size`` and
+        ``camera_fovy`` are the policy's (its data spec); ``video`` records a frame per state;
+        ``execute_steps`` executes only the first k actions of each chunk."""
+
+    def instruction(self, spec: Spec) -> str | None:
+        """The language instruction of ``spec``'s task, for result tables (None: not shown)."""
+        return None
+
+    def check(self, specs: Sequence[Spec]) -> None:
+        """Raise ``CapVectorError`` for specs that cannot run, before any episode does."""
+        return None

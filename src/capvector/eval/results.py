@@ -12,7 +12,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-from capvector.eval.episodes import DEFAULT_ROBOT
+from capvector.envs.base import DEFAULT_ROBOT
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:

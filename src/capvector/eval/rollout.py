@@ -1,28 +1,14 @@
-"""Policy rollouts in robosuite: episode specs in, success and (optionally) video frames out.
+"""Policy rollouts on any registered suite: episode specs in, success and (optionally) video
+frames out.
 
-A policy is any callable ``policy(observation) -> (T, 7) array``. The observation carries what
-the demos stored, in the same conventions:
-
-- ``images``: ``{camera: (H, W, 3) uint8}``, upright, cameras as requested
-- ``proprio``: ``(8,) float32``, raw (not normalised): eef pos, eef axis-angle, 2 finger joints
-- ``instruction``: the task's language instruction
-- ``depth``: ``{camera: (H, W) float32}`` in metres, only with ``depth=True``
-
-The chunk is executed open loop (all T actions, or the first ``execute_steps``), as OpenVLA-OFT
-does with its 8-action chunks; images are rendered only when a new chunk is requested. The gripper
-dimension is binarised: > 0 closes (+1), otherwise opens (-1), the convention of our demos and of
-robosuite. Success is ``env._check_success()`` after every step; the episode ends at the first
-success or at the step limit (``EpisodeSpec.max_steps``, else the task's default limit).
-
-Episodes are described by :class:`~capvector.eval.episodes.EpisodeSpec` (seeds, arm, scene
-variant; no simulator import), LIBERO trials by :class:`~capvector.eval.episodes.LiberoEpisodeSpec`
-(run as :class:`~capvector.envs.libero.episode.LiberoEpisode`, LIBERO's protocol). :class:`RolloutEvaluator`
-is the one loop every evaluation runs: the validation loop of ``VLAModule``, ``capvector evaluate``
-and ``capvector sweep-scale``. It drives episodes one at a time (``batch_size=1``) or batched:
-``batch_size`` episodes in flight in :class:`Slots` (here, or in :mod:`capvector.eval.workers`
-processes), one policy call per round for all of their next chunks (:func:`act`). Each episode has
-its own env, reset from its seed, so the outcome of an episode does not depend on how it was
-batched.
+A policy is any callable ``policy(observation) -> (T, 7) array`` (:mod:`capvector.envs.base`).
+Each spec names its suite (``spec.SUITE``); the suite (:mod:`capvector.envs.registry`) starts the
+episode, and this module only drives it: :class:`RolloutEvaluator` is the one loop every
+evaluation runs: the validation loop of ``VLAModule``, ``capvector evaluate`` and ``capvector
+sweep-scale``. It drives episodes one at a time (``batch_size=1``) or batched: ``batch_size``
+episodes in flight in :class:`Slots` (here, or in :mod:`capvector.eval.workers` processes), one
+policy call per round for all of their next chunks (:func:`act`). Each episode has its own env,
+reset from its spec, so the outcome of an episode does not depend on how it was batched.
 """
 
 from __future__ import annotations
@@ -30,127 +16,70 @@ from __future__ import annotations
 import logging
 import os
 from collections import OrderedDict, deque
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from capvector.envs.base import EpisodeResult, Observation, Policy, as_chunk
-from capvector.envs.libero.episode import LiberoEpisode, build_libero_env
-from capvector.envs.robosuite.env import SimEnv, SimulationFault
-from capvector.envs.robosuite.variants import SceneRandomizer, get_variant
-from capvector.eval.episodes import (
-    EVAL_SEED_START,
-    AnyEpisodeSpec,
-    EpisodeSpec,
-    LiberoEpisodeSpec,
-    eval_specs,
-)
+from capvector.envs.base import Episode, EpisodeResult, Observation, Policy, Spec, as_chunk
+from capvector.envs.registry import suite_of
 from capvector.eval.workers import close_pools, worker_pool
 from capvector.io.cpus import usable_cpus
 from capvector.io.names import STAGE_CORES
 
 __all__ = [
-    "EVAL_SEED_START",
     "EnvCache",
     "EpisodeResult",
-    "EpisodeSpec",
     "Observation",
     "Policy",
     "RolloutEvaluator",
     "close_envs",
-    "eval_specs",
     "run_episode",
     "start_episode",
-    "to_env_action",
 ]
 
 log = logging.getLogger(__name__)
 
 
-def to_env_action(action: np.ndarray) -> np.ndarray:
-    """(7,) policy action -> robosuite action: gripper binarised, > 0 closes (+1), else opens (-1).
-
-    The arm dims are passed through; robosuite's OSC clips them to [-1, 1] itself.
-    """
-    out = np.array(action, dtype=np.float64, copy=True)
-    out[-1] = 1.0 if out[-1] > 0 else -1.0
-    return out
-
-
 class EnvCache:
-    """Keeps built :class:`SimEnv` s for reuse across episodes (``robosuite.make`` costs seconds).
+    """Keeps built envs for reuse across episodes (building one costs seconds): the
+    :class:`~capvector.envs.base.EnvPool` suites take their envs from.
 
-    Keyed by everything that changes the env: task, arm, gripper, cameras, size, depth, fovy and
-    scene variant (a variant's env carries its :class:`SceneRandomizer`, see :meth:`randomizer`),
-    and LIBERO's envs (:meth:`libero`). At most ``max_envs`` are kept, of them one LIBERO env (each
-    holds ~1.2 GB); the least recently used one is closed beyond that. ``fast_step=False`` builds
-    envs that run robosuite's full step (the same states, slower; see :class:`SimEnv`).
+    Keyed by the suite's key (everything that changes the env). At most ``max_envs`` are kept; the
+    least recently used one is closed beyond that, and a suite asks for an env ``alone`` when its
+    envs hold gigabytes (LIBERO's ~1.2 GB each): its other envs are closed first.
+    ``fast_step=False`` asks suites that have a fast step for their reference one (robosuite's
+    full step: the same states, slower; see ``SimEnv``).
     """
 
     def __init__(self, max_envs: int = 4, *, fast_step: bool = True) -> None:
         self.max_envs = max_envs
         self.fast_step = fast_step
         self._envs: OrderedDict[tuple, Any] = OrderedDict()
-        self._randomizers: dict[int, SceneRandomizer] = {}
 
-    def get(
-        self,
-        task: str,
-        robot: str = "Panda",
-        *,
-        gripper: str | None = None,
-        cameras: Sequence[str],
-        image_size: int,
-        depth: bool = False,
-        camera_fovy: Mapping[str, float] | None = None,
-        variant: str | None = None,
-    ) -> SimEnv:
-        settings = {"gripper": gripper, "cameras": tuple(cameras), "image_size": image_size,
-                    "depth": depth, "camera_fovy": dict(camera_fovy or {})}  # fmt: skip
-        key = (task, robot, variant, repr(sorted(settings.items())))
+    def get(self, key: tuple, build: Callable[[], Any], *, alone: bool = False) -> Any:
+        """The env cached under ``key``, else ``build()``'s, kept (``key[0]`` names the suite)."""
         if key in self._envs:
             self._envs.move_to_end(key)
             return self._envs[key]
-        sim = SimEnv(task, robot, fast_step=self.fast_step, **settings)
-        if variant is not None:
-            self._randomizers[id(sim)] = SceneRandomizer(sim, get_variant(variant))
-        return self._add(key, sim)
-
-    def libero(
-        self, suite: str, task_id: int, *, cameras: Sequence[str], image_size: int, rendering: str
-    ) -> Any:
-        """LIBERO's env of a task (:func:`~capvector.envs.libero.episode.build_libero_env`); building it
-        closes the LIBERO env of another task first."""
-        key = ("libero", suite, task_id, tuple(cameras), image_size, rendering)
-        if key in self._envs:
-            self._envs.move_to_end(key)
-            return self._envs[key]
-        for other in [k for k in self._envs if k[0] == "libero"]:
-            self._close(self._envs.pop(other))
-        return self._add(key, build_libero_env(suite, task_id, cameras, image_size, rendering))
+        if alone:
+            for other in [k for k in self._envs if k[0] == key[0]]:
+                self._envs.pop(other).close()
+        return self._add(key, build())
 
     def _add(self, key: tuple, env: Any) -> Any:
         self._envs[key] = env
         while len(self._envs) > self.max_envs:
             _, old = self._envs.popitem(last=False)
-            self._close(old)
+            old.close()
         return env
-
-    def randomizer(self, sim: SimEnv) -> SceneRandomizer | None:
-        """The scene variant's randomizer of an env this cache built (None: no variant)."""
-        return self._randomizers.get(id(sim))
-
-    def _close(self, env: Any) -> None:
-        self._randomizers.pop(id(env), None)
-        env.close()
 
     def close(self) -> None:
         while self._envs:
-            _, sim = self._envs.popitem()
-            self._close(sim)
+            _, env = self._envs.popitem()
+            env.close()
 
     def __len__(self) -> int:
         return len(self._envs)
@@ -159,105 +88,13 @@ class EnvCache:
 _default_envs = EnvCache()
 
 
-def _observe(sim: SimEnv, images: dict[str, np.ndarray], depth: dict | None) -> Observation:
-    obs: Observation = {"images": images, "proprio": sim.proprio(), "instruction": sim.instruction}
-    if depth is not None:
-        obs["depth"] = depth
-    return obs
+def start_episode(spec: Spec, envs: EnvCache, **settings: Any) -> Episode:
+    """The episode of ``spec``, reset to its initial state, started by its suite; ``settings`` as
+    :meth:`capvector.envs.base.Suite.start`'s."""
+    return suite_of(spec).start(spec, envs, **settings)
 
 
-class Episode:
-    """One episode in progress, as both loops drive it: :meth:`observe` (render the cameras) for
-    the policy's next chunk, then :meth:`execute` that chunk, until it returns the result.
-
-    Simulator faults and non-finite actions fail the episode, never the caller.
-    ``cameras``/``image_size``/``camera_fovy`` must match what the policy was trained on (the
-    dataset's ``cameras``, ``image_size`` and ``camera_fovy`` attrs; fovy defaults to the task's).
-    ``execute_steps`` executes only the first k actions of each chunk before re-planning.
-    """
-
-    def __init__(
-        self,
-        spec: EpisodeSpec,
-        envs: EnvCache,
-        *,
-        cameras: Sequence[str],
-        image_size: int,
-        depth: bool = False,
-        video: bool = False,
-        execute_steps: int | None = None,
-        camera_fovy: Mapping[str, float] | None = None,
-    ) -> None:
-        if execute_steps is not None and execute_steps < 1:
-            raise ValueError(f"execute_steps must be at least 1, got {execute_steps}")
-        self.spec = spec
-        self.execute_steps = execute_steps
-        self.sim = envs.get(
-            spec.task, spec.robot, gripper=spec.gripper, cameras=cameras, image_size=image_size,
-            depth=depth, camera_fovy=camera_fovy, variant=spec.variant,
-        )  # fmt: skip
-        self.limit = spec.step_limit
-        self.sim.reset(spec.seed)
-        if (randomizer := envs.randomizer(self.sim)) is not None:
-            randomizer.apply(spec.seed)  # the variant's perturbation for this seed
-        self.frames: list[np.ndarray] | None = [] if video else None
-
-    def observe(self) -> Observation:
-        images, depth = self.sim.render()
-        self._record(images)
-        return _observe(self.sim, images, depth)
-
-    def execute(self, actions: Any) -> EpisodeResult | None:
-        """Run the chunk open loop (its first ``execute_steps`` actions); the episode's result
-        when it ended (success, step limit, fault), else None: observe again."""
-        chunk = as_chunk(actions)
-        if self.execute_steps is not None:
-            chunk = chunk[: self.execute_steps]
-        sim = self.sim
-        for i, action in enumerate(chunk):
-            if not np.all(np.isfinite(action)):
-                return self._result(
-                    False, f"non-finite action at step {sim.steps}: {action.tolist()}"
-                )
-            try:
-                sim.step(to_env_action(action))
-            except SimulationFault as e:
-                return self._result(False, f"simulation fault at step {sim.steps}: {e}")
-            if sim.success():
-                if self.frames is not None:  # the last state, without rendering for nothing
-                    self._record(sim.render()[0])
-                return self._result(True, None)
-            if sim.steps >= self.limit:
-                break
-            if self.frames is not None and i + 1 < len(chunk):
-                self._record(sim.render()[0])
-        if sim.steps >= self.limit:
-            return self._result(False, f"step limit ({self.limit}) reached")
-        return None
-
-    def _record(self, images: Mapping[str, np.ndarray]) -> None:
-        if self.frames is not None:
-            self.frames.append(np.concatenate(list(images.values()), axis=1))
-
-    def _result(self, success: bool, reason: str | None) -> EpisodeResult:
-        spec = self.spec
-        if reason is not None and not reason.startswith("step limit"):
-            log.warning("%s seed %d (%s): %s", spec.task, spec.seed, spec.robot, reason)
-        final = self.sim.proprio()  # after a simulation fault it may hold NaN: not a position
-        return EpisodeResult(
-            success, self.sim.steps, reason, self.frames, spec.seed, spec.task, spec.robot,
-            spec.variant, tuple(final.tolist()) if np.isfinite(final).all() else None,
-        )  # fmt: skip
-
-
-def start_episode(spec: AnyEpisodeSpec, envs: EnvCache, **settings: Any) -> Episode | LiberoEpisode:
-    """The episode of ``spec``, reset to its initial state; ``settings`` as :class:`Episode`'s."""
-    if isinstance(spec, LiberoEpisodeSpec):
-        return LiberoEpisode(spec, envs, **settings)
-    return Episode(spec, envs, **settings)
-
-
-def run_episode(policy: Policy, episode: Episode | LiberoEpisode) -> EpisodeResult:
+def run_episode(policy: Policy, episode: Episode) -> EpisodeResult:
     """Drive ``episode`` with ``policy``, one chunk at a time, until it ends."""
     while (result := episode.execute(policy(episode.observe()))) is None:
         pass
@@ -275,7 +112,7 @@ class Slots:
 
     def __init__(self) -> None:
         self._envs: dict[int, EnvCache] = {}
-        self._episodes: dict[int, Episode | LiberoEpisode] = {}
+        self._episodes: dict[int, Episode] = {}
 
     def handle(self, commands: Sequence[tuple[int, str, Any]]) -> list[tuple[int, Any]]:
         replies: list[tuple[int, Any]] = []
@@ -362,7 +199,7 @@ class RolloutEvaluator:
     def run(
         self,
         policy: Policy,
-        specs: Sequence[AnyEpisodeSpec],
+        specs: Sequence[Spec],
         indices: Sequence[int] | None = None,
         progress: bool = False,
     ) -> list[EpisodeResult]:
@@ -378,15 +215,15 @@ class RolloutEvaluator:
             return self._run_batched(policy, specs, positions, bar)
         finally:
             bar.close()
-            if any(isinstance(spec, LiberoEpisodeSpec) for spec in specs):
+            if any(suite_of(spec).release_envs for spec in {type(s): s for s in specs}.values()):
                 self._release_envs()
 
     def _release_envs(self) -> None:
-        """Close the cached envs (and worker processes) after a run with LIBERO's: a stepped
-        LIBERO env holds ~1 GB, and a run builds each task's env anyway (building one closes the
-        last task's), so keeping them would hold gigabytes through training until the next
-        validation (4 episodes in flight: 6.2 GiB resident after the run, 2.2 with them closed;
-        benchmarks/bench_libero_eval_memory.py)."""
+        """Close the cached envs (and worker processes) after a run with a suite that asks for it
+        (``Suite.release_envs``): a stepped LIBERO env holds ~1 GB, and a run builds each task's
+        env anyway (building one closes the last task's), so keeping them would hold gigabytes
+        through training until the next validation (4 episodes in flight: 6.2 GiB resident after
+        the run, 2.2 with them closed; benchmarks/bench_libero_eval_memory.py)."""
         close_envs()
         if self.envs is not None:
             self.envs.close()
@@ -399,7 +236,7 @@ class RolloutEvaluator:
             "video": self.video_dir is not None and index < self.videos,
         }  # fmt: skip
 
-    def _episode(self, spec: AnyEpisodeSpec, index: int) -> Episode | LiberoEpisode:
+    def _episode(self, spec: Spec, index: int) -> Episode:
         """Episode ``index`` of the one-at-a-time loop, in this process."""
         envs = _default_envs if self.envs is None else self.envs
         return start_episode(spec, envs, **self._episode_kwargs(index))
@@ -412,7 +249,7 @@ class RolloutEvaluator:
         return result
 
     def _run_serial(
-        self, policy: Policy, specs: Sequence[AnyEpisodeSpec], positions: list[int], bar: Any
+        self, policy: Policy, specs: Sequence[Spec], positions: list[int], bar: Any
     ) -> list[EpisodeResult]:
         return [
             self._finish(run_episode(policy, self._episode(spec, i)), bar)
@@ -420,7 +257,7 @@ class RolloutEvaluator:
         ]
 
     def _run_batched(
-        self, policy: Policy, specs: Sequence[AnyEpisodeSpec], positions: list[int], bar: Any
+        self, policy: Policy, specs: Sequence[Spec], positions: list[int], bar: Any
     ) -> list[EpisodeResult]:
         """Up to ``batch_size`` episodes at once: the simulators step (in worker processes, or
         here) while the policy waits, then one policy call serves every episode's next chunk."""

@@ -10,9 +10,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from capvector.data.episodes import EpisodeDataset, EvalTask, LiberoEvalTask
+from capvector.envs.base import Spec
+from capvector.envs.libero.env import LIBERO_TRIALS, Rendering
+from capvector.envs.registry import check_specs, suite_of
 from capvector.errors import CapVectorError
 from capvector.eval.device import Precision, resolve_device, resolve_precision
-from capvector.eval.episodes import LIBERO_TRIALS, AnyEpisodeSpec, Rendering
 from capvector.eval.results import SuccessRow, format_success_table, pooled_row, success_rows
 from capvector.io.outputs import atomic_write_bytes, check_output
 from capvector.module import load_module
@@ -126,10 +128,7 @@ def evaluate_cli(
         rendering, from_demos,
     )  # fmt: skip
     specs = EpisodeDataset(eval_tasks).specs
-    if from_demos is not None:  # every trial's demo is there, before minutes of rollouts
-        from capvector.envs.libero.episode import check_trial_starts
-
-        check_trial_starts(specs)
+    check_specs(specs)  # e.g. every trial's demo is there, before minutes of rollouts
     if batch_size is None:
         batch_size = 8 if suite is None else _libero_batch_size(workers)
     results = evaluate(
@@ -137,17 +136,16 @@ def evaluate_cli(
         precision,
     )  # fmt: skip
     # success_rows makes a row per (task, robot, variant), in order of appearance: as here
-    by_row: dict[tuple[Any, ...], list[tuple[AnyEpisodeSpec, EpisodeResult]]] = {}
+    by_row: dict[tuple[Any, ...], list[tuple[Spec, EpisodeResult]]] = {}
     for s, r in zip(specs, results, strict=True):
         by_row.setdefault((s.task, s.robot, s.variant), []).append((s, r))
     rows = success_rows(results)
     table = rows
     if suite is not None:
-        from capvector.envs.libero.episode import libero_task
 
-        def instruction(row: SuccessRow) -> str:
+        def instruction(row: SuccessRow) -> str | None:
             spec = by_row[row.task, row.robot, row.variant][0][0]
-            return libero_task(spec.suite, spec.task_id).instruction
+            return suite_of(spec).instruction(spec)
 
         rows = [dataclasses.replace(row, instruction=instruction(row)) for row in rows]
         table = [*rows, pooled_row(rows, f"{suite} (all)")]

@@ -25,9 +25,9 @@ from tqdm import tqdm
 from capvector.data.episodes import EpisodeDataset, EvalTask
 from capvector.data.spec import DataSpec
 from capvector.data.statistics import BOUNDS_Q99
+from capvector.envs.base import VALIDATION_SEED_START
 from capvector.errors import CapVectorError
 from capvector.eval.device import Precision, resolve_device, resolve_precision
-from capvector.eval.episodes import VALIDATION_SEED_START
 from capvector.eval.results import success_cell, wilson_interval
 from capvector.io.hub import local_folder
 from capvector.io.loading import read_json

@@ -1,6 +1,6 @@
 """LIBERO trials under the OpenVLA-OFT / openpi protocol, run by the one rollout loop.
 
-:class:`LiberoEpisode` is to LIBERO what :class:`~capvector.eval.rollout.Episode` is to robosuite:
+:class:`LiberoEpisode` is to LIBERO what :class:`~capvector.envs.robosuite.episode.Episode` is to robosuite:
 :class:`~capvector.eval.rollout.RolloutEvaluator` drives it one chunk at a time, batched with other
 episodes and in worker processes alike. The protocol, from OpenVLA-OFT
 ``experiments/robot/libero/run_libero_eval.py`` and openpi ``examples/libero/main.py``:
@@ -14,7 +14,7 @@ episodes and in worker processes alike. The protocol, from OpenVLA-OFT
 Where it differs from OFT's serial loop, outcomes do not: each env is reset softly
 (``hard_reset=False``: the same states as a hard reset, to the bit, in a tenth of the time; tested
 against OFT's loop), and the fixtures' placement of trial i is drawn from its own seed
-(:attr:`~capvector.eval.episodes.LiberoEpisodeSpec.fixture_seed`) rather than from wherever
+(:attr:`~capvector.envs.libero.spec.LiberoEpisodeSpec.fixture_seed`) rather than from wherever
 numpy's global random stream stands after the trials before it.
 """
 
@@ -22,11 +22,11 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping, Sequence
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
-from capvector.envs.base import EpisodeResult, Observation, as_chunk
+from capvector.envs.base import EnvPool, EpisodeResult, Observation, Spec, as_chunk
 from capvector.envs.libero.env import (
     NUM_WAIT_STEPS,
     WAIT_ACTION,
@@ -40,22 +40,14 @@ from capvector.envs.libero.env import (
     seeded_reset,
     to_libero_action,
 )
+from capvector.envs.libero.spec import LiberoEpisodeSpec
 from capvector.errors import CapVectorError
-from capvector.eval.episodes import AnyEpisodeSpec, LiberoEpisodeSpec
 
 log = logging.getLogger(__name__)
 
 POLICY_GRIPPER: GripperConvention = "close_positive"
 """How a policy's gripper value reads: our policies train on robosuite's -1 open / +1 close, the
 convention of LIBERO's HDF5 and of the demos `capvector demos` records."""
-
-
-class LiberoEnvs(Protocol):
-    """Where episodes get their env: :class:`capvector.eval.rollout.EnvCache`."""
-
-    def libero(
-        self, suite: str, task_id: int, *, cameras: Sequence[str], image_size: int, rendering: str
-    ) -> Any: ...
 
 
 def build_libero_env(
@@ -84,7 +76,7 @@ def start_trial(env: Any, spec: LiberoEpisodeSpec) -> dict[str, Any]:
     return env.set_init_state(state)
 
 
-def check_trial_starts(specs: Sequence[AnyEpisodeSpec]) -> None:
+def check_trial_starts(specs: Sequence[Spec]) -> None:
     """Every trial that starts from a demo (``from_demos``) finds it; a clear error if not."""
     from capvector.envs.libero.demos import demo_start
 
@@ -95,7 +87,7 @@ def check_trial_starts(specs: Sequence[AnyEpisodeSpec]) -> None:
 
 class LiberoEpisode:
     """One LIBERO trial in progress: :meth:`observe`, then :meth:`execute` a chunk, until it
-    returns the result (the interface of :class:`~capvector.eval.rollout.Episode`).
+    returns the result (:class:`capvector.envs.base.Episode`).
 
     ``cameras``/``image_size`` are the policy's (its data spec); ``camera_fovy``, when the policy
     records one, must be the scene's own (LIBERO's cameras are fixed). ``execute_steps`` executes
@@ -105,7 +97,7 @@ class LiberoEpisode:
     def __init__(
         self,
         spec: LiberoEpisodeSpec,
-        envs: LiberoEnvs,
+        envs: EnvPool,
         *,
         cameras: Sequence[str],
         image_size: int,
@@ -118,10 +110,15 @@ class LiberoEpisode:
         self.spec = spec
         self.cameras = tuple(cameras)
         self.execute_steps = execute_steps
-        self.env = envs.libero(
-            spec.suite, spec.task_id, cameras=self.cameras, image_size=image_size,
-            rendering=spec.rendering,
-        )  # fmt: skip
+        key = ("libero", spec.suite, spec.task_id, self.cameras, image_size, spec.rendering)
+        self.env = envs.get(
+            key,
+            lambda: build_libero_env(
+                spec.suite, spec.task_id, self.cameras, image_size, spec.rendering
+            ),
+            alone=True,
+        )
+        # alone: a LIBERO env holds ~1.2 GB; building one closes the env of the last task
         if camera_fovy:
             _check_fovy(self.env, camera_fovy)
         self.instruction = libero_task(spec.suite, spec.task_id).instruction

@@ -66,7 +66,7 @@ PLACE_REACH = 0.75
 it stalls 0.785 m out, drifting 3 cm forward of the plate's centre as it goes down."""
 FIXTURE_SEED_START = 1_000_000
 """Trial i's fixtures are placed from seed FIXTURE_SEED_START + i, as in ``capvector evaluate``
-(``capvector.eval.episodes.EVAL_SEED_START``; sim/ may not import eval/)."""
+(``capvector.envs.base.EVAL_SEED_START``)."""
 
 
 @dataclass(frozen=True)

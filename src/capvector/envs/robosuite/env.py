@@ -393,6 +393,8 @@ class SimEnv:
     ) -> None:
         self.task = task
         self.spec = get_task(task)
+        self.randomizer: Any = None
+        """The scene variant's ``SceneRandomizer`` applied after each reset (evaluation sets it)."""
         _check_robot(robot, gripper)
         self.robot = robot
         self.gripper = gripper

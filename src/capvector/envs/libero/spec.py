@@ -1,17 +1,6 @@
-"""Evaluation episodes as data: which task, arm, seed and scene variant, or which LIBERO trial.
-No simulator imports.
-
-Seeds: an episode's initial state is a function of its seed alone. Evaluation seeds must not be
-seeds a training demo used; demos start at ``--seed`` (default 0), evaluation at
-``EVAL_SEED_START`` = 1,000,000, and the λ sweep's validation episodes at
-``VALIDATION_SEED_START`` = 2,000,000, so choosing λ never looks at the reported episodes.
-
-LIBERO trials start from the task's fixed official initial states (trial i from state i), which
-no demo of ours starts from (demos sample placements). What those states leave open, the fixtures'
-placement (cabinets, stoves: LIBERO draws it at every reset), is drawn from seed
-``EVAL_SEED_START + i``, so a trial's scene does not depend on which trials ran before it.
-``from_demos`` starts trial i where demo i started instead: not the protocol, a diagnostic.
-"""
+"""LIBERO trials as data: a task of a suite and the official initial state it starts from. No
+simulator import: configs and the validation dataset build them freely, and a typo fails before
+LIBERO is loaded."""
 
 from __future__ import annotations
 
@@ -20,74 +9,19 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar, get_args
 
+from capvector.envs.base import DEFAULT_ROBOT, EVAL_SEED_START
 from capvector.envs.libero.env import LIBERO_MAX_STEPS, LIBERO_NUM_TASKS, LIBERO_TRIALS, Rendering
-from capvector.envs.robosuite.tasks import get_task
-from capvector.envs.robosuite.variants import get_variant
 from capvector.errors import CapVectorError, unknown_name
 
 LIBERO_RENDERINGS: tuple[str, ...] = get_args(Rendering)
-
-EVAL_SEED_START = 1_000_000
-"""First default evaluation seed; keep demo seeds below it."""
-VALIDATION_SEED_START = 2_000_000
-"""First λ-sweep seed: disjoint from demo seeds and from evaluation seeds."""
-DEFAULT_ROBOT = "Panda"
-
-
-@dataclass(frozen=True)
-class EpisodeSpec:
-    """One evaluation episode: the task, the seed of its initial state, the arm, the variant."""
-
-    task: str
-    seed: int
-    robot: str = DEFAULT_ROBOT
-    max_steps: int | None = None
-    """Step limit; None uses the task's default (``TaskSpec.max_steps``)."""
-    gripper: str | None = None
-    """Gripper override for arms whose default gripper lacks 2 finger joints, e.g. PandaGripper."""
-    variant: str | None = None
-    """A visual scene variant (``capvector.envs.robosuite.variants``) drawn from the seed; None: as trained."""
-
-    @property
-    def step_limit(self) -> int:
-        return self.max_steps if self.max_steps is not None else get_task(self.task).max_steps
-
-    def describe(self) -> dict[str, Any]:
-        """Which episode it is, as JSON fields (``capvector evaluate --json``)."""
-        return {"task": self.task, "robot": self.robot, "variant": self.variant, "seed": self.seed}
-
-
-def eval_specs(
-    task: str,
-    episodes: int,
-    *,
-    robot: str = DEFAULT_ROBOT,
-    start_seed: int = EVAL_SEED_START,
-    max_steps: int | None = None,
-    gripper: str | None = None,
-    variant: str | None = None,
-) -> list[EpisodeSpec]:
-    """``episodes`` specs with consecutive seeds from ``start_seed`` (disjoint from demo seeds).
-
-    A variant that swaps the arm (``sawyer``, ``ur5e``) sets ``robot``/``gripper``; a visual one
-    is kept on the spec and applied after each reset.
-    """
-    get_task(task)
-    visual = None
-    if variant is not None:
-        v = get_variant(variant)
-        robot, gripper = v.robot or robot, v.gripper if v.robot else gripper
-        visual = variant if v.visual else None
-    return [
-        EpisodeSpec(task, start_seed + i, robot, max_steps, gripper, visual)
-        for i in range(episodes)
-    ]
 
 
 @dataclass(frozen=True)
 class LiberoEpisodeSpec:
     """One trial of a LIBERO task under the OpenVLA-OFT / openpi protocol: it starts from the
     task's official initial state number ``trial``."""
+
+    SUITE: ClassVar[str] = "libero"
 
     suite: str
     task_id: int
@@ -126,9 +60,6 @@ class LiberoEpisodeSpec:
         """Which trial it is, as JSON fields (``capvector evaluate --json``)."""
         where = {} if self.from_demos is None else {"from_demos": self.from_demos}
         return {"suite": self.suite, "task": self.task_id, "trial": self.trial, **where}
-
-
-AnyEpisodeSpec = EpisodeSpec | LiberoEpisodeSpec
 
 
 def libero_specs(
