@@ -29,6 +29,7 @@ What one request may cost is bounded, so one client cannot hold the forward for 
 image has at most ``max_image_pixels`` pixels and a long side at most ``max_aspect`` times its
 short side; an instruction has at most ``max_prompt_tokens`` tokens of the policy's tokenizer
 (counted only when its length in characters could fit; without a tokenizer, characters count).
+A message larger than these bounds allow closes its connection unread (``max_message_bytes``).
 
 Anything else in the map is ignored. A request that breaks a rule gets one line back naming the
 key and what is wrong (``ObservationError``).
@@ -57,6 +58,8 @@ MAX_ASPECT = 4.0
 """Default bound on an image's long side over its short side (cameras are 4:3 or 16:9)."""
 MAX_PROMPT_TOKENS = 256
 """Default bound on an instruction's tokens (LIBERO's run to about 20)."""
+MESSAGE_SLACK = 2**20
+"""Bytes of a request beyond its images' pixels: state, instruction, msgpack framing."""
 CHARS_PER_TOKEN = 16
 """A prompt longer than this many characters per allowed token is refused without tokenizing it."""
 
@@ -87,6 +90,13 @@ class ObservationSchema:
         """The schema of a policy trained on ``spec``; ``bounds``: the ``max_*`` and
         ``count_tokens`` fields."""
         return cls(tuple(spec.cameras), spec.proprio_dim, default_prompt, **bounds)
+
+    @property
+    def max_message_bytes(self) -> int:
+        """The largest request the bounds let through; a bigger message closes its connection
+        (1009, too big) before it is read, so a 50 MB one costs the server nothing (openpi sets
+        no limit)."""
+        return len(self.cameras) * self.max_image_pixels * 3 + MESSAGE_SLACK
 
     def key_map(self) -> dict[str, str]:
         """openpi's key -> our slot, as the metadata message tells clients."""

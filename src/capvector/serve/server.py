@@ -50,8 +50,6 @@ from capvector.serve.wire import WireError, packb, unpackb
 
 log = logging.getLogger(__name__)
 
-MAX_MESSAGE = 64 * 2**20
-"""Bytes in one request (openpi sets no limit); a bigger one closes the connection (1009)."""
 
 ActBatch = Callable[[Sequence[Observation]], Sequence[np.ndarray]]
 """Observations in, one (T, A) chunk each out, in one forward (``VLAPolicy.act_batch``)."""
@@ -114,7 +112,7 @@ class PolicyServer:
             batcher = asyncio.create_task(self._batch_forever(forward))
             try:
                 async with serve(
-                    self._connection, sock=sock, compression=None, max_size=MAX_MESSAGE,
+                    self._connection, sock=sock, compression=None, max_size=self.schema.max_message_bytes,
                     process_request=_health_check,
                 ):  # fmt: skip
                     stopped = asyncio.create_task(stop.wait())
