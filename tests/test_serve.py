@@ -483,10 +483,12 @@ def _export_with(folder: Path, corrupt: Any) -> Path:
     poisoned = {n: p for n, p in module.backbone.named_parameters() if not p.isfinite().all()}
     for weights in folder.glob("*.safetensors"):
         tensors = load_file(weights)
-        hit = {k: v for k, v in tensors.items() if any(k.endswith(n) for n in poisoned)}
-        for key in hit:
-            name = next(n for n in poisoned if key.endswith(n))
-            tensors[key] = poisoned[name].detach().clone().to(tensors[key].dtype)
+        for key in list(tensors):
+            # The file may prefix the backbone's names; "projector.fc1.bias" is not a suffix of
+            # "proprio_projector.fc1.bias" at a dot.
+            name = next((n for n in poisoned if key == n or key.endswith(f".{n}")), None)
+            if name is not None:
+                tensors[key] = poisoned[name].detach().clone().to(tensors[key].dtype)
         save_file(tensors, weights, metadata={"format": "pt"})
     return folder
 

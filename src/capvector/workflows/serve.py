@@ -72,9 +72,9 @@ class ServedPolicy:
         }])  # fmt: skip
         if not np.isfinite(chunk).all():
             raise CapVectorError(
-                f"the policy answers a blank observation with non-finite actions "
+                "the policy answers a blank observation with non-finite actions "
                 f"({int((~np.isfinite(chunk)).sum())} of {chunk.size}): its weights hold NaN or "
-                "inf; serve another checkpoint (`capvector inspect` shows which tensors)"
+                "inf, or its inputs overflow; serve another checkpoint"
             )
 
     def metadata(self, schema: ObservationSchema, max_batch: int) -> dict[str, Any]:
