@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from types import SimpleNamespace
 
 import lightning as L
 import pytest
@@ -125,6 +126,49 @@ def test_geometric_teacher_reflects_geometry() -> None:
     )  # geometry changes targets
     with pytest.raises(ValueError, match="load_depth=true"):
         teacher({keys.IMAGES: torch.zeros(1, 1, 3, 32, 32)}, (4, 4))
+
+
+def test_geometric_teacher_leaves_missing_depth_out() -> None:
+    """Depth sensors report a pixel they could not measure as NaN or 0 (issue 62: a NaN patch
+    trained to NaN from step 0). Such pixels drop out of their tokens; a token without any valid
+    pixel has no target (NaN); the others are what they were, and the loss stays finite."""
+    teacher = GeometricTeacher(feature_dim=32)
+    K = torch.tensor([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]]).expand(1, 1, 3, 3)
+    clean = (1.0 + torch.linspace(0, 0.5, 32).view(1, 1, 1, 32)).expand(1, 1, 32, 32).clone()
+    holed = clean.clone()
+    holed[..., 0:8, 0:8] = float("nan")  # token (0, 0) entirely
+    holed[..., 16:20, 16:20] = 0.0  # part of token (2, 2)
+    a = teacher({keys.DEPTH: clean, keys.INTRINSICS: K}, (4, 4)).view(4, 4, 32)
+    b = teacher({keys.DEPTH: holed, keys.INTRINSICS: K}, (4, 4)).view(4, 4, 32)
+    assert b[0, 0].isnan().all() and a.isfinite().all()
+    rest = torch.ones(4, 4, dtype=torch.bool)
+    rest[0, 0] = False
+    assert b[rest].isfinite().all()
+    # Tokens whose pixels and normals' neighbours are all valid are unchanged, exactly.
+    untouched = torch.ones(4, 4, dtype=torch.bool)
+    untouched[0:2, 0:2] = untouched[1:3, 1:3] = False
+    assert torch.equal(a[untouched], b[untouched])
+    assert not torch.allclose(a[2, 2], b[2, 2])  # the 0 patch was left out, not averaged in
+
+    student = torch.randn(1, 16, 32, requires_grad=True)
+    cosine = torch.nn.functional.cosine_similarity(student, a.view(1, 16, 32), dim=-1)
+    objective = SpatialAlignment(teacher=teacher)
+    objective.projector = torch.nn.Identity()
+    output = SimpleNamespace(
+        hidden_states={0: student}, visual_token_mask=torch.ones(1, 16, dtype=torch.bool),
+        visual_grid=(4, 4),
+    )  # fmt: skip
+    objective.layer = 0
+    loss = objective({keys.DEPTH: holed, keys.INTRINSICS: K}, output, None)
+    loss.backward()
+    assert loss.isfinite() and student.grad.isfinite().all()
+    assert student.grad[0, 0].eq(0).all()  # the token without a target pulls nothing
+    assert not torch.isclose(loss, 1 - cosine.mean())  # 15 tokens averaged, not 16
+    clean_loss = objective({keys.DEPTH: clean, keys.INTRINSICS: K}, output, None)
+    assert torch.isclose(clean_loss, 1 - cosine.mean())
+    nothing = torch.full_like(clean, float("nan"))
+    none = objective({keys.DEPTH: nothing, keys.INTRINSICS: K}, output, None)
+    assert none.item() == 0.0 and none.requires_grad  # no target anywhere: no pull
 
 
 def test_geometric_teacher_sees_the_same_surface_in_a_mirrored_image() -> None:

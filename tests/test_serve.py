@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import os
 import re
+import resource
 import signal
 import socket
 import subprocess
@@ -30,6 +31,7 @@ import websockets.sync.client
 from openpi_client import msgpack_numpy
 from openpi_client.action_chunk_broker import ActionChunkBroker
 from openpi_client.websocket_client_policy import WebsocketClientPolicy
+from safetensors.torch import load_file, save_file
 
 from capvector.cli import main
 from capvector.data.spec import DataSpec
@@ -87,13 +89,24 @@ class Server:
         return code, self.stderr.read_text()
 
 
-def start_server(export: Path, folder: Path) -> Server:
-    """``capvector serve`` on a free loopback port; returns once it listens."""
+def start_server(
+    export: Path, folder: Path, *args: str, address_space: int | None = None
+) -> Server:
+    """``capvector serve`` on a free loopback port, with ``args``; returns once it listens.
+    ``address_space``: bytes of virtual memory the server may map (an allocation beyond fails
+    at once instead of swapping the shared machine)."""
     out, err = folder / "stdout.txt", folder / "stderr.txt"
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     command = [sys.executable, "-m", "capvector.cli", "serve", "--ckpt", str(export), "--port", "0"]
+
+    def limit() -> None:
+        if address_space is not None:
+            resource.setrlimit(resource.RLIMIT_AS, (address_space, address_space))
+
     with out.open("w") as stdout, err.open("w") as stderr:
-        process = subprocess.Popen(command, stdout=stdout, stderr=stderr, env=env)
+        process = subprocess.Popen(
+            [*command, *args], stdout=stdout, stderr=stderr, env=env, preexec_fn=limit
+        )
     deadline = time.monotonic() + START_TIMEOUT
     while (found := LISTENING.search(out.read_text())) is None:
         if process.poll() is not None or time.monotonic() > deadline:
@@ -105,7 +118,8 @@ def start_server(export: Path, folder: Path) -> Server:
 
 @pytest.fixture(scope="module")
 def server(export: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
-    running = start_server(export, tmp_path_factory.mktemp("server"))
+    # The tests leave their clients connected: more than the default cap of 64 over the module.
+    running = start_server(export, tmp_path_factory.mktemp("server"), "--max-connections", "512")
     try:
         yield running
     finally:
@@ -250,6 +264,31 @@ MALFORMED: dict[str, tuple[dict[str, Any], str]] = {
         r"'observation/state' has shape \(7,\); this policy takes \(8,\)",
     ),
     "prompt not a string": ({**observation(0), "prompt": 3}, "'prompt' is a string, got a int"),
+    # Issue 62: what one request may cost is bounded (these held the forward for 16-89 s).
+    "a 1100 x 1000 image": (
+        {
+            **observation(0),
+            "observation/image": np.zeros((1100, 1000, 3), np.uint8),
+            "observation/wrist_image": np.zeros((1100, 1000, 3), np.uint8),
+        },
+        r"'observation/image' has 1100 x 1000 = 1100000 pixels; this server takes at most 1048576",
+    ),  # fmt: skip
+    "a 4096 x 64 image": (
+        {
+            **observation(0),
+            "observation/image": np.zeros((4096, 64, 3), np.uint8),
+            "observation/wrist_image": np.zeros((4096, 64, 3), np.uint8),
+        },
+        r"'observation/image' is 4096 x 64, more than 4:1",
+    ),  # fmt: skip
+    "a 16 KB prompt": (
+        {**observation(0), "prompt": "pick " * 3200},
+        "'prompt' has 16000 characters; this server takes instructions of at most 256 tokens",
+    ),
+    "a prompt of 300 tokens": (
+        {**observation(0), "prompt": "x" * 300},
+        "'prompt' has 300 tokens; this server takes at most 256",
+    ),
 }
 
 
@@ -366,6 +405,9 @@ def test_bf16_autocast_on_cpu_changes_the_actions_a_little(
         (["--device", "tpu9"], "--device tpu9 is not usable here"),
         (["--precision", "16-mixed", "--device", "cpu"], "16-mixed needs a GPU"),
         (["--max-batch", "0"], "--max-batch must be >= 1"),
+        (["--max-connections", "0"], "--max-connections must be >= 1"),
+        (["--max-aspect", "0.5"], "--max-aspect must be >= 1, got 0.5"),
+        (["--idle-timeout-s", "-1"], "--idle-timeout-s must be >= 0"),
         (["--port", "70000"], "--port 70000 is not a port"),
     ],
 )
@@ -420,3 +462,252 @@ def test_max_batch_window_and_default_prompt_have_their_effect(
         start = time.monotonic()
         client.infer(observation(0))  # alone: it waits out the window for company
         assert time.monotonic() - start >= 0.5
+
+
+# Issue 62: no NaN reaches a robot; one client cannot starve or break the others.
+
+BANG = 4  # the tiny byte-level tokenizer's id of "!"
+
+
+def _export_with(folder: Path, corrupt: Any) -> Path:
+    rng = np.random.default_rng(0)
+    stats = compute_statistics(rng.normal(size=(200, 7)), rng.normal(size=(200, 8)), 4)
+    spec = DataSpec(cameras=CAMERAS, image_size=SIZE, statistics={"capvector": stats})
+    torch.manual_seed(0)
+    module = VLAModule(backbone="openvla-oft-tiny", data_spec=spec)
+    # Corrupted after a clean export, as a bad disk or a hand-edited file leaves it: the
+    # module's own export refuses non-finite weights.
+    folder = module.export(folder)
+    with torch.no_grad():
+        corrupt(module.backbone)
+    poisoned = {n: p for n, p in module.backbone.named_parameters() if not p.isfinite().all()}
+    for weights in folder.glob("*.safetensors"):
+        tensors = load_file(weights)
+        for key in list(tensors):
+            # The file may prefix the backbone's names; "projector.fc1.bias" is not a suffix of
+            # "proprio_projector.fc1.bias" at a dot.
+            name = next((n for n in poisoned if key == n or key.endswith(f".{n}")), None)
+            if name is not None:
+                tensors[key] = poisoned[name].detach().clone().to(tensors[key].dtype)
+        save_file(tensors, weights, metadata={"format": "pt"})
+    return folder
+
+
+@pytest.fixture(scope="module")
+def bang_export(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """An export whose embedding of "!" is NaN: prompts with "!" give NaN actions, others do
+    not (a corrupted row, as a bad fine-tune or a flipped bit leaves one)."""
+
+    def corrupt(backbone: Any) -> None:
+        backbone.language_model.model.embed_tokens.weight[BANG] = float("nan")
+
+    return _export_with(tmp_path_factory.mktemp("bang") / "export", corrupt)
+
+
+def test_a_non_finite_answer_is_never_sent_and_the_server_goes_on(
+    bang_export: Path, tmp_path: Path
+) -> None:
+    reference = load_module(bang_export).eval()
+    policy = VLAPolicy(reference.backbone, reference.data_spec)
+    bad = {**observation(1), "prompt": "lift the cube!"}
+    assert not np.isfinite(in_process(policy, [bad])[0]).any()  # the defect, in process
+    good = observation(2)
+    expected = in_process(policy, [good])[0]
+    assert np.isfinite(expected).all()
+    server = start_server(bang_export, tmp_path, "--batch-window-ms", "500")
+    try:
+        client = server.client()
+        with pytest.raises(RuntimeError, match="hold 56 non-finite values of 56 .*not sent"):
+            client.infer(bad)
+        np.testing.assert_array_equal(client.infer(good)["actions"], expected)  # goes on
+        # Batched with the bad one (the window is 0.5 s), the bystander gets its actions.
+        bystander = server.client()
+        with ThreadPoolExecutor(2) as pool:
+            refused = pool.submit(client.infer, bad)
+            answered = pool.submit(bystander.infer, good)
+            answer = answered.result(timeout=120)
+            with pytest.raises(RuntimeError, match="non-finite"):
+                refused.result(timeout=120)
+        np.testing.assert_allclose(answer["actions"], expected, rtol=1e-5, atol=1e-5)  # padded
+        assert answer["policy_timing"]["batch_size"] == 2
+    finally:
+        code, stderr = server.stop()
+    assert code == 0 and "non-finite values; not sent" in stderr and "Traceback" not in stderr
+
+
+def test_an_export_that_answers_nan_is_refused_at_start(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    def corrupt(backbone: Any) -> None:
+        for parameter in backbone.parameters():
+            parameter.fill_(float("nan"))
+
+    export = _export_with(tmp_path / "export", corrupt)
+    assert main(["serve", "--ckpt", str(export), "--port", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "answers a blank observation with non-finite actions (56 of 56)" in err, err
+    assert len(err.strip().splitlines()) == 1, err
+
+
+def test_a_failed_batch_is_answered_one_at_a_time(
+    export: Path, reference: VLAPolicy, tmp_path: Path
+) -> None:
+    """The issue's 64 KB prompt, let through by a raised bound, fails its forward allocating
+    tens of GB (here at once: the server may map 4 GB); the bystander batched with it gets its
+    own actions, the abuser one line, and the server goes on."""
+    server = start_server(
+        export, tmp_path, "--batch-window-ms", "1000", "--max-prompt-tokens", "1000000",
+        address_space=4 * 2**30,
+    )  # fmt: skip
+    try:
+        abuser, bystander = server.client(), server.client()
+        huge = {**observation(1), "prompt": "x" * 65536}
+        good = observation(2)
+        with ThreadPoolExecutor(2) as pool:
+            refused = pool.submit(abuser.infer, huge)
+            answered = pool.submit(bystander.infer, good)
+            answer = answered.result(timeout=300)
+            with pytest.raises(RuntimeError, match="the policy failed on this request: "):
+                refused.result(timeout=300)
+        np.testing.assert_array_equal(answer["actions"], in_process(reference, [good])[0])
+        assert answer["policy_timing"]["batch_size"] == 1  # answered alone, after the batch
+        np.testing.assert_array_equal(abuser.infer(good)["actions"], answer["actions"])
+    finally:
+        code, stderr = server.stop()
+    assert code == 0 and "failed on a batch of 2" in stderr and "answering each alone" in stderr
+
+
+def test_idle_connections_are_closed_and_the_connection_cap_holds(export: Path) -> None:
+    policy = ServedPolicy(str(export), torch.device("cpu"), "32-true")
+    with server_in_thread(policy, idle_timeout=1.0, max_connections=2) as address:
+        first, second = WebsocketClientPolicy(*address), WebsocketClientPolicy(*address)
+        with pytest.raises(websockets.ConnectionClosed) as refused:
+            WebsocketClientPolicy(*address)
+        assert (
+            refused.value.rcvd.code == 1013 and "cap of 2 connections" in refused.value.rcvd.reason
+        )
+        first.infer(observation(0))  # a request resets the idle clock
+        time.sleep(2.0)
+        for idle in (first, second):
+            with pytest.raises(websockets.ConnectionClosed) as closed:
+                idle.infer(observation(0))
+            assert closed.value.rcvd.code == 1000 and "idle for 1 s" in closed.value.rcvd.reason
+        WebsocketClientPolicy(*address).infer(observation(0))  # the closed ones freed their slots
+
+
+def test_a_message_beyond_the_bounds_closes_its_connection_unread(
+    server: Server, reference: VLAPolicy
+) -> None:
+    """The issue's 48 MB request (two 8,000,000 x 1 images) and 50 MB prompt: larger than any
+    request the bounds let through, they close their connection (1009) before being read."""
+    thin = np.zeros((8_000_000, 1, 3), np.uint8)
+    for request in (
+        {**observation(0), "observation/image": thin, "observation/wrist_image": thin},
+        {**observation(0), "prompt": "x" * 50_000_000},
+    ):
+        client = server.client()
+        with pytest.raises(websockets.ConnectionClosed) as closed:
+            client.infer(request)
+        assert closed.value.rcvd.code == 1009  # message too big
+    good = observation(5)
+    np.testing.assert_array_equal(
+        server.client().infer(good)["actions"], in_process(reference, [good])[0]
+    )
+
+
+WELL_BEHAVED, ROUNDS = 15, 12
+ABUSER = """
+import sys, time, numpy as np, websockets, websockets.sync.client as ws
+from openpi_client import msgpack_numpy
+url = f"ws://{sys.argv[1]}:{sys.argv[2]}"
+base = {"observation/image": np.zeros((64, 64, 3), np.uint8),
+        "observation/wrist_image": np.zeros((64, 64, 3), np.uint8),
+        "observation/state": np.zeros(8), "prompt": "lift"}
+thin, wide = np.zeros((8_000_000, 1, 3), np.uint8), np.zeros((1100, 1000, 3), np.uint8)
+abuse = [msgpack_numpy.packb(request) for request in (  # packed once: its CPU goes on sending
+    {**base, "observation/image": thin, "observation/wrist_image": thin},
+    {**base, "observation/image": wide, "observation/wrist_image": wide},
+    {**base, "prompt": "pick " * 3200},
+    {**base, "prompt": "x" * 65536},
+    {**base, "prompt": "x" * 50_000_000},
+)]
+def connect():
+    connection = ws.connect(url, compression=None, max_size=None)
+    connection.recv()  # the metadata
+    return connection
+idle, client = [], connect()
+while True:
+    for message in abuse:
+        time.sleep(0.1)  # abusive in content; a flood of 100s of MB/s is the network's to stop
+        try:
+            client.send(message)
+            print("refused" if isinstance(client.recv(), str) else "answered", flush=True)
+        except websockets.ConnectionClosed:
+            print("closed", flush=True)
+            client = connect()
+    if len(idle) < 8:
+        idle.append(connect())
+"""
+
+
+def test_one_abusive_client_does_not_slow_15_others_by_more_than_2x(
+    server: Server, tmp_path: Path
+) -> None:
+    """15 clients' request latency alone (the baseline phase), then with one client sending the
+    issue's abuse in a loop from its own process: two 8,000,000 x 1 images (48 MB), two 1100 x
+    1000 ones, 16 KB, 64 KB and 50 MB prompts, and connections it opens and leaves idle. It
+    waits 0.1 s between requests: what it sends is the abuse; a flood of hundreds of MB/s over
+    loopback would take the 2 cores from the server whatever the server did. Medians of the same clients in the same test, so a
+    loaded machine moves both phases alike."""
+    address = (server.host, server.port)
+    good = [[observation(5000 + 100 * c + i) for i in range(ROUNDS)] for c in range(WELL_BEHAVED)]
+
+    def phase(abuse: bool, folder: Path) -> tuple[list[float], list[str]]:
+        # The abuser is its own process, so its packing of 50 MB does not hold this one's GIL.
+        out = folder / f"abuser_{abuse}.txt"
+        out.write_text("")
+        noisy = None
+        if abuse:
+            with out.open("w") as stdout:
+                noisy = subprocess.Popen(
+                    [sys.executable, "-c", ABUSER, *map(str, address)], stdout=stdout,
+                    stderr=subprocess.STDOUT, env={**os.environ, "OMP_NUM_THREADS": "1"},
+                )  # fmt: skip
+            deadline = time.monotonic() + 120
+            while out.read_text().count("\n") < 5 and noisy.poll() is None:  # under way
+                assert time.monotonic() < deadline, out.read_text()[-2000:]
+                time.sleep(0.05)
+
+        start = threading.Barrier(WELL_BEHAVED)
+
+        def well_behaved(index: int) -> list[float]:
+            client = WebsocketClientPolicy(*address)
+            start.wait(timeout=120)
+            latencies = []
+            for request in good[index]:
+                begin = time.monotonic()
+                client.infer(request)
+                latencies.append(time.monotonic() - begin)
+            return latencies
+
+        pool = ThreadPoolExecutor(WELL_BEHAVED)
+        try:
+            futures = [pool.submit(well_behaved, c) for c in range(WELL_BEHAVED)]
+            _, late = wait(futures, timeout=LOAD_TIMEOUT)
+            assert not late, f"{len(late)} clients still waiting after {LOAD_TIMEOUT} s"
+        finally:
+            pool.shutdown(wait=False, cancel_futures=True)
+            if noisy is not None:
+                assert noisy.poll() is None, out.read_text()[-2000:]  # it abused throughout
+                noisy.kill()
+                noisy.wait(timeout=60)
+        return [t for future in futures for t in future.result()], out.read_text().split()
+
+    baseline, _ = phase(False, tmp_path)
+    abused, events = phase(True, tmp_path)
+    refusals = len(events)
+    ratio = float(np.median(abused) / np.median(baseline))
+    print(f"median latency {np.median(baseline) * 1000:.0f} ms alone, "
+          f"{np.median(abused) * 1000:.0f} ms beside the abuser ({refusals} refusals): x{ratio:.2f}")  # fmt: skip
+    assert refusals >= 10 and "answered" not in events
+    assert ratio <= 2.0, f"the abuser slowed the others' median latency {ratio:.2f}x"

@@ -252,11 +252,35 @@ class VLAModule(L.LightningModule):
         total = losses["action"]
         for name, objective in self.objectives.items():
             total = total + objective.weight * losses[name]
+        self._stop_unless_finite(losses)
         batch_size = len(batch["instruction"])
         for name, value in losses.items():
             self.log(f"train/loss_{name}", value.detach(), batch_size=batch_size)
         self.log("train/loss", total.detach(), prog_bar=True, batch_size=batch_size)
         return total
+
+    def _stop_unless_finite(self, losses: dict[str, Tensor]) -> None:
+        """Stop the fit at its first non-finite loss, before backward lets it into the weights
+        (a NaN loss trains every weight to NaN and the fit would go on and export them). Every
+        rank decides together, so none waits in a collective for one that stopped."""
+        bad = [name for name, value in losses.items() if not bool(value.detach().isfinite())]
+        trainer = self._trainer
+        if trainer is not None and trainer.world_size > 1:
+            anywhere = trainer.strategy.reduce_boolean_decision(bool(bad), all=False)
+        else:
+            anywhere = bool(bad)
+        if not anywhere:
+            return
+        step = self.global_step
+        where = (
+            ", ".join(f"{name} = {float(losses[name].detach())}" for name in bad)
+            if bad
+            else "on another rank"
+        )
+        raise CapVectorError(
+            f"step {step}: loss term {where} is not finite; stopped before training on it. Look "
+            "for NaN/inf in the data (e.g. depth or proprio) or lower the learning rate"
+        )
 
     def setup(self, stage: str) -> None:
         datamodule = (
@@ -404,6 +428,15 @@ class VLAModule(L.LightningModule):
         state = full_state_dict(self.backbone)
         if not is_rank_zero():
             return Path(folder)
+        bad = [
+            name for name, t in state.items() if t.is_floating_point() and not t.isfinite().all()
+        ]
+        if bad:  # a policy that answers NaN must not leave here
+            raise CapVectorError(
+                f"not exporting to {folder}: {len(bad)} of {len(state)} tensors hold NaN or inf, "
+                f"e.g. {bad[0]}; train from a finite checkpoint (a fit stops at its first "
+                "non-finite loss)"
+            )
         lora_settings = self.lora_settings
         if lora_settings is not None:
             state = merge_lora(state, constant_scaling(lora_settings.scaling))

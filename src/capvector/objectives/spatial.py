@@ -6,6 +6,8 @@ Follows OpenHelix-Team/Spatial-Forcing (``vla-scripts/finetune_align.py``, ``Ali
 projector LayerNorm + Linear-GELU-Linear with Xavier-uniform weights and zero biases, loss
 1 − mean cosine over tokens, weight 0.5. Deviation: student and teacher tokens are paired one to one;
 the original's one-token shift (``gain_feat_1move``) is available as ``shift_one_token``.
+Tokens the teacher has no target for (NaN features: missing depth) are left out of the mean, as a
+depth-aware loss masks invalid pixels; a sample without any valid token is left out of the batch's.
 """
 
 from __future__ import annotations
@@ -110,5 +112,16 @@ class SpatialAlignment(Objective):
                 f"teacher gave {target.shape[1]} tokens for {student.shape[1]} visual tokens "
                 f"(grid {output.visual_grid}); its output must follow the student's token grid"
             )
-        cosine = F.cosine_similarity(self.projector(student).float(), target.float(), dim=-1)
-        return (1 - cosine.mean(dim=1)).mean()
+        target = target.float()
+        valid = target.isfinite().all(dim=-1)  # (B, tokens)
+        projected = self.projector(student).float()
+        if bool(valid.all()):  # the plain mean, as before masking existed
+            cosine = F.cosine_similarity(projected, target, dim=-1)
+            return (1 - cosine.mean(dim=1)).mean()
+        cosine = F.cosine_similarity(projected, target.nan_to_num(0.0), dim=-1) * valid
+        tokens = valid.sum(dim=1)
+        samples = tokens > 0
+        if not bool(samples.any()):  # no target at all: no pull, and a graph for backward
+            return cosine.sum() * 0.0
+        per_sample = cosine.sum(dim=1)[samples] / tokens[samples]
+        return (1 - per_sample).mean()

@@ -1,7 +1,8 @@
 """Frozen teachers for spatial alignment: per-visual-token target features.
 
 A teacher maps a batch to targets ``(B, N_cam * rows * cols, D)`` on the student's token grid, in
-the backbone's token order (camera by camera, patches row-major). Teachers never train: they have
+the backbone's token order (camera by camera, patches row-major). A token the teacher has no target
+for (its depth all missing) is NaN in every feature; the loss leaves such tokens out. Teachers never train: they have
 no trainable parameters, run under ``no_grad`` and live outside the module tree (see
 ``SpatialAlignment``), so they are not in the optimizer, the checkpoint or a DDP wrapper.
 
@@ -92,6 +93,11 @@ class GeometricTeacher(Teacher):
     never trained), so cosine similarity in target space reflects geometric similarity. This is
     our stand-in for VGGT's geometry features (Spatial Forcing), computable from what the demos
     carry, with no download.
+
+    Depth of NaN, inf or <= 0 is missing, as real depth sensors report a pixel they could not
+    measure (NaN, or 0 in the ROS/RealSense convention): it and the normals that would difference
+    across it are left out of each token's mean and spread, and a token with no valid point gets
+    NaN features (no target). With every pixel valid the features are those of the plain means.
     """
 
     def __init__(
@@ -121,6 +127,8 @@ class GeometricTeacher(Teacher):
         depth: Tensor = batch["depth"].float()  # (B, N, H, W)
         intrinsics: Tensor = batch["intrinsics"].float()  # (B, N, 3, 3)
         b, n, h, w = depth.shape
+        valid = torch.isfinite(depth) & (depth > 0)
+        depth = torch.where(valid, depth, torch.ones_like(depth))  # placeholders, weighted out
         v, u = torch.meshgrid(
             torch.arange(h, device=depth.device, dtype=depth.dtype) + 0.5,
             torch.arange(w, device=depth.device, dtype=depth.dtype) + 0.5,
@@ -135,13 +143,22 @@ class GeometricTeacher(Teacher):
         dv = torch.diff(points, dim=-2)
         du = torch.cat([du, du[..., -1:]], dim=-1)  # repeat the border difference
         dv = torch.cat([dv, dv[..., -1:, :]], dim=-2)
+        # A normal is valid where the pixel and the neighbours it differences with are.
+        valid_u = valid[..., 1:] & valid[..., :-1]
+        valid_v = valid[..., 1:, :] & valid[..., :-1, :]
+        normal_valid = (
+            torch.cat([valid_u, valid_u[..., -1:]], dim=-1)
+            & torch.cat([valid_v, valid_v[..., -1:, :]], dim=-2)
+        ).flatten(0, 1)[:, None]  # (B*N, 1, H, W)
         # Neighbours' cross product turns with the pixel grid's handedness: images mirrored
         # against their camera (LIBERO's, read rotated 180 degrees from bottom-up frames: fx < 0)
         # would get the opposite normals of the same surface. sign(fx * fy) keeps one convention.
         normals = F.normalize(torch.cross(du, dv, dim=2), dim=2) * torch.sign(fx * fy).unsqueeze(2)
-        per_pixel = torch.cat([points, normals], dim=2).flatten(0, 1)  # (B*N, 6, H, W)
-        mean = F.adaptive_avg_pool2d(per_pixel, grid)
-        spread = (F.adaptive_avg_pool2d(per_pixel**2, grid) - mean**2).clamp_min(0).sqrt()
+        point_valid = valid.flatten(0, 1)[:, None]  # (B*N, 1, H, W)
+        mean_p, spread_p, count = _masked_pool(points.flatten(0, 1), point_valid, grid)
+        mean_n, spread_n, _ = _masked_pool(normals.flatten(0, 1), normal_valid, grid)
+        mean = torch.cat([mean_p, mean_n], dim=1)
+        spread = torch.cat([spread_p, spread_n], dim=1)
         descriptor = (
             torch.cat([mean, spread], dim=1).flatten(2).transpose(1, 2)
         )  # (B*N, tokens, 12)
@@ -150,7 +167,22 @@ class GeometricTeacher(Teacher):
         if self.position_embedding:
             pe = sine_position_embedding(*grid, self.feature_dim).to(features)
             features = features + 0.1 * pe  # Spatial Forcing adds its PE scaled by 0.1
+        missing = (count == 0).flatten(1)[..., None]  # (B*N, tokens, 1): no valid point
+        features = features.masked_fill(missing, float("nan"))
         return features.reshape(b, n * grid[0] * grid[1], self.feature_dim)
+
+
+def _masked_pool(values: Tensor, weight: Tensor, grid: tuple[int, int]) -> tuple[Tensor, ...]:
+    """Per-cell mean and spread of ``values`` (M, C, H, W) over the pixels where ``weight``
+    (M, 1, H, W, bool) holds, and the share of such pixels (0: none). Averages of the weighted
+    values over the average weight: with every weight 1 these are the plain averages, exactly."""
+    weight = weight.to(values.dtype)
+    share = F.adaptive_avg_pool2d(weight, grid)
+    values = values * weight  # masked pixels hold placeholders (finite): zeroed here
+    denominator = share.clamp_min(torch.finfo(values.dtype).tiny)
+    mean = F.adaptive_avg_pool2d(values, grid) / denominator
+    square = F.adaptive_avg_pool2d(values * values, grid) / denominator
+    return mean, (square - mean**2).clamp_min(0).sqrt(), share
 
 
 def _pool_feature_map(features: Tensor, grid: tuple[int, int], batch: int) -> Tensor:

@@ -24,14 +24,21 @@ joints = 8, task language), which matches our LIBERO cameras ``agentview``, ``ro
   statistics), every value finite.
 - ``instruction`` is a string; the server's ``--default-prompt`` stands in for a missing one.
 
+What one request may cost is bounded, so one client cannot hold the forward for everyone (an
+8,000,000 x 1 image took 89 s to preprocess, a 64 KB prompt asked for 26 GB in the forward): an
+image has at most ``max_image_pixels`` pixels and a long side at most ``max_aspect`` times its
+short side; an instruction has at most ``max_prompt_tokens`` tokens of the policy's tokenizer
+(counted only when its length in characters could fit; without a tokenizer, characters count).
+A message larger than these bounds allow closes its connection unread (``max_message_bytes``).
+
 Anything else in the map is ignored. A request that breaks a rule gets one line back naming the
 key and what is wrong (``ObservationError``).
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -44,6 +51,17 @@ OPENPI_IMAGE_KEYS = ("observation/image", "observation/wrist_image")
 OPENPI_STATE_KEY = "observation/state"
 OPENPI_PROMPT_KEY = "prompt"
 IMAGES, PROPRIO, INSTRUCTION = "images", "proprio", "instruction"
+MAX_IMAGE_PIXELS = 1024 * 1024
+"""Default bound on an image's H x W: a megapixel, 16x what LIBERO renders (256 x 256); openpi's
+clients resize to 224 x 224 before sending."""
+MAX_ASPECT = 4.0
+"""Default bound on an image's long side over its short side (cameras are 4:3 or 16:9)."""
+MAX_PROMPT_TOKENS = 256
+"""Default bound on an instruction's tokens (LIBERO's run to about 20)."""
+MESSAGE_SLACK = 2**20
+"""Bytes of a request beyond its images' pixels: state, instruction, msgpack framing."""
+CHARS_PER_TOKEN = 16
+"""A prompt longer than this many characters per allowed token is refused without tokenizing it."""
 
 Observation = dict[str, Any]
 """``{"images": {camera: uint8 (H, W, 3)}, "proprio": float32 (P,), "instruction": str}``: what
@@ -59,10 +77,26 @@ class ObservationSchema:
     cameras: tuple[str, ...]
     proprio_dim: int
     default_prompt: str | None = None
+    max_image_pixels: int = MAX_IMAGE_PIXELS
+    max_aspect: float = MAX_ASPECT
+    max_prompt_tokens: int = MAX_PROMPT_TOKENS
+    count_tokens: Callable[[str], int] = field(default=len, compare=False)
+    """The policy's token count of an instruction (default: its characters)."""
 
     @classmethod
-    def of(cls, spec: DataSpec, default_prompt: str | None = None) -> ObservationSchema:
-        return cls(tuple(spec.cameras), spec.proprio_dim, default_prompt)
+    def of(
+        cls, spec: DataSpec, default_prompt: str | None = None, **bounds: Any
+    ) -> ObservationSchema:
+        """The schema of a policy trained on ``spec``; ``bounds``: the ``max_*`` and
+        ``count_tokens`` fields."""
+        return cls(tuple(spec.cameras), spec.proprio_dim, default_prompt, **bounds)
+
+    @property
+    def max_message_bytes(self) -> int:
+        """The largest request the bounds let through; a bigger message closes its connection
+        (1009, too big) before it is read, so a 50 MB one costs the server nothing (openpi sets
+        no limit)."""
+        return len(self.cameras) * self.max_image_pixels * 3 + MESSAGE_SLACK
 
     def key_map(self) -> dict[str, str]:
         """openpi's key -> our slot, as the metadata message tells clients."""
@@ -83,7 +117,7 @@ class ObservationSchema:
             spellings = [(f"{IMAGES}/{camera}", images, camera)]
             if index < len(OPENPI_IMAGE_KEYS):
                 spellings.append((OPENPI_IMAGE_KEYS[index], request, OPENPI_IMAGE_KEYS[index]))
-            parsed[camera] = _image(*_pick(request, spellings))
+            parsed[camera] = self._image(*_pick(request, spellings))
         shapes = {camera: image.shape for camera, image in parsed.items()}
         if len(set(shapes.values())) > 1:
             raise ObservationError(f"the cameras' images differ in size: {shapes}; send one size")
@@ -95,7 +129,36 @@ class ObservationSchema:
             name, instruction = _pick(request, prompts, "or start the server with --default-prompt")
             if not isinstance(instruction, str):
                 raise ObservationError(f"{name!r} is a string, got {_kind(instruction)}")
+            self._check_prompt(name, instruction)
         return {IMAGES: parsed, PROPRIO: _state(*state, self.proprio_dim), INSTRUCTION: instruction}
+
+    def _check_prompt(self, name: str, prompt: str) -> None:
+        limit = self.max_prompt_tokens
+        if len(prompt) > limit * CHARS_PER_TOKEN:  # not worth tokenizing
+            raise ObservationError(
+                f"{name!r} has {len(prompt)} characters; this server takes instructions of at "
+                f"most {limit} tokens: send a shorter one"
+            )
+        if (tokens := self.count_tokens(prompt)) > limit:
+            raise ObservationError(
+                f"{name!r} has {tokens} tokens; this server takes at most {limit}: send a "
+                "shorter instruction"
+            )
+
+    def _image(self, name: str, value: Any) -> np.ndarray:
+        image = _image(name, value)
+        height, width = image.shape[:2]
+        if height * width > self.max_image_pixels:
+            raise ObservationError(
+                f"{name!r} has {height} x {width} = {height * width} pixels; this server takes "
+                f"at most {self.max_image_pixels}: send the metadata's image_size"
+            )
+        if max(height, width) > self.max_aspect * min(height, width):
+            raise ObservationError(
+                f"{name!r} is {height} x {width}, more than {self.max_aspect:g}:1; send the "
+                "camera's image, e.g. at the metadata's image_size"
+            )
+        return np.array(image)  # a writable copy: the message's array is a read-only view
 
 
 def _pick(
@@ -126,7 +189,7 @@ def _image(name: str, value: Any) -> np.ndarray:
         raise ObservationError(
             f"{name!r} has shape {value.shape}; send one RGB image (H, W, 3), channels last"
         )
-    return np.array(value)  # a writable copy: the message's array is a read-only view
+    return value
 
 
 def _state(name: str, value: Any, dim: int) -> np.ndarray:

@@ -19,6 +19,13 @@ one forward in a worker thread, so the event loop keeps receiving and sending wh
 computes and the next batch collects meanwhile. Each connection awaits only its own answer: a
 client that is slow to read blocks its own send, and the request of one that goes
 away while it waits is cancelled before the forward.
+
+One client cannot starve or break the others: the schema bounds what one request may cost
+(image pixels and aspect, prompt tokens) before it is queued; a batch whose forward raises is
+answered again one request at a time, so only the request that fails gets the error; a chunk
+with a NaN or inf is never sent (its client gets an error, the server logs it and goes on); a
+connection idle for ``idle_timeout`` seconds is closed, and beyond ``max_connections`` a new one
+is closed at once (1013, try again later).
 """
 
 from __future__ import annotations
@@ -36,14 +43,13 @@ from typing import Any
 import numpy as np
 from websockets.asyncio.server import Request, Response, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
+from websockets.frames import CloseCode
 
 from capvector.serve.schema import IMAGES, Observation, ObservationError, ObservationSchema
 from capvector.serve.wire import WireError, packb, unpackb
 
 log = logging.getLogger(__name__)
 
-MAX_MESSAGE = 64 * 2**20
-"""Bytes in one request (openpi sets no limit); a bigger one closes the connection (1009)."""
 
 ActBatch = Callable[[Sequence[Observation]], Sequence[np.ndarray]]
 """Observations in, one (T, A) chunk each out, in one forward (``VLAPolicy.act_batch``)."""
@@ -61,7 +67,8 @@ class _Pending:
 
 
 class PolicyFailed(RuntimeError):
-    """The forward of a batch raised; every request in it gets this message."""
+    """The policy raised on a request, or answered it with a non-finite chunk; its client gets
+    this message (and only its client)."""
 
 
 class PolicyServer:
@@ -73,6 +80,8 @@ class PolicyServer:
         *,
         max_batch: int = 16,
         batch_window: float = 0.002,
+        idle_timeout: float | None = 300.0,
+        max_connections: int = 64,
     ) -> None:
         """
         Args:
@@ -81,12 +90,18 @@ class PolicyServer:
             metadata: sent to each client on connect.
             max_batch: most observations in one forward.
             batch_window: seconds the batcher waits for more requests after the first arrives.
+            idle_timeout: seconds a connection may go without a request before it is closed
+                (None: never).
+            max_connections: most connections open at once; one more is closed on opening.
         """
         self.act_batch = act_batch
         self.schema = schema
         self.metadata = dict(metadata)
         self.max_batch = max_batch
         self.batch_window = batch_window
+        self.idle_timeout = idle_timeout
+        self.max_connections = max_connections
+        self._open = 0
         self._queue: asyncio.Queue[_Pending] | None = None
 
     async def run(self, sock: socket.socket, stop: asyncio.Event) -> None:
@@ -97,7 +112,7 @@ class PolicyServer:
             batcher = asyncio.create_task(self._batch_forever(forward))
             try:
                 async with serve(
-                    self._connection, sock=sock, compression=None, max_size=MAX_MESSAGE,
+                    self._connection, sock=sock, compression=None, max_size=self.schema.max_message_bytes,
                     process_request=_health_check,
                 ):  # fmt: skip
                     stopped = asyncio.create_task(stop.wait())
@@ -112,28 +127,49 @@ class PolicyServer:
 
     async def _connection(self, websocket: ServerConnection) -> None:
         peer = websocket.remote_address
+        if self._open >= self.max_connections:
+            log.warning("connection from %s refused: %d open already", peer, self._open)
+            await websocket.close(
+                CloseCode.TRY_AGAIN_LATER,
+                f"the server holds its cap of {self.max_connections} connections; try again later",
+            )
+            return
+        self._open += 1
         log.info("connection from %s opened", peer)
         try:
-            await websocket.send(packb(self.metadata))
-            previous_total: float | None = None
-            async for message in websocket:
-                start = time.monotonic()
-                try:
-                    answer = await self._answer(websocket, message)
-                except (ObservationError, WireError, PolicyFailed) as err:
-                    log.info("request from %s refused: %s", peer, err)
-                    await websocket.send(str(err))
-                    continue
-                if answer is None:  # the client went away while its request waited
-                    break
-                answer["server_timing"] = {"infer_ms": (time.monotonic() - start) * 1000}
-                if previous_total is not None:  # openpi's: the previous request's, send included
-                    answer["server_timing"]["prev_total_ms"] = previous_total * 1000
-                await websocket.send(packb(answer))
-                previous_total = time.monotonic() - start
+            await self._converse(websocket, peer)
         except ConnectionClosed:
             pass
+        finally:
+            self._open -= 1
         log.info("connection from %s closed", peer)
+
+    async def _converse(self, websocket: ServerConnection, peer: Any) -> None:
+        await websocket.send(packb(self.metadata))
+        previous_total: float | None = None
+        while True:
+            try:  # cancelling recv is safe (websockets' docs): no message is lost
+                message = await asyncio.wait_for(websocket.recv(), self.idle_timeout)
+            except asyncio.TimeoutError:  # 3.10: not TimeoutError
+                log.info("connection from %s idle for %s s: closed", peer, self.idle_timeout)
+                await websocket.close(
+                    CloseCode.NORMAL_CLOSURE, f"idle for {self.idle_timeout:g} s; reconnect"
+                )
+                return
+            start = time.monotonic()
+            try:
+                answer = await self._answer(websocket, message)
+            except (ObservationError, WireError, PolicyFailed) as err:
+                log.info("request from %s refused: %s", peer, err)
+                await websocket.send(str(err))
+                continue
+            if answer is None:  # the client went away while its request waited
+                return
+            answer["server_timing"] = {"infer_ms": (time.monotonic() - start) * 1000}
+            if previous_total is not None:  # openpi's: the previous request's, send included
+                answer["server_timing"]["prev_total_ms"] = previous_total * 1000
+            await websocket.send(packb(answer))
+            previous_total = time.monotonic() - start
 
     async def _answer(
         self, websocket: ServerConnection, message: str | bytes
@@ -187,18 +223,38 @@ class PolicyServer:
         try:
             chunks = await loop.run_in_executor(forward, self.act_batch, observations)
         except Exception as err:  # the model's failure, not the clients': keep serving
-            log.exception("the policy failed on a batch of %d", len(group))
-            failed = PolicyFailed(
-                f"the policy failed on a batch of {len(group)}: {type(err).__name__}: {err}"
-            )
-            for pending in group:
-                if not pending.answer.done():
-                    pending.answer.set_exception(failed)
+            if len(group) > 1:
+                # One request can fail a batch (e.g. memory for its size): answer each alone, so
+                # only that one's client gets an error and a bystander its actions.
+                log.warning(
+                    "the policy failed on a batch of %d (%s: %s); answering each alone",
+                    len(group), type(err).__name__, err,
+                )  # fmt: skip
+                for pending in group:
+                    if not pending.answer.done():
+                        await self._forward(forward, [pending])
+                return
+            log.exception("the policy failed on a request")
+            _fail(group[0], f"the policy failed on this request: {type(err).__name__}: {err}")
             return
         timing = {"infer_ms": (time.monotonic() - start) * 1000, "batch_size": len(group)}
         for pending, chunk in zip(group, chunks, strict=True):
-            if not pending.answer.done():  # done: its client went away during the forward
-                pending.answer.set_result((np.asarray(chunk), timing))
+            chunk = np.asarray(chunk)
+            if not np.isfinite(chunk).all():  # a robot must never receive one
+                bad = int(np.size(chunk) - np.isfinite(chunk).sum())
+                log.error("the policy's actions hold %d non-finite values; not sent", bad)
+                _fail(
+                    pending,
+                    f"the policy's actions for this observation hold {bad} non-finite values of "
+                    f"{chunk.size} (NaN or inf); not sent: do not act on this step",
+                )
+            elif not pending.answer.done():  # done: its client went away during the forward
+                pending.answer.set_result((chunk, timing))
+
+
+def _fail(pending: _Pending, message: str) -> None:
+    if not pending.answer.done():
+        pending.answer.set_exception(PolicyFailed(message))
 
 
 def _health_check(connection: ServerConnection, request: Request) -> Response | None:

@@ -160,6 +160,26 @@ def evaluate_cli(
             for row in rows
         ]  # fmt: skip
         atomic_write_bytes(json, dumps(payload, indent=2).encode())
+    _refuse_non_finite_actions(specs, results)
+
+
+NON_FINITE = "non-finite action"
+"""How an episode that the policy answered with NaN or inf ends (``Episode.execute``)."""
+
+
+def _refuse_non_finite_actions(
+    specs: Sequence[AnyEpisodeSpec], results: Sequence[EpisodeResult]
+) -> None:
+    """A policy that answers NaN is broken, not unsuccessful: after the table (and --json),
+    say so and exit non-zero rather than report a success rate of 0 as if it had tried."""
+    broken = [(s, r) for s, r in zip(specs, results, strict=True) if NON_FINITE in (r.reason or "")]
+    if broken:
+        spec, result = broken[0]
+        raise CapVectorError(
+            f"{len(broken)} of {len(results)} episodes ended on a non-finite action from the "
+            f"policy (e.g. {spec.task} seed {spec.seed}: {result.reason}): its weights or "
+            "preprocessing produce NaN/inf; check the checkpoint before trusting these numbers"
+        )
 
 
 def _eval_tasks(

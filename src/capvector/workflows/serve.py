@@ -23,6 +23,9 @@ from capvector.policy import VLAPolicy
 from capvector.serve.schema import (
     IMAGES,
     INSTRUCTION,
+    MAX_ASPECT,
+    MAX_IMAGE_PIXELS,
+    MAX_PROMPT_TOKENS,
     PROPRIO,
     Observation,
     ObservationSchema,
@@ -40,6 +43,7 @@ class ServedPolicy:
         self.precision = precision
         module = load_module(ckpt).eval().to(device)
         self.spec = module.data_spec
+        self.tokenizer = module.backbone.tokenizer
         self.policy = VLAPolicy(module.backbone, self.spec, precision)
         self.device = device
         self.describe = {
@@ -50,15 +54,28 @@ class ServedPolicy:
     def act_batch(self, observations: Sequence[Observation]) -> list[np.ndarray]:
         return self.policy.act_batch(observations)
 
+    def count_tokens(self, prompt: str) -> int:
+        """The instruction's tokens as the backbone tokenizes it (characters without one)."""
+        if self.tokenizer is None:
+            return len(prompt)
+        return len(self.tokenizer(prompt, add_special_tokens=False, verbose=False)["input_ids"])
+
     def warm_up(self) -> None:
-        """One forward before the first client: a device or dtype problem shows at start."""
+        """One forward before the first client: a device or dtype problem, or weights that answer
+        NaN, show at start."""
         size = self.spec.image_size
         image = np.zeros((size, size, 3), np.uint8)
-        self.act_batch([{
+        (chunk,) = self.act_batch([{
             IMAGES: {camera: image for camera in self.spec.cameras},
             PROPRIO: np.zeros(self.spec.proprio_dim, np.float32),
             INSTRUCTION: "",
         }])  # fmt: skip
+        if not np.isfinite(chunk).all():
+            raise CapVectorError(
+                "the policy answers a blank observation with non-finite actions "
+                f"({int((~np.isfinite(chunk)).sum())} of {chunk.size}): its weights hold NaN or "
+                "inf, or its inputs overflow; serve another checkpoint"
+            )
 
     def metadata(self, schema: ObservationSchema, max_batch: int) -> dict[str, Any]:
         """What each client receives on connect (openpi's ``policy.metadata``)."""
@@ -78,6 +95,9 @@ class ServedPolicy:
             "device": str(self.device),
             "precision": self.precision,
             "max_batch": max_batch,
+            "max_image_pixels": schema.max_image_pixels,
+            "max_aspect": schema.max_aspect,
+            "max_prompt_tokens": schema.max_prompt_tokens,
         }
 
 
@@ -91,6 +111,11 @@ def serve(
     max_batch: int = 16,
     batch_window_ms: float = 2.0,
     default_prompt: str | None = None,
+    max_connections: int = 64,
+    idle_timeout_s: float = 300.0,
+    max_image_pixels: int = MAX_IMAGE_PIXELS,
+    max_aspect: float = MAX_ASPECT,
+    max_prompt_tokens: int = MAX_PROMPT_TOKENS,
 ) -> int:
     """Answer observations with action chunks over openpi's websocket protocol.
 
@@ -107,22 +132,35 @@ def serve(
         max_batch: most observations in one forward.
         batch_window_ms: how long a request waits for others to share its forward.
         default_prompt: the instruction of requests that send none.
+        max_connections: most connections open at once; one more is closed (1013, try later).
+        idle_timeout_s: a connection without a request for this long is closed (0: never).
+        max_image_pixels: most pixels (H x W) in one image of a request.
+        max_aspect: most long side over short side of an image.
+        max_prompt_tokens: most tokens in an instruction.
     """
-    if max_batch < 1 or batch_window_ms < 0:
-        raise CapVectorError(
-            f"--max-batch must be >= 1 and --batch-window-ms >= 0, got {max_batch} and "
-            f"{batch_window_ms}"
-        )
+    for name, value, low in (
+        ("--max-batch", max_batch, 1), ("--batch-window-ms", batch_window_ms, 0),
+        ("--max-connections", max_connections, 1), ("--idle-timeout-s", idle_timeout_s, 0),
+        ("--max-image-pixels", max_image_pixels, 1), ("--max-aspect", max_aspect, 1),
+        ("--max-prompt-tokens", max_prompt_tokens, 1),
+    ):  # fmt: skip
+        if not value >= low:  # NaN too
+            raise CapVectorError(f"{name} must be >= {low}, got {value}")
     torch_device = resolve_device(device)
     precision = resolve_precision(torch_device, precision)  # refused before the load
     with _bound(host, port) as sock:  # a taken port fails before minutes of loading
         policy = ServedPolicy(ckpt, torch_device, precision)
         policy.warm_up()
-        schema = ObservationSchema.of(policy.spec, default_prompt)
+        schema = ObservationSchema.of(
+            policy.spec, default_prompt, max_image_pixels=max_image_pixels,
+            max_aspect=max_aspect, max_prompt_tokens=max_prompt_tokens,
+            count_tokens=policy.count_tokens,
+        )  # fmt: skip
         metadata = policy.metadata(schema, max_batch)
         server = PolicyServer(
             policy.act_batch, schema, metadata, max_batch=max_batch,
-            batch_window=batch_window_ms / 1000,
+            batch_window=batch_window_ms / 1000, idle_timeout=idle_timeout_s or None,
+            max_connections=max_connections,
         )  # fmt: skip
         address = sock.getsockname()
         print(
