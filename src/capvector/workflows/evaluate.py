@@ -168,7 +168,7 @@ NON_FINITE = "non-finite action"
 
 
 def _refuse_non_finite_actions(
-    specs: Sequence[AnyEpisodeSpec], results: Sequence[EpisodeResult]
+    specs: Sequence[Spec], results: Sequence[EpisodeResult]
 ) -> None:
     """A policy that answers NaN is broken, not unsuccessful: after the table (and --json),
     say so and exit non-zero rather than report a success rate of 0 as if it had tried."""
