@@ -167,9 +167,7 @@ NON_FINITE = "non-finite action"
 """How an episode that the policy answered with NaN or inf ends (``Episode.execute``)."""
 
 
-def _refuse_non_finite_actions(
-    specs: Sequence[Spec], results: Sequence[EpisodeResult]
-) -> None:
+def _refuse_non_finite_actions(specs: Sequence[Spec], results: Sequence[EpisodeResult]) -> None:
     """A policy that answers NaN is broken, not unsuccessful: after the table (and --json),
     say so and exit non-zero rather than report a success rate of 0 as if it had tried."""
     broken = [(s, r) for s, r in zip(specs, results, strict=True) if NON_FINITE in (r.reason or "")]
