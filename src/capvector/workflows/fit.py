@@ -95,7 +95,20 @@ def run_lightning_cli(args: list[str] | None, run: bool = True) -> object:
                 super().setup(trainer, pl_module, stage)
 
         def on_fit_start(self, trainer, pl_module) -> None:  # noqa: ANN001 (Lightning's)
-            super().setup(trainer, pl_module, "fit")
+            # SaveConfigCallback.setup's write, into the run folder rather than trainer.log_dir:
+            # with MLflow as the first logger that is its store's root, which MLflow then reports
+            # as a malformed experiment (run_folder says where instead).
+            from capvector.training.loggers import run_folder
+
+            folder = run_folder(trainer)  # collective: every rank asks
+            if trainer.is_global_zero and not self.already_saved:
+                folder.mkdir(parents=True, exist_ok=True)
+                self.parser.save(
+                    self.config, str(folder / self.config_filename), skip_none=False,
+                    overwrite=self.overwrite, multifile=self.multifile,
+                )  # fmt: skip
+                self.save_config(trainer, pl_module, "fit")
+            self.already_saved = True
 
     subcommand = (args or sys.argv[1:])[0] if run else "fit"
     try:
