@@ -176,7 +176,7 @@ def merge(
     if not vectors:
         raise CapVectorError("no vectors to merge: pass --vector DIR[:λ] at least once")
     inputs = [base, *(v for v, _ in vectors)]
-    check_output(out, overwrite, inputs)
+    check_output(out, overwrite, inputs, folder=True)
     source = open_weights(base)
     if not isinstance(source, SafetensorsFolder) or source.kind != "export":
         raise CapVectorError(

@@ -71,7 +71,9 @@ def run_lightning_cli(args: list[str] | None, run: bool = True) -> object:
                 resume_latest_run,
             )
 
-            check_fit_outputs(self.trainer)
+            check_fit_outputs(
+                self.trainer, self.model, fit_inputs(self.model, self.datamodule, self.trainer)
+            )
             if not (os.environ.get("OMP_NUM_THREADS") or os.environ.get(STAGE_CORES)):
                 # Started by hand: share the cores with the other fits running (the callback's
                 # docstring says why); a recipe stage or the user fixed the threads otherwise.
@@ -153,6 +155,18 @@ def _check_before_recording(config: object) -> None:
             paths.append((f"the logger's save_dir ({logger.class_path})", save_dir))
     for what, path in paths:
         check_writable(path, f"into {what}", inside=True)
+
+
+def fit_inputs(model: object, datamodule: object, trainer: object) -> list[str]:
+    """The local paths a fit reads: the pretrained export, the demos, merged vectors' folders."""
+    hparams = getattr(model, "hparams", {})
+    data = getattr(datamodule, "hparams", {})
+    paths = [hparams.get("pretrained"), data.get("lerobot_root")]
+    paths += [*(data.get("train_files") or []), *(data.get("val_files") or [])]
+    for callback in getattr(trainer, "callbacks", None) or []:
+        paths.append(getattr(callback, "vector", None))  # MergeCapabilityVector's folder
+    # A hub id is no local path; a demo file `data.generate` has yet to record is not there yet.
+    return [str(p) for p in paths if isinstance(p, str | os.PathLike) and os.path.exists(p)]
 
 
 def csv_logger_first(loggers: list) -> list:
