@@ -169,8 +169,9 @@ def _refuse_unless_ours(target: Path, what: str) -> None:
     if not os.path.lexists(target):
         return
     if target.is_symlink() or not target.is_dir():
+        kind = "a symbolic link" if target.is_symlink() else "a file"
         raise CapVectorError(
-            f"{what} {target} is a file, and this output is a folder: --overwrite replaces only a "
+            f"{what} {target} is {kind}, and this output is a folder: --overwrite replaces only a "
             f"folder capvector wrote; choose another {what}"
         )
     if (target / MARKER).is_file() or not any(target.iterdir()) or _legacy_output(target):
