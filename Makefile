@@ -17,7 +17,7 @@ INSTALL := $(PY) -m pip install --quiet -c constraints.txt
 $(VENV)/.installed: pyproject.toml constraints.txt
 	test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(INSTALL) -e ".[dev,sim,libero,tensorboard,wandb]"
+	$(INSTALL) -e ".[dev,sim,libero,tensorboard,wandb,mlflow]"
 	$(INSTALL) --no-build-isolation "deepspeed==0.19.8"
 	touch $@
 

@@ -18,6 +18,7 @@ from capvector import cli
 from capvector.cli import main
 from conftest import UPSTREAM_FIXTURES
 from test_cli_errors import fit_args, inputs, tree_digest  # noqa: F401 (inputs: a fixture)
+from test_lerobot import CAMERAS, write_lerobot_v3
 
 
 def _cut(path: Path) -> None:
@@ -66,6 +67,7 @@ def bad(tmp_path_factory: pytest.TempPathFactory, inputs: Path) -> Path:  # noqa
         {"name": "c", "command": "backbone-info", "args": info},  # after b, the stage before it
     ])  # fmt: skip
     (root / "typo.yaml").write_text("trainer:\n  max_stesp: 1\n")
+    write_lerobot_v3(root / "lerobot")
     (root / "libero.yaml").write_text("data:\n  eval_tasks:\n    - {suite: libero_spatial}\n")
     # A real one-step fit's checkpoint, then cut as a run killed while saving it leaves it.
     runs = root / "runs"
@@ -150,6 +152,16 @@ CASES: dict[str, tuple[Case, str]] = {
         lambda i, b, o: fit_args(i, o, f"--ckpt_path={i / 'missing.ckpt'}"),
         r"--ckpt_path .*missing\.ckpt does not exist",
     ),
+    "fit: the log folder inside the pretrained export, before step 0": (
+        lambda i, b, o: fit_args(i, i / "oft_sft" / "runs", f"--model.pretrained={i / 'oft_sft'}"),
+        r"trainer\.default_root_dir .*oft_sft/runs lies inside the input .*oft_sft; an output must be outside every input",
+    ),
+    "fit: the log folder inside the demos' LeRobot folder, before step 0": (
+        lambda i, b, o: [*(a for a in fit_args(i, b / "lerobot" / "runs") if not a.startswith("--data.train_files")),
+                         f"--data.lerobot_root={b / 'lerobot'}", f"--data.cameras=[{','.join(CAMERAS)}]",
+                         "--data.proprio_keys=[observation.state]", "--data.chunk_size=3"],
+        r"lies inside the input .*lerobot; an output must be outside every input",
+    ),
     "sweep-scale: neither rollouts nor held-out demos": (
         lambda i, b, o: ["sweep-scale", "--base", str(i / "oft_sft"), "--vector", str(i / "oft_vector"), "--out", str(o)],
         r"give --task/--episodes \(rollouts\) and/or --demos",
@@ -216,14 +228,22 @@ def test_a_bug_keeps_its_traceback(
 def test_the_machine_refusing_is_one_line_exit_1(
     monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
 ) -> None:
-    full = OSError(errno.ENOSPC, "No space left on device", "/data/out/model.safetensors")
-    monkeypatch.setattr(cli, "broken_main", _failing_tool(full), raising=False)
+    read_only = OSError(errno.EROFS, "Read-only file system", "/data/out/model.safetensors")
+    monkeypatch.setattr(cli, "broken_main", _failing_tool(read_only), raising=False)
     monkeypatch.setitem(cli.TOOLS, "broken", ("capvector.cli:broken_main", "raises"))
     assert main(["broken"]) == 1
     assert capfd.readouterr().err == (
-        "capvector broken: error: [Errno 28] No space left on device: "
-        "'/data/out/model.safetensors'\n"
+        "capvector broken: error: [Errno 30] Read-only file system: '/data/out/model.safetensors'\n"
     )
+    # A full disk met outside io.outputs (Lightning's checkpoint, a logger) is the output's place
+    # to change, as bad input is (issue 62): exit 2, the path and what to do.
+    full = OSError(errno.ENOSPC, "No space left on device", "/nonexistent/out/model.safetensors")
+    monkeypatch.setattr(cli, "broken_main", _failing_tool(full))
+    assert main(["broken"]) == 2
+    assert re.fullmatch(
+        r"capvector broken: error: cannot write output /nonexistent/out/model\.safetensors: its "
+        r"disk filled up while writing it \(.* free once the partial output was removed\); free "
+        r"space there or choose another output\n", capfd.readouterr().err)  # fmt: skip
     missing = FileNotFoundError(errno.ENOENT, "No such file or directory", "x")  # a bug's, maybe
     monkeypatch.setattr(cli, "broken_main", _failing_tool(missing))
     with pytest.raises(FileNotFoundError):

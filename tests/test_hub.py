@@ -131,9 +131,48 @@ def test_push_refuses_a_card_with_a_local_base_model(tmp_path: Path) -> None:
     _, header, body = readme.read_text().split("---\n", 2)
     meta = {**yaml.safe_load(header), "base_model": ["/home/me/runs/theta_pre"]}
     readme.write_text(f"---\n{yaml.safe_dump(meta)}---\n{body}")
-    with pytest.raises(CapVectorError, match="base_model '/home/me/runs/theta_pre'.*hub ids only"):
+    with pytest.raises(CapVectorError, match="base_model '/home/me/runs/theta_pre'.*repo ids only"):
         upload_plan(tmp_path / "export")
     assert main(["push", str(tmp_path / "export"), "not a repo"]) == 2
     readme.unlink()
     with pytest.raises(CapVectorError, match="has no README.md"):
         upload_plan(tmp_path / "export")
+
+
+def test_a_hub_id_with_a_revision_is_a_valid_base_model_and_hub_vectors_are_named_by_id(
+    hub_cache: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from huggingface_hub.utils import validate_repo_id
+
+    # A fine-tune of REPO@main: base_model is the repo id the hub validates, the revision is
+    # kept in the body.
+    from capvector.module import VLAModule
+
+    VLAModule(pretrained=f"{REPO}@main").export(tmp_path / "tuned")
+    card = read_model_card(tmp_path / "tuned")
+    assert card.data.base_model == [REPO]
+    validate_repo_id(card.data.base_model[0])
+    assert f"| base model revision | {REPO}@main |" in card.text
+
+    # A merge of a vector given by hub id names it by that id, not its cache snapshot folder.
+    cache_snapshot(hub_cache, "capvector-test/vec", ROOT / "assets" / "capability_vector")
+    out = tmp_path / "meta"
+    assert main(["merge", "--base", str(THETA_PRE), "--vector", "capvector-test/vec@main:1",
+                 "--out", str(out)]) == 0  # fmt: skip
+    text = read_model_card(out).text
+    assert (
+        "c(capvector-test/vec@main)" in text and "| vector 1 | capvector-test/vec@main x 1 " in text
+    )
+    assert str(hub_cache) not in text
+
+    # A card written with the revision in base_model (as before) is refused by our check and by
+    # push --dry-run, as the hub would refuse it.
+    readme = tmp_path / "tuned" / "README.md"
+    _, header, body = readme.read_text().split("---\n", 2)
+    meta = {**yaml.safe_load(header), "base_model": [f"{REPO}@main"]}
+    readme.write_text(f"---\n{yaml.safe_dump(meta)}---\n{body}")
+    with pytest.raises(CapVectorError, match=f"base_model '{REPO}@main'.*not a hub repo id"):
+        upload_plan(tmp_path / "tuned")
+    capsys.readouterr()
+    assert main(["push", str(tmp_path / "tuned"), "org/tuned", "--dry-run"]) == 2
+    assert f"base_model '{REPO}@main'" in capsys.readouterr().err

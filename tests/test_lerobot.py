@@ -1,4 +1,5 @@
-"""The LeRobotDataset v3.0 reader on a small folder written here with pyarrow and PyAV."""
+"""The LeRobotDataset v3.0 reader on a small folder written here with pyarrow and PyAV (the layout of
+LeRobot's v2.1 -> v3.0 converter), and on one recorded by lerobot 0.4.4's own writer."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import pytest
 import torch
 from torch.utils.data import DataLoader
 
+from capvector.cli import main
 from capvector.data import keys
 from capvector.data.hdf5 import DatasetError, HDF5RobotDataset
 from capvector.data.lerobot import LeRobotV3Dataset, statistics_from_lerobot
@@ -19,6 +21,8 @@ from capvector.data.statistics import Normalizer, compute_statistics
 from capvector.data.transforms import ImageTransform
 from conftest import write_demo_file
 
+RECORDED = Path(__file__).parent / "fixtures/lerobot_writer/lerobot_writer_tiny"
+"""Written by lerobot 0.4.4's ``LeRobotDataset`` recorder; see PROVENANCE.md beside it."""
 FPS = 10
 SIZE = 32
 CAMERAS = ("observation.images.image", "observation.images.wrist_image")
@@ -440,3 +444,64 @@ def test_missing_extra_names_the_install_command(
         match=r"^reading LeRobot datasets needs the lerobot extra: pip install 'capvector\[lerobot\]'",
     ):
         dataset(tmp_path)  # raised before the folder is looked at
+
+
+def test_a_dataset_recorded_by_lerobot_reads(tmp_path: Path) -> None:
+    import pyarrow.parquet as pq
+
+    # The case this fixture exists for: the recorder leaves the task index unnamed.
+    tasks = pq.read_table(RECORDED / "meta/tasks.parquet")
+    assert tasks.column_names == ["task_index", "__index_level_0__"]
+    frames = pq.read_table(RECORDED / "data/chunk-000/file-000.parquet").to_pydict()
+    states = {
+        (e, t): np.array(x, np.float32)
+        for e, t, x in zip(
+            frames["episode_index"], frames["frame_index"], frames["observation.state"], strict=True
+        )
+    }
+    ds = dataset(RECORDED)
+    assert ds.tasks == dict(enumerate(TASKS))
+    assert [(e.index, e.length) for e in ds.episodes] == list(enumerate(LENGTHS))
+    assert (ds.action_dim, ds.proprio_dim) == (7, 8)
+    where = expected_episode_frames(ds)
+    assert len(ds) == len(where)
+    for i in reversed(range(len(ds))):  # backwards: every query seeks
+        episode, frame = where[i]
+        sample = ds[i]
+        assert sample[keys.INSTRUCTION] == TASKS[EPISODE_TASKS[episode]]
+        # The writer's state starts with (episode, frame): the frame row matches the video frame.
+        raw = states[(episode, frame)]
+        assert tuple(raw[:2]) == (episode, frame)
+        state = ds.normalizer.normalize("proprio", raw)
+        np.testing.assert_allclose(sample[keys.PROPRIO].numpy(), state, rtol=1e-6)
+        for camera in range(2):  # lerobot's default AV1 encoding, CRF 30
+            mean = sample[keys.IMAGES][camera].mean(dim=(1, 2))
+            expected = torch.tensor(colour(camera, episode, frame), dtype=torch.float32) / 255
+            assert torch.allclose(mean, expected, atol=COLOUR_TOLERANCE), (i, camera, mean * 255)
+    batch = next(iter(DataLoader(ds, batch_size=4)))
+    assert batch[keys.IMAGES].shape == (4, 2, 3, 64, 64)
+
+
+def test_a_dataset_recorded_by_lerobot_trains(tmp_path: Path) -> None:
+    out = tmp_path / "runs"
+    assert main([
+        "fit", "--trainer.accelerator=cpu", "--trainer.max_steps=2",
+        "--trainer.enable_progress_bar=false", f"--trainer.default_root_dir={out}",
+        "--trainer.logger.class_path=capvector.training.loggers.CSVLogger",
+        f"--trainer.logger.init_args.save_dir={out}", "--trainer.logger.init_args.name=fit",
+        "--model.backbone=openvla-oft-tiny", f"--data.lerobot_root={RECORDED}",
+        f"--data.cameras=[{','.join(CAMERAS)}]", "--data.proprio_keys=[observation.state]",
+        "--data.chunk_size=3", "--data.batch_size=4",
+    ]) == 0  # fmt: skip
+    (checkpoint,) = (out / "fit/version_0/checkpoints").glob("*.ckpt")
+    assert torch.load(checkpoint, weights_only=False)["global_step"] == 2
+
+
+def test_a_tasks_file_without_task_strings_is_named(v3_copy: Path) -> None:
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    path = v3_copy / "meta/tasks.parquet"
+    pq.write_table(pa.table({"task_index": [0, 1], "name": list(TASKS)}), path)
+    with pytest.raises(DatasetError, match=r"tasks\.parquet has columns \['task_index', 'name'\]"):
+        dataset(v3_copy)

@@ -103,7 +103,7 @@ def test_the_validation_loop_logs_libero_success_per_task(export: Path, tmp_path
     with (version / "metrics.csv").open() as f:
         (metrics,) = list(csv.DictReader(f))
     assert metrics["val/episodes"] == "2.0"
-    assert metrics["val/success_rate"] == metrics[f"val/success_rate/{SUITE}/0"] == "0.0"
+    assert metrics["val/success_rate"] == metrics[f"val/success_rate_by_task/{SUITE}/0"] == "0.0"
     with (version / "episodes.csv").open() as f:
         episodes = [(e["task"], e["seed"], e["success"]) for e in csv.DictReader(f)]
     assert episodes == [(f"{SUITE}/0", "0", "0"), (f"{SUITE}/0", "1", "0")]

@@ -232,3 +232,85 @@ def test_report_sweep_and_inspect_show_their_plot_in_the_given_logger(tmp_path: 
     for name, tag in [("report", "report/success_vs_steps"), ("sweep", "sweep/scale"),
                       ("inspect", "inspect/norms_by_layer")]:  # fmt: skip
         assert tensorboard_events(tmp_path / "tb" / name / "version_0").Tags()["images"] == [tag]
+
+
+def mlflow_store_ok(root: Path) -> None:
+    """The store root holds only what MLflow's file store makes (experiment folders and its
+    trash): anything else makes MLflow report a malformed experiment."""
+    for entry in root.iterdir():
+        assert entry.name == ".trash" or (entry / "meta.yaml").is_file(), entry
+
+
+@pytest.mark.sim
+def test_a_fit_with_rollouts_logs_to_mlflow_tensorboard_and_wandb_at_one_step(
+    tmp_path: Path, demo_file: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A fit whose first logger is MLflow on a file store (MLflow >= 3 refuses it unless
+    MLFLOW_ALLOW_FILE_STORE=true, which the user sets, not capvector), with TensorBoard and W&B
+    beside it: the metrics are stored, the rollout video and episodes.csv are MLflow artifacts
+    and nothing lands in the store root; each logger shows the video at the step of the
+    validation's success rate."""
+    from mlflow.tracking import MlflowClient
+
+    store = tmp_path / "mlruns"
+    loggers = tmp_path / "loggers.yaml"
+    mlflow = {"experiment_name": "capvector-test", "tracking_uri": f"file://{store}"}
+    tensorboard = {"save_dir": str(tmp_path / "tb"), "name": "fit", "version": "run"}
+    wandb = {"save_dir": str(tmp_path), "offline": True, "project": "capvector-test", "id": "fit0"}
+    loggers.write_text(json.dumps({"trainer": {"logger": [
+        {"class_path": "lightning.pytorch.loggers.MLFlowLogger", "init_args": mlflow},
+        {"class_path": "lightning.pytorch.loggers.TensorBoardLogger", "init_args": tensorboard},
+        {"class_path": "lightning.pytorch.loggers.WandbLogger", "init_args": wandb},
+    ]}}))  # fmt: skip
+    fit = [
+        "fit", "--config", str(REPO / "configs/debug.yaml"), "--config", str(loggers),
+        f"--data.train_files=[{demo_file}]", "--data.batch_size=4", "--trainer.max_steps=2",
+        "--trainer.val_check_interval=2", "--trainer.num_sanity_val_steps=0",
+        "--trainer.log_every_n_steps=1", "--trainer.enable_progress_bar=false",
+        f"--trainer.default_root_dir={tmp_path / 'root'}",
+        "--data.eval_tasks=[{task: Lift, episodes: 1, max_steps: 16}]", "--model.rollout.videos=1",
+    ]  # fmt: skip
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("WANDB_", "MLFLOW_"))}
+    env["MLFLOW_ALLOW_FILE_STORE"] = "true"
+    done = subprocess.run([sys.executable, "-m", "capvector.cli", *fit], capture_output=True,
+                          text=True, cwd=tmp_path, env=env)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+
+    mlflow_store_ok(store)
+    monkeypatch.setenv("MLFLOW_ALLOW_FILE_STORE", "true")  # for this process's reader too
+    client = MlflowClient(tracking_uri=f"file://{store}")
+    (experiment,) = [
+        e for e in client.search_experiments() if e.name == "capvector-test"
+    ]  # fmt: skip
+    (run,) = client.search_runs([experiment.experiment_id])
+    history = client.get_metric_history(run.info.run_id, "val/success_rate")
+    by_task = client.get_metric_history(run.info.run_id, "val/success_rate_by_task/Lift")
+    assert [m.step for m in history] == [m.step for m in by_task] == [1]  # 2 optimizer steps done
+    assert "train/loss" in run.data.metrics
+    artifacts = Path(run.info.artifact_uri.removeprefix("file://"))
+    (video,) = artifacts.rglob("*.mp4")
+    assert video.parent.name == "step000001"
+    episodes = (artifacts / "episodes.csv").read_text().splitlines()
+    assert episodes[0] == "step,task,seed,success" and len(episodes) == 2
+    # The run's own files beside Lightning's checkpoints, inside the run's folder.
+    folder = store / experiment.experiment_id / run.info.run_id
+    assert {"checkpoints", "export", "videos", "episodes.csv"} <= {p.name for p in folder.iterdir()}
+    key = f"val/video/{video.stem}"
+
+    events = tensorboard_events(tmp_path / "tb/fit/run")
+    (success,) = events.Scalars("val/success_rate")
+    (gif,) = events.Images(key)
+    assert gif.step == success.step == 1
+
+    steps: dict[str, str] = {}
+    (wandb_run,) = (tmp_path / "wandb").glob("offline-run-*-fit0")
+    for record in wandb_records(wandb_run):
+        if record.WhichOneof("record_type") == "history":
+            items = {
+                item.key or "/".join(item.nested_key): item.value_json
+                for item in record.history.item
+            }
+            for name in ("val/success_rate", f"{key}/videos"):
+                if name in items:
+                    steps[name] = items["trainer/global_step"]
+    assert steps == {"val/success_rate": "1", f"{key}/videos": "1"}

@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 # Lightning binds its log handler to the stderr of the moment it is imported: import it now, not
@@ -24,9 +25,10 @@ import torch
 from capvector.backbones import build_backbone
 from capvector.cli import main
 from capvector.errors import CapVectorError
-from capvector.io.outputs import atomic_directory
+from capvector.io.outputs import MARKER, atomic_directory, atomic_write_bytes
 from capvector.vectors import extract
-from test_cli_errors import tree_digest
+from conftest import write_demo_file
+from test_cli_errors import fit_args, tree_digest
 
 PRESET = "openvla-oft-tiny"
 
@@ -109,7 +111,7 @@ def test_an_output_never_touches_an_input(
     run_refused(args, re.escape(f"{message}; an output must be outside every input: choose another {what}"), capfd)  # fmt: skip
     assert tree_digest(p) == before  # nothing removed, nothing added
     assert new_output is None or not new_output.exists()
-    assert not list(p.rglob(".*")), "a temporary or lock file was left"
+    assert not [f for f in p.rglob(".*") if f.name != MARKER], "a temporary or lock file was left"
 
 
 def test_an_out_that_is_a_symbolic_link_loop_is_one_line(
@@ -136,10 +138,12 @@ def test_without_overwrite_an_output_that_appears_meanwhile_is_never_moved_aside
         (target / "theirs.txt").write_text("theirs")
     assert (target / "theirs.txt").read_text() == "theirs" and len(list(target.iterdir())) == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
-    # With overwrite the new result replaces it whole, and nothing else is left beside it.
+    # With overwrite the new result replaces a result of capvector's whole (another program's
+    # folder, without the marker, is refused), and nothing else is left beside it.
+    (target / MARKER).touch()
     with atomic_directory(target, overwrite=True) as tmp:
         (tmp / "ours.txt").write_text("ours")
-    assert [p.name for p in target.iterdir()] == ["ours.txt"]
+    assert sorted(p.name for p in target.iterdir()) == [MARKER, "ours.txt"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
 
 
@@ -232,3 +236,119 @@ def test_a_killed_writer_leaves_nothing_behind_after_the_next_run(
         assert temporaries[0] in leftovers(tmp_path, "merged") and not out.exists()
     assert main(merge_args(project, out)) == 0
     assert leftovers(tmp_path, "merged") == [] and tree_digest(project) == before
+
+
+# Issue 62, items 4 and 5: a full disk is one line, and --overwrite replaces only our outputs.
+
+
+@pytest.fixture
+def full_disk(tmp_path: Path) -> Iterator[Path]:
+    """A 1 MB tmpfs, too small for any output of the tiny presets (mounting needs root)."""
+    folder = tmp_path / "full"
+    folder.mkdir()
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(folder)],
+                             capture_output=True, text=True)  # fmt: skip
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a small tmpfs here: {mounted.stderr.strip() or 'not root'}")
+    try:
+        yield folder
+    finally:
+        subprocess.run(["umount", "-l", str(folder)], check=True)
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Demos and a one-step fit's checkpoint (``runs/**/*.ckpt``), for `fit` and `export`."""
+    root = tmp_path_factory.mktemp("fit")
+    write_demo_file(root / "demos.hdf5")
+    args = [*fit_args(root, root / "runs"), "--trainer.callbacks+=lightning.pytorch.callbacks.ModelCheckpoint"]  # fmt: skip
+    assert main(args) == 0
+    return root
+
+
+FULL_DISK_WRITERS: dict[str, Callable[[Path, Path, Path], list[str]]] = {
+    "merge": lambda p, f, out: merge_args(p, out / "merged"),
+    "extract": lambda p, f, out: ["extract", "--aux", str(p / "aux"), "--sft", str(p / "sft"), "--out", str(out / "vec")],
+    "compose": lambda p, f, out: ["compose", "--vectors", str(p / "vec"), str(p / "vec"), "--out", str(out / "sum")],
+    "export": lambda p, f, out: ["export", "--ckpt", str(next(f.rglob("*.ckpt"))), "--out", str(out / "export")],
+    "demos": lambda p, f, out: ["demos", "--task", "Lift", "--episodes", "1", "--no-progress", "--out", str(out / "d.hdf5")],
+    "fit": lambda p, f, out: fit_args(f, out / "runs"),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("writer", sorted(FULL_DISK_WRITERS))
+def test_a_full_disk_is_one_line_naming_the_path(
+    writer: str,
+    project: Path,
+    fitted: Path,
+    full_disk: Path,
+    capfd: pytest.CaptureFixture[str],
+) -> None:
+    """`demos` crashed in libhdf5 (exit 139) and left a 2 MB temporary and its lock; `export` printed
+    a traceback; merge, extract and compose only `[Errno 28] No space left on device`. A fit
+    refuses before step 0 (a partial run folder was left)."""
+    before = tree_digest(project)
+    capfd.readouterr()
+    code = main(FULL_DISK_WRITERS[writer](project, fitted, full_disk))
+    err = capfd.readouterr().err
+    errors = [line for line in err.splitlines() if "error" in line.lower()]
+    assert code == 2, err
+    assert len(errors) == 1 and "Traceback" not in err, err
+    assert re.fullmatch(
+        rf"capvector {writer}: error: cannot write .*{full_disk}\S*: (its disk filled up while "
+        r"writing it \(.* free once the partial output was removed\)|it needs about .* and its disk has .* free); free space "
+        r"there or choose another \S+", errors[0]), errors[0]  # fmt: skip
+    assert list(full_disk.iterdir()) == [], "a temporary, lock or partial output was left"
+    assert tree_digest(project) == before
+
+
+def test_atomic_writers_turn_a_full_disk_into_one_line(full_disk: Path) -> None:
+    """Files (reports, results) and folders alike, whichever library met the full disk (Python's
+    ENOSPC, or safetensors' Rust error without an errno)."""
+    from safetensors.torch import save_file
+
+    too_big = b"x" * 2_000_000
+    with pytest.raises(
+        CapVectorError, match=rf"cannot write output {full_disk / 'r.json'}: its disk filled up"
+    ):
+        atomic_write_bytes(full_disk / "r.json", too_big)
+    full = pytest.raises(CapVectorError, match=r"its disk filled up while writing it")
+    with full, atomic_directory(full_disk / "weights") as tmp:
+        save_file({"w": torch.zeros(500_000)}, str(tmp / "w.safetensors"))
+    assert list(full_disk.iterdir()) == []
+
+
+def test_overwrite_replaces_only_what_capvector_wrote(
+    project: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+    capfd: pytest.CaptureFixture[str],
+) -> None:  # fmt: skip
+    """`merge --out "$PWD" --overwrite` deleted the unrelated files of the working folder;
+    `--out some_demos.hdf5 --overwrite` replaced a file with a folder; `--out .` was a 24-line
+    `OSError: [Errno 16]`."""
+    work = tmp_path / "work" / "here"
+    work.mkdir(parents=True)
+    (work / "notes.txt").write_text("mine")
+    (work / "some_demos.hdf5").write_bytes(b"demos")
+    (work / "theirs").mkdir()
+    (work / "theirs" / "x.txt").write_text("theirs")
+    monkeypatch.chdir(work)
+    before = tree_digest(tmp_path)
+    working = "is the working folder: an output folder replaces what is at its path, so it must be a new folder"  # fmt: skip
+    for out, message in [
+        (".", rf"--out \. {working}; choose one, e.g\. --out out"),
+        (str(work), rf"--out {work} {working}"),
+        ("..", r"--out \.\. holds the working folder"),
+        (str(tmp_path), rf"--out {tmp_path} holds the working folder"),
+        ("some_demos.hdf5", r"--out some_demos\.hdf5 is a file, and this output is a folder: --overwrite replaces only a folder capvector wrote"),
+        ("theirs", r"--out theirs is a folder capvector did not write \(it has no \.capvector-output file\), so --overwrite will not replace it"),
+    ]:  # fmt: skip
+        for extra in ([], ["--overwrite"]) if out in (".", "..") else (["--overwrite"],):
+            run_refused(merge_args(project, out, *extra), message, capfd)
+    assert tree_digest(tmp_path) == before
+    assert sorted(p.name for p in work.iterdir()) == ["notes.txt", "some_demos.hdf5", "theirs"]
+    # An empty folder, and an output capvector wrote (it has the marker), are replaced.
+    (work / "empty").mkdir()
+    for out in ("empty", "merged", "merged"):
+        assert main(merge_args(project, out, "--overwrite")) == 0
+        assert (work / out / MARKER).is_file() and (work / out / "model.safetensors").is_file()
+    assert sorted(p.name for p in work.iterdir()) == ["empty", "merged", "notes.txt", "some_demos.hdf5", "theirs"]  # fmt: skip

@@ -6,11 +6,13 @@ from __future__ import annotations
 
 import csv
 import json
+import signal
 import subprocess
 import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -118,3 +120,58 @@ def test_a_recipe_run_again_waits_for_its_job_still_running(
         f"{job}_submitted.pkl"
     ]
     assert json.loads((stage / ".done").read_text())["job"] == job
+
+
+def start_fit_recipe(tmp_path: Path, demo_file: Path, **popen: Any) -> tuple[Any, str]:
+    """A recipe of one 300-step fit on SLURM, started; returns it once the fit is training, and
+    the fit's job id."""
+    recipe = write_recipe(tmp_path / "recipe.yaml", [fit_stage(demo_file, steps=300)],
+                          launcher="slurm", resources={"time_min": 10})  # fmt: skip
+    driver = subprocess.Popen(
+        [sys.executable, "-m", "capvector.cli", "recipe", "--config", str(recipe)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=REPO, **popen,
+    )  # fmt: skip
+    metrics = tmp_path / "run/fit/fit/version_0/metrics.csv"
+    deadline = time.time() + 600
+    while not (metrics.is_file() and len(metrics.read_text().splitlines()) > 5):
+        assert driver.poll() is None and time.time() < deadline, driver.stdout.read()  # type: ignore[union-attr]
+        time.sleep(0.5)
+    (job,) = slurm_command("squeue", "-h", "-o", "%i").split()
+    return driver, job
+
+
+@pytest.mark.slow
+def test_a_cancelled_job_fails_its_stage_with_its_state(
+    slurm: Path, tmp_path: Path, demo_file: Path
+) -> None:
+    """The one-node cluster has no accounting (no sacct), as many small ones: submitit would
+    never learn that the job ended; the recipe asks squeue and fails the stage."""
+    from capvector.workflows.launchers import FORGOTTEN, slurm_state
+
+    assert subprocess.run(["sacct"], capture_output=True).returncode != 0  # no accounting here
+    driver, job = start_fit_recipe(tmp_path, demo_file)
+    assert slurm_state(job) == "RUNNING"
+    slurm_command("scancel", job)
+    out, _ = driver.communicate(timeout=120)  # noticed in seconds, not never
+    assert driver.returncode == 2, out[-3000:]
+    assert f"SLURM job {job} ended (CANCELLED) without a result" in out
+    assert "stage(s) ['fit'] failed" in out
+    assert slurm_state("999999") == FORGOTTEN
+
+
+@pytest.mark.slow
+def test_a_backgrounded_recipe_stops_on_sigint_and_names_its_running_job(
+    slurm: Path, tmp_path: Path, demo_file: Path
+) -> None:
+    """Started as a script's `cmd &` starts it (SIGINT ignored), the recipe still stops on
+    SIGINT; its job goes on, named with the state SLURM gives it."""
+    driver, job = start_fit_recipe(
+        tmp_path, demo_file, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN)
+    )
+    try:
+        driver.send_signal(signal.SIGINT)
+        out, _ = driver.communicate(timeout=60)
+        assert driver.returncode != 0, out[-3000:]
+        assert f"capvector recipe: stopped waiting for fit (job {job}, RUNNING; log: " in out
+    finally:
+        subprocess.run(["scancel", job], check=False)

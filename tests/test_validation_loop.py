@@ -84,7 +84,7 @@ def test_fit_runs_the_rollout_validation_loop(tmp_path: Path) -> None:
     header = (version / "metrics.csv").read_text().splitlines()[0]
     assert (
         "val/success_rate" in header
-        and "val/success_rate/Lift" in header
+        and "val/success_rate_by_task/Lift" in header
         and "val/episodes" in header
     )
     assert len(list((version / "videos").rglob("*.mp4"))) == 1

@@ -9,6 +9,7 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
+from capvector.io.outputs import MARKER
 from capvector.vectors import (
     CapabilityVector,
     CapVectorError,
@@ -72,7 +73,7 @@ def test_merge_equals_state_dict_arithmetic(setup) -> None:
     out_files = sorted(
         p.relative_to(tmp / "meta") for p in (tmp / "meta").rglob("*") if p.is_file()
     )
-    assert out_files == sorted({*base_files, Path(MERGE_RECORD), Path("README.md")})
+    assert out_files == sorted({*base_files, Path(MERGE_RECORD), Path("README.md"), Path(MARKER)})
     rewritten = {"model.safetensors.index.json", "config.json", "README.md"}
     for rel in base_files:
         if rel.suffix != ".safetensors" and rel.name not in rewritten:

@@ -16,6 +16,7 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 
 from capvector.errors import CapVectorError
+from capvector.io.outputs import disk_full, no_room
 from capvector.workflows.fit import run_lightning_cli
 
 # VLAModule has no test_step or predict_step (evaluation is the validation loop; `capvector
@@ -87,22 +88,35 @@ def main(argv: Sequence[str] | None = None) -> int:
         return code
 
 
-ENVIRONMENT_ERRORS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM})
-"""OSErrors that are the machine refusing (full disk, quota, read-only, permissions), not a bug."""
+ENVIRONMENT_ERRORS = frozenset({errno.EROFS, errno.EACCES, errno.EPERM})
+"""OSErrors that are the machine refusing (read-only, permissions), not a bug. A full disk is the
+output's place to change, as bad input is: exit 2, naming the path."""
 
 
 def _reported(exc: BaseException) -> tuple[BaseException | None, int]:
     """The error to print as one line and the exit code: bad input (exit 2), ours or ours wrapped
     (jsonargparse re-raises an error of a link's compute_fn, e.g. the data module's spec, as a
-    ValueError caused by it), or the environment refusing (exit 1); ``None`` for a bug."""
+    ValueError caused by it), a full disk met by a writer other than ``io.outputs``' (Lightning's
+    checkpoints, a logger), or the environment refusing (exit 1); ``None`` for a bug."""
     cause: BaseException | None = exc
     while cause is not None:
         if isinstance(cause, CapVectorError | FileExistsError):
             return cause, 2
         cause = cause.__cause__
+    if disk_full(exc):
+        return no_room(_written_path(exc) or "its output", "output", exc), 2
     if isinstance(exc, OSError) and exc.errno in ENVIRONMENT_ERRORS:
         return exc, 1
     return None, 0
+
+
+def _written_path(exc: BaseException) -> str | None:
+    seen: BaseException | None = exc
+    while seen is not None:
+        if isinstance(seen, OSError) and seen.filename:
+            return str(seen.filename)
+        seen = seen.__cause__ or seen.__context__
+    return None
 
 
 @contextmanager

@@ -41,13 +41,14 @@ from capvector.io.names import (
     EPISODES_LOG,
     MERGED_VECTORS,
     STATISTICS_FILE,
+    SUCCESS_BY_TASK,
     CheckpointMetadata,
 )
 from capvector.io.weights import dtype_name
 from capvector.objectives.base import Objective
 from capvector.policy import VLAPolicy
 from capvector.training.distributed import full_state_dict, is_rank_zero, parallelize
-from capvector.training.loggers import log_video
+from capvector.training.loggers import log_file, log_video, logging_step, run_folder
 from capvector.training.lora import (
     LoraSettings,
     cast_frozen_parameters,
@@ -319,8 +320,9 @@ class VLAModule(L.LightningModule):
         for result in results:  # the mp4s are written; the loggers people watch show them too
             if result.frames:
                 path = evaluator.video_path(result)
+                # At the step Lightning logs this validation's success rates with.
                 log_video(self.loggers, f"val/video/{path.stem}", result.frames, path,
-                          self.global_step)  # fmt: skip
+                          logging_step(self.trainer))  # fmt: skip
         for item, result in zip(counted, results, strict=True):
             self._episode_rows.append(
                 [self.global_step, _task_key(item.spec), item.spec.seed, int(result.success)]
@@ -334,15 +336,15 @@ class VLAModule(L.LightningModule):
             add_dataloader_idx=False,
         )  # fmt: skip
         for key, metric in self.success_rates.items():
-            name = "val/success_rate" if key == "all" else f"val/success_rate/{key}"
+            # Not val/success_rate/<key>: a name must not be a prefix folder of another (loggers.py).
+            name = "val/success_rate" if key == "all" else f"{SUCCESS_BY_TASK}/{key}"
             self.log(
                 name, metric, on_epoch=True, batch_size=1, add_dataloader_idx=False,
                 prog_bar=key == "all",
             )  # fmt: skip
 
     def on_validation_epoch_start(self) -> None:
-        # trainer.log_dir is a collective call under DDP: every rank asks once, here.
-        root = Path(self.trainer.log_dir or self.trainer.default_root_dir)
+        root = run_folder(self.trainer)  # collective under DDP: every rank asks once, here
         self._video_dir = root / "videos" / f"step{self.global_step:06d}"
         rank = self.trainer.global_rank
         self._episodes_log = root / (
@@ -363,6 +365,7 @@ class VLAModule(L.LightningModule):
                 writer.writerow(["step", "task", "seed", "success"])
             writer.writerows(self._episode_rows)
         self._episode_rows = []
+        log_file(self.loggers, self._episodes_log)
 
     def _evaluator(self) -> Any:
         from capvector.eval.rollout import RolloutEvaluator

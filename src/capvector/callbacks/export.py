@@ -7,16 +7,19 @@ from pathlib import Path
 import lightning as L
 from lightning.pytorch.utilities.rank_zero import rank_zero_info
 
+from capvector.training.loggers import run_folder
+
 
 class ExportOnFitEnd(L.Callback):
-    """At the end of ``fit``, export the model to ``dirpath`` (default: ``<log_dir>/export``)."""
+    """At the end of ``fit``, export the model to ``dirpath`` (default: ``export/`` in the run folder,
+    ``capvector.training.loggers.run_folder``)."""
 
     def __init__(self, dirpath: str | None = None) -> None:
         self.dirpath = dirpath
 
     def on_fit_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        target = Path(self.dirpath or Path(trainer.log_dir or trainer.default_root_dir) / "export")
-        target = Path(trainer.strategy.broadcast(str(target)))  # log_dir is only known on rank 0
+        folder = run_folder(trainer)  # collective: every rank asks
+        target = Path(self.dirpath) if self.dirpath else folder / "export"
         pl_module.export(target, overwrite=True)  # collective under FSDP2; rank 0 writes
         rank_zero_info(f"exported the model to {target}")
         trainer.strategy.barrier("capvector-export")

@@ -5,7 +5,7 @@ Layout read here (LeRobot ``src/lerobot/datasets/utils.py`` path constants,
 
     meta/info.json                          codebase_version "v3.0", fps, features, data_path, video_path
     meta/stats.json                         per feature: mean, std, min, max, count, q01 ... q99
-    meta/tasks.parquet                      columns task_index and task (pandas' named index)
+    meta/tasks.parquet                      column task_index, indexed by the task (pandas metadata)
     meta/episodes/chunk-XXX/file-XXX.parquet  one row per episode: data/{chunk,file}_index and,
                                             per camera, videos/<key>/{chunk_index,file_index,from_timestamp}
     data/chunk-XXX/file-XXX.parquet         one row per frame, many episodes per file
@@ -83,6 +83,29 @@ def _av() -> Any:
     except ImportError as e:
         raise missing_extra("reading LeRobot datasets", "lerobot", e) from e
     return av
+
+
+def _task_column(table: pyarrow.Table) -> str | None:
+    """The column of ``meta/tasks.parquet`` that holds the task strings.
+
+    LeRobot keeps tasks as a pandas frame indexed by the task string and writes it with
+    ``DataFrame.to_parquet`` (``utils.py: write_tasks``), so the strings are the frame's index. Its
+    v2.1 -> v3.0 converter names that index ``task`` and pandas stores it as a column of that name;
+    its recorder (``LeRobotDataset.save_episode_tasks``) leaves it unnamed and pandas stores it as
+    ``__index_level_0__``. Both are listed in the schema's pandas metadata (``index_columns``),
+    which is what ``pandas.read_parquet`` restores the index from; a RangeIndex is recorded there as
+    a dict, not a column, and cannot hold strings.
+    """
+    if "task" in table.column_names:
+        return "task"
+    index = [
+        c
+        for c in (table.schema.pandas_metadata or {}).get("index_columns", [])
+        if isinstance(c, str)
+    ]
+    if len(index) == 1 and index[0] in table.column_names:
+        return index[0]
+    return None
 
 
 @dataclass
@@ -275,17 +298,19 @@ class LeRobotV3Dataset(Dataset):
 
     def _read_tasks(self) -> dict[int, str]:
         _, pq = _pyarrow()
-        table = pq.read_table(self._meta_file(TASKS_PATH))
-        # LeRobot writes a pandas frame indexed by the task string (``write_tasks``); pandas stores
-        # that named index as an ordinary column "task".
-        if "task" not in table.column_names or "task_index" not in table.column_names:
+        path = self._meta_file(TASKS_PATH)
+        table = pq.read_table(path)
+        column = _task_column(table)
+        if column is None or "task_index" not in table.column_names:
             raise DatasetError(
-                f"{self.root / TASKS_PATH} has columns {table.column_names}; expected task, task_index"
+                f"{path} has columns {table.column_names} and no task column, named or recorded as "
+                "the pandas index; expected task_index and the task strings. Rewrite it with "
+                "LeRobot's write_tasks (a frame with column task_index indexed by task)"
             )
         return dict(
             zip(
                 table.column("task_index").to_pylist(),
-                table.column("task").to_pylist(),
+                table.column(column).to_pylist(),
                 strict=True,
             )
         )

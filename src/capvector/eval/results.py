@@ -91,7 +91,7 @@ class SuccessRow:
 
 
 def metric_key(task: str, robot: str, variant: str | None = None) -> str:
-    """What a success rate is named after (``val/success_rate/<key>``, ``episodes.csv``'s task):
+    """What a success rate is named after (``val/success_rate_by_task/<key>``, ``episodes.csv``'s task):
     the task, then the arm and the scene variant when they are not the defaults."""
     arm = "" if robot == DEFAULT_ROBOT else f"_{robot}"
     return f"{task}{arm}" + (f"_{variant}" if variant else "")

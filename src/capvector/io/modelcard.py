@@ -48,11 +48,17 @@ def render_model_card(
     data = ModelCardData(
         library_name=LIBRARY,
         pipeline_tag="robotics",
-        base_model=hub_bases or None,
+        # The hub's base_model holds repo ids only (validate_repo_id refuses "org/name@main");
+        # the revision the weights came from is kept in the body.
+        base_model=list(dict.fromkeys(b.partition("@")[0] for b in hub_bases)) or None,
         tags=list(dict.fromkeys([LIBRARY, "robotics", *tags])),
     )
     lines = ["---", data.to_yaml(), "---", "", f"# {title}", "", summary, ""]
-    facts = {**facts, "base model (local path)": ", ".join(local_bases)}
+    facts = {
+        **facts,
+        "base model revision": ", ".join(b for b in hub_bases if "@" in b),
+        "base model (local path)": ", ".join(local_bases),
+    }
     rows = [(k, v) for k, v in facts.items() if v not in (None, [], {}, "")]
     if rows:
         lines += ["| | |", "|---|---|"]
@@ -75,13 +81,18 @@ def check_model_card(card: ModelCard, where: str) -> None:
             f"{where} has library_name {data.library_name!r}, not {LIBRARY!r}: it was not written "
             "by capvector; export or extract the folder with capvector"
         )
+    from huggingface_hub.errors import HFValidationError
+    from huggingface_hub.utils import validate_repo_id
+
     bases = [data.base_model] if isinstance(data.base_model, str) else data.base_model or []
-    local = [str(b) for b in bases if hub_id(str(b)) is None]
-    if local:
-        raise CapVectorError(
-            f"{where} has base_model {local[0]!r}, which is not a hub id (org/name): base_model "
-            "holds hub ids only; put local paths in the card's body"
-        )
+    for base in map(str, bases):
+        try:  # what the hub checks: a repo id, with no revision and no local path
+            validate_repo_id(base)
+        except HFValidationError:
+            raise CapVectorError(
+                f"{where} has base_model {base!r}, which is not a hub repo id (org/name): "
+                "base_model holds repo ids only; put revisions and local paths in the card's body"
+            ) from None
 
 
 def read_model_card(folder: str | Path) -> ModelCard:

@@ -22,6 +22,10 @@ EXPORT_INDEX = "model.safetensors.index.json"
 DATA_SPEC_FILE = "capvector_data_spec.json"
 STATISTICS_FILE = "dataset_statistics.json"
 MODEL_CARD = "README.md"
+SUCCESS_BY_TASK = "val/success_rate_by_task"
+"""Per-task success rates are logged as ``<this>/<metric_key>`` beside the overall
+``val/success_rate``: under their own folder, as MLflow's file store cannot keep a metric that is
+also the folder of another."""
 EPISODES_LOG = "episodes.csv"
 """Per-episode rollout outcomes of the validation loop, beside Lightning's ``metrics.csv``."""
 

@@ -8,6 +8,11 @@
   process at a time write ``NAME``; the next writer of ``NAME`` sweeps the temporaries of writers
   that died without cleaning up (``kill -9``). Other exits (exceptions, Ctrl-C, and SIGTERM, which
   the CLI turns into an exception) remove their temporary on the way out.
+- A full disk while writing is bad input of the output's place, not a crash: ``no_room`` names the
+  path and its free space; ``check_room`` refuses up front when a writer knows what it needs.
+- ``--overwrite`` replaces a folder only when capvector wrote it (it holds ``MARKER``, which every
+  ``atomic_directory`` output gets) or it is empty; never a file, the working folder or one of
+  its ancestors (``merge --out "$PWD" --overwrite`` once deleted the user's files there).
 
 ``tempfile`` creates private folders (0700) and files (0600), which is right while a result is being
 written; once it is complete it gets the modes an ordinary ``mkdir``/``open`` would have given it,
@@ -18,6 +23,7 @@ from __future__ import annotations
 
 import errno
 import fcntl
+import json
 import os
 import re
 import shutil
@@ -30,6 +36,16 @@ from capvector.errors import CapVectorError
 
 Inputs = Sequence[str | Path | None]
 """The paths a command reads (``None`` entries, unset optional inputs, are skipped)."""
+
+MARKER = ".capvector-output"
+"""The file every folder ``atomic_directory`` writes holds: ``--overwrite`` replaces only those."""
+
+_LEGACY = {"config.json": "capvector-export", "capability_vector.json": "capvector-vector"}
+"""Outputs written before ``MARKER`` existed, known by the format their metadata declares."""
+
+_FULL = (errno.ENOSPC, errno.EDQUOT)
+# Writers in other languages lose the errno: safetensors (Rust) says "(os error 28)".
+_FULL_TEXT = re.compile(r"No space left on device|Disk quota exceeded|os error (28|122)\b")
 
 
 def check_writable(path: str | Path, what: str = "output", inside: bool = False) -> Path:
@@ -52,14 +68,38 @@ def check_writable(path: str | Path, what: str = "output", inside: bool = False)
 
 
 def check_output(
-    path: str | Path, overwrite: bool, inputs: Inputs = (), what: str = "--out"
+    path: str | Path,
+    overwrite: bool,
+    inputs: Inputs = (),
+    what: str = "--out",
+    folder: bool = False,
 ) -> Path:
     """Fail before any work when the output ``path`` is an input, holds one (replacing it would
     delete the input), lies inside one (it would add files to an input), exists without
     ``overwrite``, or could not be written. Paths are compared as real paths (links followed).
 
-    Outputs that are written into rather than replaced (a report folder, a JSON file) pass
-    ``overwrite=True``: their existing contents are no one's input to lose.
+    ``folder``: the output is a folder written whole (``atomic_directory``) that replaces ``path``;
+    then ``path`` may not be the working folder or hold it, and ``overwrite`` replaces only a
+    folder capvector wrote or an empty one. Outputs that are written into rather than replaced (a
+    report folder, a JSON file) pass ``overwrite=True``: their existing contents are no one's
+    input to lose.
+    """
+    target = Path(path)
+    real = check_outside_inputs(target, inputs, what)
+    if folder:
+        _refuse_working_folder(target, real, what)
+    check_writable(target, what)
+    _refuse_existing(target, overwrite, what)
+    if folder and overwrite:
+        _refuse_unless_ours(target, what)
+    return target
+
+
+def check_outside_inputs(
+    path: str | Path, inputs: Inputs, what: str = "--out", may_hold: bool = False
+) -> Path:
+    """Fail when the output ``path`` is an input, lies inside one (it would add files to an
+    input) or, unless ``may_hold`` (a folder written into, not replaced), holds one; its real path.
     """
     target = Path(path)
     real = _real_path(target, what)
@@ -69,7 +109,7 @@ def check_output(
         theirs = _real_path(Path(source), "input")
         if real == theirs:
             problem = "is an input"
-        elif real in theirs.parents:
+        elif real in theirs.parents and not may_hold:
             problem = f"holds the input {source}"
         elif theirs in real.parents:
             problem = f"lies inside the input {source}"
@@ -79,9 +119,7 @@ def check_output(
             f"{what} {target} {problem}; an output must be outside every input: choose another "
             f"{what}"
         )
-    check_writable(target, what)
-    _refuse_existing(target, overwrite, what)
-    return target
+    return real
 
 
 @contextmanager
@@ -95,13 +133,15 @@ def atomic_directory(
     rename refuses a target that appeared meanwhile (nothing is moved aside); with it, the old
     target is replaced only once the new one is complete.
     """
-    target = check_output(path, overwrite, inputs, what)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    with _writer_lock(target, what):
+    target = check_output(path, overwrite, inputs, what, folder=True)
+    with _full_disk_is_an_error(target, what), _writer_lock(target, what):
         _refuse_existing(target, overwrite, what)  # a writer that held the lock may have made it
+        if overwrite:
+            _refuse_unless_ours(target, what)
         tmp = Path(tempfile.mkdtemp(prefix=_temporary_prefix(target), dir=target.parent))
         try:
             yield tmp
+            (tmp / MARKER).write_text("written by capvector; --overwrite may replace this folder\n")
             _publish_modes(tmp)
             # On disk before the name points at it: a crash then leaves a whole result or none.
             for root, _dirs, files in os.walk(tmp):
@@ -114,6 +154,122 @@ def atomic_directory(
         _fsync(target.parent)
 
 
+def _refuse_working_folder(target: Path, real: Path, what: str) -> None:
+    cwd = Path(os.getcwd()).resolve()
+    if real == cwd or real in cwd.parents:
+        where = "is the working folder" if real == cwd else "holds the working folder"
+        raise CapVectorError(
+            f"{what} {target} {where}: an output folder replaces what is at its path, so it must "
+            f"be a new folder; choose one, e.g. {what} {target / 'out'}"
+        )
+
+
+def _refuse_unless_ours(target: Path, what: str) -> None:
+    """``--overwrite`` replaces a folder capvector wrote, or an empty one; nothing else."""
+    if not os.path.lexists(target):
+        return
+    if target.is_symlink() or not target.is_dir():
+        kind = "a symbolic link" if target.is_symlink() else "a file"
+        raise CapVectorError(
+            f"{what} {target} is {kind}, and this output is a folder: --overwrite replaces only a "
+            f"folder capvector wrote; choose another {what}"
+        )
+    if (target / MARKER).is_file() or not any(target.iterdir()) or _legacy_output(target):
+        return
+    raise CapVectorError(
+        f"{what} {target} is a folder capvector did not write (it has no {MARKER} file), so "
+        f"--overwrite will not replace it: choose another {what} or empty it yourself"
+    )
+
+
+def _legacy_output(target: Path) -> bool:
+    for name, fmt in _LEGACY.items():
+        try:
+            if json.loads((target / name).read_text()).get("format") == fmt:
+                return True
+        except (OSError, ValueError, AttributeError):
+            continue
+    return False
+
+
+def disk_full(exc: BaseException) -> bool:
+    """Whether ``exc`` (or an error it was raised from) is a full disk or an exceeded quota."""
+    seen: BaseException | None = exc
+    while seen is not None:
+        if isinstance(seen, OSError) and seen.errno in _FULL:
+            return True
+        if _FULL_TEXT.search(str(seen)):
+            return True
+        seen = seen.__cause__ or seen.__context__
+    return False
+
+
+def no_room(
+    path: str | Path, what: str = "output", exc: BaseException | None = None
+) -> CapVectorError:
+    """One line for a write that met a full disk: the path, the room left there, what to do."""
+    path = Path(path)
+    free = _free_bytes(path)
+    room = "" if free is None else f" ({_size(free)} free once the partial output was removed)"
+    quota = isinstance(exc, OSError) and exc.errno == errno.EDQUOT
+    problem = "your disk quota ran out" if quota else "its disk filled up"
+    return CapVectorError(
+        f"cannot write {what} {path}: {problem} while writing it{room}; free space there or "
+        f"choose another {what}"
+    )
+
+
+def check_room(path: str | Path, needed: int, what: str = "output") -> None:
+    """Refuse before writing ``needed`` bytes at ``path`` when its disk has less room than that."""
+    path = Path(path)
+    free = _free_bytes(path)
+    if free is not None and free < needed:
+        raise CapVectorError(
+            f"cannot write {what} {path}: it needs about {_size(needed)} and its disk has "
+            f"{_size(free)} free; free space there or choose another {what}"
+        )
+
+
+def _free_bytes(path: Path) -> int | None:
+    """Bytes an unprivileged writer may still use on the disk of ``path`` (its nearest existing
+    ancestor); ``None`` where the file system does not say."""
+    ancestor = path.absolute()
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    try:
+        stat = os.statvfs(ancestor)
+    except OSError:
+        return None
+    return stat.f_bavail * stat.f_frsize
+
+
+def _size(n: int) -> str:
+    """``1.9 MB``: decimal units, as ``df -H`` prints them."""
+    if n < 1000:
+        return f"{n} bytes"
+    scaled = float(n)
+    for unit in ("kB", "MB", "GB", "TB"):
+        scaled /= 1000
+        if scaled < 1000 or unit == "TB":
+            break
+    return f"{scaled:.1f} {unit}"
+
+
+@contextmanager
+def _full_disk_is_an_error(target: Path, what: str) -> Iterator[None]:
+    """Around a writer (outermost: its temporary and lock are gone before this runs): a full
+    disk is one line naming ``target``, whatever library met it."""
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        yield
+    except CapVectorError:
+        raise
+    except Exception as exc:
+        if disk_full(exc):
+            raise no_room(target, what, exc) from exc
+        raise
+
+
 @contextmanager
 def atomic_write_file(path: str | Path, what: str = "output") -> Iterator[Path]:
     """A temporary sibling file path (with the target's suffix, which some writers read the format
@@ -123,8 +279,7 @@ def atomic_write_file(path: str | Path, what: str = "output") -> Iterator[Path]:
     target = check_output(path, overwrite=True, what=what)
     if target.is_dir():
         raise CapVectorError(f"{what} {target} is a folder; give a file path")
-    target.parent.mkdir(parents=True, exist_ok=True)
-    with _writer_lock(target, what):
+    with _full_disk_is_an_error(target, what), _writer_lock(target, what):
         fd, name = tempfile.mkstemp(
             prefix=_temporary_prefix(target), suffix=target.suffix, dir=target.parent
         )

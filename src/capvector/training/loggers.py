@@ -7,6 +7,10 @@ interruption) loses every metric logged before the interruption: the rollout eva
 steps vanish from the success-against-steps curves. This logger appends instead. Steps between the
 last checkpoint and the interruption are trained and logged again, so they appear twice; readers
 take the last row of a step (``capvector.workflows.report`` does).
+
+Every metric name a fit logs is a leaf: no name is also a prefix folder of another
+(``val/success_rate`` beside ``val/success_rate_by_task/Lift``, not ``val/success_rate/Lift``), as
+MLflow's file store keeps a metric as a file at its name's path and cannot hold both.
 """
 
 from __future__ import annotations
@@ -16,7 +20,7 @@ import io
 import os
 from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from lightning.fabric.utilities.cloud_io import get_filesystem
@@ -24,6 +28,9 @@ from lightning.pytorch.loggers import CSVLogger as LightningCSVLogger
 from lightning.pytorch.loggers.csv_logs import ExperimentWriter
 from lightning.pytorch.loggers.logger import Logger, rank_zero_experiment
 from lightning.pytorch.utilities.rank_zero import rank_zero_only
+
+if TYPE_CHECKING:
+    import lightning as L
 
 
 class AppendingExperimentWriter(ExperimentWriter):
@@ -67,6 +74,52 @@ class CSVLogger(LightningCSVLogger):
         if self._experiment is None:
             self._experiment = AppendingExperimentWriter(log_dir=self.log_dir)
         return self._experiment
+
+
+def run_folder(trainer: L.Trainer) -> Path:
+    """The local folder of a fit's own files (export, rollout videos, ``episodes.csv``).
+
+    The first logger's ``log_dir`` when it has one (CSV, TensorBoard: ``trainer.log_dir``); for
+    other loggers ``<save_dir>/<name>/<version>``, the folder Lightning's ``ModelCheckpoint`` puts
+    ``checkpoints/`` in (``__resolve_ckpt_dir``), so the files sit beside the checkpoints.
+    ``trainer.log_dir`` would give such a logger's bare ``save_dir``: for MLflow the file store's
+    root, where a folder that is not an experiment makes MLflow report the store as malformed.
+    Collective under DDP: every rank calls it; rank 0's answer is used.
+    """
+    from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
+
+    log_dir = trainer.log_dir  # collective: broadcasts rank 0's log_dir
+    path = Path(log_dir or trainer.default_root_dir)
+    logger = trainer.loggers[0] if trainer.loggers else None
+    # The loggers trainer.log_dir takes log_dir from (Trainer.log_dir); others give save_dir.
+    if logger is not None and not isinstance(logger, (CSVLogger, TensorBoardLogger)):
+        version = logger.version if isinstance(logger.version, str) else f"version_{logger.version}"
+        path = Path(logger.save_dir or trainer.default_root_dir) / str(logger.name) / version
+    return Path(trainer.strategy.broadcast(str(path)))
+
+
+def logging_step(trainer: L.Trainer) -> int:
+    """The step Lightning gives what ``LightningModule.log`` logs: the number of optimizer steps
+    completed before the current batch. During a validation run inside a fit this is
+    ``global_step - 1``; files logged beside the metrics (rollout videos) use it too, so a
+    validation's video and its success rate share a step in every logger."""
+    # Lightning has no public accessor; _LoggerConnector.log_metrics reads this counter
+    # (lightning/pytorch/trainer/connectors/logger_connector/logger_connector.py).
+    return int(trainer.fit_loop.epoch_loop._batches_that_stepped)
+
+
+@rank_zero_only
+def log_file(
+    loggers: Iterable[Logger], path: str | os.PathLike[str], folder: str | None = None
+) -> None:
+    """A file the fit keeps on disk (``episodes.csv``) sent to each logger that stores files:
+    MLflow as an artifact (replacing the earlier copy). TensorBoard and W&B show no such files;
+    they stay in the run folder."""
+    from lightning.pytorch.loggers import MLFlowLogger
+
+    for logger in loggers:
+        if isinstance(logger, MLFlowLogger):
+            logger.experiment.log_artifact(logger.run_id, str(path), folder)
 
 
 @rank_zero_only
@@ -128,11 +181,18 @@ def _tensorboard_gif(
         encoded_image_string=buffer.getvalue(),
     )  # fmt: skip
     summary = Summary(value=[Summary.Value(tag=key, image=image)])
-    logger.experiment._get_file_writer().add_summary(summary, step)  # as add_video does
+    # The writer every SummaryWriter.add_* method writes through (its public ``file_writer``,
+    # made in its constructor); None only after the logger was closed at the end of the fit.
+    writer = logger.experiment.file_writer
+    if writer is None:
+        raise RuntimeError(
+            f"TensorBoard logger {logger.log_dir} is closed; log videos during the fit"
+        )
+    writer.add_summary(summary, step)
 
 
 def _artifact_folder(key: str, step: int | None) -> str:
     return str(Path(key.replace("/", "_")) / ("" if step is None else f"step{step:06d}"))
 
 
-__all__ = ["CSVLogger", "log_figure", "log_video"]
+__all__ = ["CSVLogger", "log_figure", "log_file", "log_video", "logging_step", "run_folder"]

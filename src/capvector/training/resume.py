@@ -16,7 +16,7 @@ import lightning as L
 from lightning.pytorch.callbacks import ModelCheckpoint
 
 from capvector.errors import CapVectorError
-from capvector.io.outputs import check_writable
+from capvector.io.outputs import Inputs, check_outside_inputs, check_room, check_writable
 
 LAST = "last.ckpt"
 
@@ -81,8 +81,11 @@ def check_ckpt_path(ckpt_path: str | None) -> None:
         ) from err
 
 
-def check_fit_outputs(trainer: L.Trainer) -> None:
-    """Fail before training when a folder the fit writes to could not be created."""
+def check_fit_outputs(trainer: L.Trainer, model: L.LightningModule, inputs: Inputs = ()) -> None:
+    """Fail before training (nothing written yet) when a folder the fit writes to could not be
+    created, is or lies inside one of the fit's ``inputs`` (a fit once trained every step into
+    its pretrained export and failed at the end), or its disk has no room for a checkpoint and
+    the export."""
     paths = [("trainer.default_root_dir", trainer.default_root_dir)]
     for logger in trainer.loggers:
         if getattr(logger, "save_dir", None):
@@ -90,8 +93,19 @@ def check_fit_outputs(trainer: L.Trainer) -> None:
     for callback in trainer.callbacks:  # ModelCheckpoint, ExportOnFitEnd: the folder they write
         if getattr(callback, "dirpath", None):
             paths.append((f"{type(callback).__name__}'s dirpath", callback.dirpath))
+    needed = fit_output_bytes(model, checkpoints=bool(trainer.checkpoint_callbacks))
     for what, path in paths:
+        check_outside_inputs(path, inputs, what, may_hold=True)
         check_writable(path, f"into {what}", inside=True)
+        check_room(path, needed, what)
+
+
+def fit_output_bytes(model: L.LightningModule, checkpoints: bool) -> int:
+    """About what a fit writes at least: its export (every weight) and, with checkpoints, one
+    checkpoint (every weight again, and Adam's two float32 moments of each trained one)."""
+    weights = sum(p.numel() * p.element_size() for p in model.parameters())
+    trained = sum(p.numel() for p in model.parameters() if p.requires_grad)
+    return weights + (weights + 2 * 4 * trained if checkpoints else 0)
 
 
 def _versions_newest_first(root: Path) -> list[Path]:

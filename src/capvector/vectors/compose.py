@@ -82,7 +82,7 @@ def compose(
         raise CapVectorError(f"{len(weights)} weights for {len(vectors)} vectors")
     if method == "ties" and not 0.0 < density <= 1.0:
         raise CapVectorError(f"--density is a fraction in (0, 1], got {density}")
-    check_output(out, overwrite, vectors)
+    check_output(out, overwrite, vectors, folder=True)
     out_dtype = parse_dtype(dtype) if isinstance(dtype, str) else dtype
 
     folders = [VectorFolder(v) for v in vectors]

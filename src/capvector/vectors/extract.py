@@ -104,7 +104,7 @@ def extract(
         raise CapVectorError(f"--energy is a fraction in (0, 1], got {energy}")
     out_dtype = parse_dtype(dtype) if isinstance(dtype, str) else dtype
     inputs = [aux, sft, base]
-    check_output(out, overwrite, inputs)
+    check_output(out, overwrite, inputs, folder=True)
     if Path(aux).resolve() == Path(sft).resolve():
         raise CapVectorError(
             f"--aux and --sft are the same ({aux}): c = θ_aux − θ_sft would be all zeros; give "

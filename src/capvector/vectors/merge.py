@@ -176,7 +176,7 @@ def merge(
     if not vectors:
         raise CapVectorError("no vectors to merge: pass --vector DIR[:λ] at least once")
     inputs = [base, *(v for v, _ in vectors)]
-    check_output(out, overwrite, inputs)
+    check_output(out, overwrite, inputs, folder=True)
     source = open_weights(base)
     if not isinstance(source, SafetensorsFolder) or source.kind != "export":
         raise CapVectorError(
@@ -254,14 +254,19 @@ def merge(
 
 
 def _merged_card(source: SafetensorsFolder, provenance: Mapping[str, Any]) -> str:
-    terms = " + ".join(f"{v['scale']:g}·c({Path(v['path']).name})" for v in provenance["vectors"])
+    # A vector read by hub id is named by that id, not by its snapshot folder in the hub cache.
+    terms = " + ".join(
+        f"{v['scale']:g}·c({v.get('hub_id') or Path(v['path']).name})"
+        for v in provenance["vectors"]
+    )
     facts: dict[str, Any] = {
         "family": source.config.get("family"),
         "preset": (source.config.get("backbone_config") or {}).get("preset"),
     }
     for i, v in enumerate(provenance["vectors"], 1):
         facts[f"vector {i}"] = (
-            f"{v['path']} x {v['scale']:g} ({short_fingerprint(v['fingerprint'])})"
+            f"{v.get('hub_id') or v['path']} x {v['scale']:g} "
+            f"({short_fingerprint(v['fingerprint'])})"
         )
     return render_model_card(
         "θ_meta: pretrained weights with capability vectors merged",

@@ -457,7 +457,7 @@ def vector_card(meta: Mapping[str, Any]) -> str:
         )
     )
     facts: dict[str, Any] = {
-        f"source {name}": str(src.get("path"))
+        f"source {name}": str(src.get("hub_id") or src.get("path"))
         + (f" ({short_fingerprint(src['fingerprint'])})" if src.get("fingerprint") else "")
         for name, src in sources.items()
         if isinstance(src, Mapping)

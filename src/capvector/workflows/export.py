@@ -35,7 +35,7 @@ def export_cli(ckpt: str, out: str, overwrite: bool = False) -> None:
     """
     from capvector.module import load_module
 
-    check_output(out, overwrite, [ckpt])  # before loading the checkpoint
+    check_output(out, overwrite, [ckpt], folder=True)  # before loading the checkpoint
     folder = load_module(ckpt).export(out, overwrite=overwrite)
     print(f"exported {ckpt} to {folder}")
 
@@ -109,7 +109,7 @@ def import_original_cli(
     cls = backbone_class(family)
     # The family's Path options name files the import reads: the output must stay clear of them.
     inputs = [folder, *(options.get(o.name) for o in cls.import_options if o.type is Path)]
-    check_output(out, overwrite, inputs)  # before reading the checkpoint
+    check_output(out, overwrite, inputs, folder=True)  # before reading the checkpoint
     imported = cls.from_original(folder, preset=preset, overrides=overrides, **options)
     if check:
         check_forward(imported.model, torch_device, precision, what=f"the import of {folder}")

@@ -71,7 +71,9 @@ def run_lightning_cli(args: list[str] | None, run: bool = True) -> object:
                 resume_latest_run,
             )
 
-            check_fit_outputs(self.trainer)
+            check_fit_outputs(
+                self.trainer, self.model, fit_inputs(self.model, self.datamodule, self.trainer)
+            )
             if not (os.environ.get("OMP_NUM_THREADS") or os.environ.get(STAGE_CORES)):
                 # Started by hand: share the cores with the other fits running (the callback's
                 # docstring says why); a recipe stage or the user fixed the threads otherwise.
@@ -95,7 +97,20 @@ def run_lightning_cli(args: list[str] | None, run: bool = True) -> object:
                 super().setup(trainer, pl_module, stage)
 
         def on_fit_start(self, trainer, pl_module) -> None:  # noqa: ANN001 (Lightning's)
-            super().setup(trainer, pl_module, "fit")
+            # SaveConfigCallback.setup's write, into the run folder rather than trainer.log_dir:
+            # with MLflow as the first logger that is its store's root, which MLflow then reports
+            # as a malformed experiment (run_folder says where instead).
+            from capvector.training.loggers import run_folder
+
+            folder = run_folder(trainer)  # collective: every rank asks
+            if trainer.is_global_zero and not self.already_saved:
+                folder.mkdir(parents=True, exist_ok=True)
+                self.parser.save(
+                    self.config, str(folder / self.config_filename), skip_none=False,
+                    overwrite=self.overwrite, multifile=self.multifile,
+                )  # fmt: skip
+                self.save_config(trainer, pl_module, "fit")
+            self.already_saved = True
 
     subcommand = (args or sys.argv[1:])[0] if run else "fit"
     try:
@@ -140,6 +155,18 @@ def _check_before_recording(config: object) -> None:
             paths.append((f"the logger's save_dir ({logger.class_path})", save_dir))
     for what, path in paths:
         check_writable(path, f"into {what}", inside=True)
+
+
+def fit_inputs(model: object, datamodule: object, trainer: object) -> list[str]:
+    """The local paths a fit reads: the pretrained export, the demos, merged vectors' folders."""
+    hparams = getattr(model, "hparams", {})
+    data = getattr(datamodule, "hparams", {})
+    paths = [hparams.get("pretrained"), data.get("lerobot_root")]
+    paths += [*(data.get("train_files") or []), *(data.get("val_files") or [])]
+    for callback in getattr(trainer, "callbacks", None) or []:
+        paths.append(getattr(callback, "vector", None))  # MergeCapabilityVector's folder
+    # A hub id is no local path; a demo file `data.generate` has yet to record is not there yet.
+    return [str(p) for p in paths if isinstance(p, str | os.PathLike) and os.path.exists(p)]
 
 
 def csv_logger_first(loggers: list) -> list:

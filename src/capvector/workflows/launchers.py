@@ -326,14 +326,48 @@ class LocalStage:
         return f"exit {self.code}" + ("" if self.log is None else "\n" + log_tail(self.log))
 
 
+LIVE_STATES = frozenset({
+    "PENDING", "CONFIGURING", "RUNNING", "COMPLETING", "SUSPENDED", "STOPPED", "SIGNALING",
+    "STAGE_OUT", "RESIZING", "REQUEUED", "REQUEUE_FED", "REQUEUE_HOLD", "PREEMPTED",
+})  # fmt: skip
+"""squeue's job states (``squeue(1)``, JOB STATE CODES) of a job that may still run or be
+requeued. PREEMPTED is among them: with ``PreemptMode=REQUEUE`` it passes to PENDING."""
+FORGOTTEN = "no longer known to SLURM"
+
+
+def slurm_state(job_id: str) -> str | None:
+    """A SLURM job's state from ``squeue`` (``RUNNING``, ``CANCELLED``, ...), or ``FORGOTTEN``
+    once slurmctld has dropped it (``MinJobAge`` after it ended, 300 s by default); None when
+    squeue cannot answer (slurmctld unreachable): then nothing is known.
+
+    squeue, not sacct (what submitit asks): small clusters often run without accounting, and
+    then submitit never learns that a cancelled job ended. ``--states=all`` also lists jobs
+    that ended while slurmctld remembers them."""
+    try:
+        queue = subprocess.run(
+            ["squeue", "--noheader", "--states=all", "--jobs", str(job_id), "--format", "%T"],
+            capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    states = queue.stdout.split()
+    if queue.returncode == 0:
+        return states[0] if states else FORGOTTEN
+    return FORGOTTEN if "Invalid job id" in queue.stderr else None
+
+
 class SubmititLauncher:
     """Stages as jobs through submitit: SLURM's (``cluster="slurm"``) or local processes."""
 
     poll_seconds = 1.0
+    squeue_seconds = 5.0
+    """How often a waiting stage asks squeue whether its SLURM job still exists; a job seen
+    ended with no result this long apart twice fails the stage."""
 
     def __init__(self, cluster: str, threads: int, jobs: int | None) -> None:
         self.cluster, self.threads, self.jobs = cluster, threads, jobs
         self.running = 0
+        hear_interrupts()  # a backgrounded recipe (`cmd &` in a script) stops on SIGINT too
 
     def has_room(self, resources: Resources) -> bool:
         return self.jobs is None or self.running < self.jobs
@@ -386,11 +420,7 @@ class SubmititLauncher:
         if not submitted:
             return None
         job_id = submitted[-1].name.removesuffix("_submitted.pkl")
-        queue = subprocess.run(
-            ["squeue", "--noheader", "--jobs", job_id, "--format", "%T"],
-            capture_output=True, text=True,
-        )  # fmt: skip
-        if queue.returncode != 0 or not queue.stdout.strip():  # ended, or SLURM forgot it
+        if slurm_state(job_id) not in LIVE_STATES:  # ended, SLURM forgot it, or cannot tell
             return None
         return submitit.SlurmJob(folder=folder, job_id=job_id, tasks=tuple(range(tasks)))
 
@@ -400,6 +430,8 @@ class SubmititStage:
         self.launcher, self.directory, self.job = launcher, directory, job
         self.code: int | None = None
         self.error = ""
+        self._next_check = time.monotonic() + launcher.squeue_seconds
+        self._ended: str | None = None  # a state squeue gave as ended, awaiting a second look
 
     def poll(self) -> int | None:
         if self.code is None and self.job.done():
@@ -407,7 +439,34 @@ class SubmititStage:
             error = self.job.exception()
             self.error = "" if error is None else str(error)
             self.code = 0 if error is None and (self.directory / DONE).is_file() else 1
+        elif self.code is None and self.launcher.cluster == "slurm":
+            self._check_queue()
         return self.code
+
+    def _check_queue(self) -> None:
+        """Fail the stage when SLURM says its job ended and submitit has no result for it
+        (``scancel``, a node failure): submitit learns that from sacct only, so without
+        accounting the recipe would wait forever. Seen twice, ``squeue_seconds`` apart, so a
+        result written as the job ends, or a requeue passing through an ended state, is not
+        taken for one."""
+        now = time.monotonic()
+        if now < self._next_check:
+            return
+        self._next_check = now + self.launcher.squeue_seconds
+        state = slurm_state(self.job.job_id)
+        if state is None or state in LIVE_STATES:
+            self._ended = None
+            return
+        if self._ended is None:
+            self._ended = state
+            return
+        state = self._ended if state == FORGOTTEN else state  # the state it ended in
+        self.launcher.running -= 1
+        self.code = 1
+        self.error = (
+            f"SLURM job {self.job.job_id} ended ({state}) without a result: it was cancelled "
+            "(scancel) or its node failed; rerun the same command to run the stage again"
+        )
 
     def wait(self) -> int:
         while self.poll() is None:
@@ -415,10 +474,11 @@ class SubmititStage:
         return self.code  # type: ignore[return-value]
 
     def where(self) -> str:
-        return f"job {self.job.job_id}; log: {self.directory / LOG}"
+        state = slurm_state(self.job.job_id) if self.launcher.cluster == "slurm" else None
+        return f"job {self.job.job_id}{f', {state}' if state else ''}; log: {self.directory / LOG}"
 
     def failure(self) -> str:
-        tail = log_tail(self.directory / LOG) or self.error
+        tail = "\n".join(t for t in (self.error, log_tail(self.directory / LOG)) if t)
         return f"job {self.job.job_id}; submitit's logs in {self.directory / 'submitit'}\n{tail}"
 
     def stop(self) -> bool:

@@ -450,8 +450,8 @@ def run(
             for name in stopping:
                 running[name].wait()
         left = ", ".join(f"{n} ({s.where()})" for n, s in running.items() if n not in stopping)
-        if left:  # SLURM jobs outlive the recipe: say which
-            print(f"capvector recipe: stopped waiting; still queued or running: {left}")
+        if left:  # SLURM jobs outlive the recipe: say which, in the state SLURM gives now
+            print(f"capvector recipe: stopped waiting for {left}")
         raise
     for name in list(running):  # a stage failed: let the others finish their work, then stop
         reap(name, running[name].wait())

@@ -70,7 +70,7 @@ from capvector.envs.libero.env import (
 from capvector.envs.libero.experts import LiberoPlaceExpert, place_goal, run_trial, task_env
 from capvector.envs.robosuite.env import camera_intrinsics
 from capvector.errors import CapVectorError
-from capvector.io.frames import write_frames
+from capvector.io.frames import check_room_for_demo, write_frames
 from capvector.io.outputs import atomic_write_file, check_output
 
 LIBERO_IMAGE_SIZE = 128
@@ -342,6 +342,7 @@ def record_task(
                 )
                 if episode is not None:
                     model_xml = task_env(env).sim.model.get_xml()
+                    check_room_for_demo(path, list(episode.values()), model_xml)
                     _write_demo(
                         data.create_group(f"demo_{summary.demos}"), episode, attempt_seed, model_xml
                     )

@@ -54,7 +54,7 @@ from capvector.envs.robosuite.env import (
 )
 from capvector.envs.robosuite.experts import ScriptedExpert, make_expert
 from capvector.errors import CapVectorError
-from capvector.io.frames import write_frames
+from capvector.io.frames import check_room_for_demo, write_frames
 from capvector.io.outputs import atomic_write_file, check_output
 
 log = logging.getLogger(__name__)
@@ -279,6 +279,9 @@ def record_demos(
                     render=bool(sim.cameras),
                 )
                 if ep is not None:
+                    arrays = [ep.actions, ep.executed_actions, ep.states, ep.rewards, ep.dones]
+                    arrays += [ep.annotations, *ep.obs.values()]
+                    check_room_for_demo(out, arrays, model_xml)
                     _write_demo(data.create_group(f"demo_{summary.demos}"), ep, sim, model_xml)
                     summary.demos += 1
                     summary.samples += ep.num_samples
