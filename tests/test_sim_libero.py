@@ -2,8 +2,9 @@
 
 The real environments (the `libero` extra: rpent-libero on robosuite 1.5) are built for two tasks
 of every suite, with their official init states, and replayed against the robosuite 1.4 referee
-fixture (tests/fixtures/libero_referee, see its PROVENANCE.md). Episodes under the evaluation
-protocol: tests/test_libero_eval.py.
+fixture (tests/fixtures/libero_referee, see its PROVENANCE.md); every task of LIBERO-Spatial,
+-Goal and -Object is settled from init state 0 against the robosuite 1.4 settle referee
+(tests/fixtures/libero_settle). Episodes under the evaluation protocol: tests/test_libero_eval.py.
 """
 
 from __future__ import annotations
@@ -97,6 +98,34 @@ def test_init_states_refuse_code(tmp_path: Path) -> None:
     path.write_bytes(pickle.dumps(Evil()))
     with pytest.raises(pickle.UnpicklingError, match="only numpy arrays"):
         libero.load_init_states(path)
+
+
+BOX_ON_BOX = """<mujoco><option timestep="0.002" cone="elliptic" impratio="20"/><worldbody>
+<geom type="box" size="0.5 0.5 0.05" solref="0.02 1" solimp="0.9 0.95 0.001 0.5 2"/>
+<body pos="0 0 0.1"><freejoint/><geom type="box" size="0.03 0.03 0.03" mass="0.05"
+ solref="0.02 1" solimp="0.9 0.95 0.001 0.5 2"/></body></worldbody></mujoco>"""
+MUJOCO_237_REST_Z = 0.07978448915955615
+"""Where MuJoCo 2.3.7 (robosuite 1.4's; the scratch venv of tests/fixtures/libero_settle) rests
+BOX_ON_BOX's cube after 1000 steps: 0.216 mm into the table, twice MuJoCo 3's 0.108 mm, because
+2.3.7's box-box collider reports half the depth."""
+
+
+def test_box_contacts_rest_as_in_mujoco_237() -> None:
+    import mujoco
+
+    from capvector.envs.libero.physics import halve_box_contact_depth
+
+    def rest_z(correct: bool) -> float:
+        model = mujoco.MjModel.from_xml_string(BOX_ON_BOX)
+        if correct:
+            halve_box_contact_depth(model)
+        data = mujoco.MjData(model)
+        for _ in range(1000):
+            mujoco.mj_step(model, data)
+        return float(data.qpos[2])
+
+    assert abs(rest_z(False) - MUJOCO_237_REST_Z) > 1e-4  # MuJoCo 3 alone: half as deep
+    assert rest_z(True) == pytest.approx(MUJOCO_237_REST_Z, abs=1e-9)
 
 
 # --- LIBERO itself (the `libero` extra) ---------------------------------------------------------
@@ -205,6 +234,66 @@ def test_port_follows_the_robosuite_14_referee(libero_env) -> None:
         assert err["eef"].max() < 0.1, episode["key"]  # gross: no lost robot, scale or frame
         # the predicate is seen to say yes, not only no: every LIBERO-Object episode succeeds
         assert ref.any() == (suite == "libero_object"), episode["key"]
+
+
+SETTLE = Path(__file__).parent / "fixtures" / "libero_settle"
+SETTLE_POSES: dict[str, dict[str, Any]] = json.loads((SETTLE / "settle.json").read_text())
+SETTLE_TASKS = sorted(
+    {(k.split("/")[0], int(k.split("/")[1])) for k in SETTLE_POSES},
+    key=lambda t: (libero.LIBERO_SUITES.index(t[0]), t[1]),
+)
+SETTLE_TOLERANCE = 2e-3
+"""Metres: issue 61's goal for every object after the wait steps."""
+SETTLE_EXCEPTIONS: dict[tuple[str, int, int], dict[str, float]] = {
+    ("libero_spatial", 5, 0): {"akita_black_bowl_1": 10.2e-3},  # measured 9.27 mm (35 before)
+    ("libero_spatial", 6, 0): {"akita_black_bowl_2": 3.8e-3},  # 3.44 mm, as before
+    ("libero_spatial", 7, 0): {"akita_black_bowl_1": 3.8e-3},  # 3.44 mm, as before
+    ("libero_spatial", 9, 0): {"akita_black_bowl_2": 3.8e-3},  # 3.44 mm, as before
+}
+"""(suite, task, init state) -> {object: metres}, 10 % over the measured distance: bowls resting
+on a ramekin or on other objects, where MuJoCo 3's rewritten box-box collider finds other contacts
+for tilted boxes than 2.3.7's, which no model parameter reproduces (docs/evaluation.md)."""
+
+
+def settle_errors(env: Any, suite: str, task_id: int) -> dict[str, np.ndarray]:
+    """Per referee init state (key ``suite/task/init``): each object's distance (m) after the
+    protocol's 10 wait steps from where robosuite 1.4 / MuJoCo 2.3.7 puts it, fixtures pinned."""
+    states = libero.initial_states(suite, task_id)
+    out = {}
+    for key, ref in SETTLE_POSES.items():
+        if not key.startswith(f"{suite}/{task_id}/"):
+            continue
+        fixtures = {name: np.asarray(pose) for name, pose in ref["fixtures"].items()}
+        wait = np.tile(libero.WAIT_ACTION, (libero.NUM_WAIT_STEPS, 1))
+        ours = libero.replay_actions(
+            env, states[int(key.split("/")[2])], wait, objects=ref["objects"], fixtures=fixtures
+        )
+        out[key] = np.linalg.norm(ours["object_pos"][-1] - np.asarray(ref["pos"]), axis=-1)
+    return out
+
+
+def far_objects(errors: np.ndarray, key: str) -> list[str]:
+    """The objects of ``key``'s scene farther than the tolerance from robosuite 1.4's."""
+    return [n for n, e in zip(SETTLE_POSES[key]["objects"], errors, strict=True) if e > SETTLE_TOLERANCE]
+
+
+@pytest.mark.sim
+@pytest.mark.parametrize("task", SETTLE_TASKS, ids=lambda t: f"{t[0]}-{t[1]}")
+def test_settled_scenes_match_robosuite_14(task: tuple[str, int]) -> None:
+    """What a policy first sees: every object within 2 mm of robosuite 1.4's after the 10 wait
+    steps from the official init states (tests/fixtures/libero_settle/PROVENANCE.md), except the
+    listed ones, each within its measured bound."""
+    suite, task_id = task
+    env = libero.make_libero_env(suite, task_id, render=False)
+    try:
+        errors = settle_errors(env, suite, task_id)
+    finally:
+        env.close()
+    assert errors
+    for key, err in errors.items():
+        allowed = SETTLE_EXCEPTIONS.get((suite, task_id, int(key.split("/")[2])), {})
+        for name, e in zip(SETTLE_POSES[key]["objects"], err, strict=True):
+            assert e <= allowed.get(name, SETTLE_TOLERANCE), f"{key} {name}: {e * 1000:.2f} mm"
 
 
 def test_unknown_suite_and_task_are_named() -> None:

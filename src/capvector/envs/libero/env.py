@@ -541,7 +541,10 @@ def make_libero_env(
             **env_kwargs,
         )
     if libero.name == "rpent-libero":
+        from capvector.envs.libero.physics import match_mujoco_237
+
         _hold_orientation_goal_like_robosuite_14(env.env)
+        match_mujoco_237(env.env)  # object masses and box contacts as MuJoCo 2.3.7 has them
     if fast_step and not upstream:
         from capvector.envs.robosuite.fast_control import install
 
