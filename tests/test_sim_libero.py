@@ -274,7 +274,9 @@ def settle_errors(env: Any, suite: str, task_id: int) -> dict[str, np.ndarray]:
 
 def far_objects(errors: np.ndarray, key: str) -> list[str]:
     """The objects of ``key``'s scene farther than the tolerance from robosuite 1.4's."""
-    return [n for n, e in zip(SETTLE_POSES[key]["objects"], errors, strict=True) if e > SETTLE_TOLERANCE]
+    return [
+        n for n, e in zip(SETTLE_POSES[key]["objects"], errors, strict=True) if e > SETTLE_TOLERANCE
+    ]
 
 
 @pytest.mark.sim

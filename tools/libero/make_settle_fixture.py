@@ -62,7 +62,10 @@ def main(out, n_init):
                 env.reset()
                 fixtures = {
                     f: np.concatenate(
-                        [model.body_pos[env.env.obj_body_id[f]], model.body_quat[env.env.obj_body_id[f]]]
+                        [
+                            model.body_pos[env.env.obj_body_id[f]],
+                            model.body_quat[env.env.obj_body_id[f]],
+                        ]
                     ).tolist()
                     for f in sorted(env.env.fixtures_dict)
                 }

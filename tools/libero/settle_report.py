@@ -14,8 +14,6 @@ import argparse
 import importlib.util
 from pathlib import Path
 
-import numpy as np
-
 from capvector.envs.libero import env as libero
 from capvector.envs.libero import physics as libero_physics
 
@@ -33,7 +31,9 @@ def main() -> None:
     spec.loader.exec_module(test)
     if args.raw:
         libero_physics.match_mujoco_237 = lambda env: None  # type: ignore[assignment]
-    print("| suite | task | init states | worst object after the wait steps (mm) | objects > 2 mm |")
+    print(
+        "| suite | task | init states | worst object after the wait steps (mm) | objects > 2 mm |"
+    )
     print("|---|---|---|---|---|")
     for suite, task_id in test.SETTLE_TASKS:
         if args.suites and suite not in args.suites:
@@ -42,8 +42,17 @@ def main() -> None:
         errors = test.settle_errors(env, suite, task_id)
         env.close()
         worst = max(float(e.max()) for e in errors.values()) * 1000
-        far = sorted({f"{k.split('/')[-1]}:{name}" for k, e in errors.items() for name in test.far_objects(e, k)})
-        print(f"| {suite} | {task_id} | {len(errors)} | {worst:.2f} | {', '.join(far) or '-'} |", flush=True)
+        far = sorted(
+            {
+                f"{k.split('/')[-1]}:{name}"
+                for k, e in errors.items()
+                for name in test.far_objects(e, k)
+            }
+        )
+        print(
+            f"| {suite} | {task_id} | {len(errors)} | {worst:.2f} | {', '.join(far) or '-'} |",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

@@ -100,7 +100,9 @@ def match_mujoco_237(env: Any) -> None:
         model = env.sim.model._model
         if patched and patched[0] is model:
             return
-        names = {b: mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b) for b in range(model.nbody)}
+        names = {
+            b: mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b) for b in range(model.nbody)
+        }
         set_mujoco_237_inertia(model, {b: n for b, n in names.items() if n}, list(env.objects_dict))
         halve_box_contact_depth(model)
         mujoco.mj_setConst(model, mujoco.MjData(model))
