@@ -12,12 +12,12 @@ unchanged.
 from __future__ import annotations
 
 from collections.abc import Iterator
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 from torch import Tensor, nn
 
-from capvector.backbones.base import BackboneError
+from capvector.backbones.base import BackboneError, VLABackbone
 from capvector.backbones.packaged import (
     EFFICIENTNET_LITE0,
     GEMMA3_270M,
@@ -27,15 +27,12 @@ from capvector.backbones.packaged import (
 )
 from capvector.io.loading import read_json
 
-if TYPE_CHECKING:
-    from capvector.backbones.openvla_oft.modeling import OpenVLAOFT
-
 LM_PREFIX = "language_model."
 VISION_PREFIX = "vision_backbone.model."
 TIED_HEAD = "language_model.lm_head.weight"
 
 
-def attach_packaged_base(model: OpenVLAOFT, load: bool) -> None:
+def attach_packaged_base(model: VLABackbone, load: bool) -> None:
     """Load (when ``load``; not on the meta device) and freeze the packaged base of ``model``, and
     install the state-dict hooks that leave it out of checkpoints."""
     llm = model.config.llm
@@ -75,7 +72,7 @@ def provenance() -> list[dict[str, Any]]:
 _PREFIXES = (LM_PREFIX, VISION_PREFIX)
 
 
-def _check_architecture(model: OpenVLAOFT) -> None:
+def _check_architecture(model: VLABackbone) -> None:
     """The preset's Gemma numbers against the GGUF header's (``gguf_config.json``)."""
     header = read_json(gemma3_270m_folder() / "gguf_config.json")
     llm = model.config.llm
@@ -97,7 +94,7 @@ def _check_architecture(model: OpenVLAOFT) -> None:
         )
 
 
-def _packaged_tensors(model: OpenVLAOFT) -> Iterator[tuple[str, Tensor]]:
+def _packaged_tensors(model: VLABackbone) -> Iterator[tuple[str, Tensor]]:
     """(state-dict name, packaged value) of every tensor of the base, one at a time."""
     for name, value in gemma3_270m_weights(model.config.llm.num_layers).items():
         yield LM_PREFIX + name, value
