@@ -70,9 +70,11 @@ def main() -> None:
     for arm in arms.values():  # warm-up: first-call allocations, autocast caches
         step(arm)
     times: dict[str, list[float]] = {name: [] for name in arms}
-    for _ in range(args.rounds):
+    for index in range(args.rounds):
         for name, arm in arms.items():
             times[name].append(step(arm))
+        round_times = ", ".join(f"{name} {t[-1]:.3f} s" for name, t in times.items())
+        print(f"round {index + 1}: {round_times}", flush=True)
     base = statistics.median(times["tiny fp32"])
     print(f"batch {args.batch}, {args.threads} threads, median of {args.rounds} interleaved rounds")
     print(f"{'arm':<10} {'trainable':>10} {'step s':>8} {'x tiny':>7}")
