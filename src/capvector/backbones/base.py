@@ -237,6 +237,11 @@ class VLABackbone(nn.Module, ABC):
         if (Path(folder) / "tokenizer_config.json").is_file():
             self._tokenizer = self.make_tokenizer(str(folder))
 
+    def weight_provenance(self) -> list[dict[str, Any]]:
+        """Where pretrained weights built into the model at construction came from (packages,
+        versions, SHA-256, licence terms); written into the model card of every export."""
+        return []
+
     def capability_parameter_names(self) -> list[str]:
         names = [name for name, _ in self.named_parameters()]
         return [
@@ -316,6 +321,13 @@ class VLABackbone(nn.Module, ABC):
                 "parameters": sum(t.numel() for t in tensors.values()),
                 "chunk × action dim": f"{self.config.chunk_size} × {self.config.action_dim}",
                 "cameras": self.config.num_images,
+                **{
+                    f"pretrained weights: {source['weights']}": (
+                        f"from {', '.join(source['packages'])}; SHA-256 {source['sha256']}; "
+                        f"{source['license']}; origin {source['origin']}"
+                    )
+                    for source in self.weight_provenance()
+                },
                 **{k: v for k, v in facts.items() if k != "command"},
             },
             base_model=base_model,

