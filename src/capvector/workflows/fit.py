@@ -8,6 +8,7 @@ import os
 import re
 import signal
 import sys
+from typing import Any
 
 from capvector.errors import CapVectorError, config_error
 from capvector.io.names import STAGE_CORES
@@ -58,6 +59,8 @@ def run_lightning_cli(args: list[str] | None, run: bool = True) -> object:
                 )
             elif isinstance(trainer.logger, list):
                 trainer.logger = csv_logger_first(trainer.logger)
+            if config.data.get("normalization") is None:
+                config.data.normalization = family_config(config.model).normalization
             if config.data.get("generate"):
                 _check_before_recording(config)
 
@@ -138,6 +141,20 @@ def run_lightning_cli(args: list[str] | None, run: bool = True) -> object:
         # as done. It ends here as a process killed by SIGTERM does.
         print(f"capvector {subcommand}: stopped by SIGTERM before its end", file=sys.stderr)
         raise SystemExit(128 + signal.SIGTERM) from stop
+
+
+def family_config(model: Any) -> type:
+    """The config class of the backbone family a fit's ``model`` settings build: its preset's, or
+    the ``pretrained`` export's, or the default preset's (``VLAModule``'s rule)."""
+    from capvector.backbones import preset_config
+    from capvector.backbones.base import backbone_class, load_export_config
+    from capvector.module import DEFAULT_PRESET
+
+    if model.get("backbone"):
+        return type(preset_config(model.backbone))
+    if model.get("pretrained"):
+        return backbone_class(load_export_config(model.pretrained)["family"]).config_class
+    return type(preset_config(DEFAULT_PRESET))
 
 
 def parse_error_line(message: str) -> str:
