@@ -58,9 +58,7 @@ class OpenVLAOFTConfig(BackboneConfig):
     # [-1, 1] by the 1st/99th percentiles, the gripper raw; its finetune.py: AdamW 5e-4 with
     # torch's defaults, no warmup (its LIBERO recipe's x0.1 at 100k: configs/backbones/openvla-oft.yaml).
     normalization = BOUNDS_Q99
-    optimizer_preset = MappingProxyType(
-        {"lr": 5e-4, "betas": (0.9, 0.999), "weight_decay": 0.01}
-    )
+    optimizer_preset = MappingProxyType({"lr": 5e-4, "betas": (0.9, 0.999), "weight_decay": 0.01})
 
     featurizer: ViTConfig = field(default_factory=ViTConfig)
     """DINOv2 half of the fused vision backbone."""
