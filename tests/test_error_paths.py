@@ -7,6 +7,7 @@ from __future__ import annotations
 import errno
 import json
 import re
+import shlex
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -42,8 +43,8 @@ def _sharded_original(folder: Path) -> Path:
     return folder
 
 
-def _recipe(path: Path, run_dir: Path, stages: list[dict]) -> Path:
-    path.write_text(json.dumps({"run_dir": str(run_dir), "stages": stages}))
+def _recipe(path: Path, run_dir: Path, stages: list[dict], **settings: object) -> Path:
+    path.write_text(json.dumps({"run_dir": str(run_dir), "stages": stages, **settings}))
     return path
 
 
@@ -69,11 +70,46 @@ def bad(tmp_path_factory: pytest.TempPathFactory, inputs: Path) -> Path:  # noqa
     (root / "typo.yaml").write_text("trainer:\n  max_stesp: 1\n")
     write_lerobot_v3(root / "lerobot")
     (root / "libero.yaml").write_text("data:\n  eval_tasks:\n    - {suite: libero_spatial}\n")
-    # A real one-step fit's checkpoint, then cut as a run killed while saving it leaves it.
+    _recipe(root / "jobs_word.yaml", root / "never" / "run", [
+        {"name": "a", "command": "backbone-info", "args": info},
+    ], jobs="two")  # fmt: skip
+    _recipe(root / "own_output.yaml", root / "never" / "run", [
+        {"name": "a", "command": "backbone-info", "args": info},
+        {"name": "b", "command": "fit", "args": ["--model.pretrained=${out.b.export}"]},
+    ])  # fmt: skip
+    _recipe(root / "unknown_command.yaml", root / "never" / "run", [
+        {"name": "a", "command": "backbone-info", "args": info},
+        {"name": "b", "command": "exportt", "args": info},
+    ])  # fmt: skip
+    _recipe(root / "string_args.yaml", root / "never" / "run", [
+        {"name": "a", "command": "backbone-info", "args": info},
+        {"name": "b", "command": "backbone-info", "args": "openvla-oft-tiny"},
+    ])  # fmt: skip
+    (root / "loop").mkdir()  # a log folder whose path goes round in symlinks
+    (root / "loop" / "a").symlink_to(root / "loop" / "b")
+    (root / "loop" / "b").symlink_to(root / "loop" / "a")
+    # A real one-step fit's checkpoint, then cut as a run killed while saving it leaves it; its
+    # export with a cut tokenizer.json.
     runs = root / "runs"
     assert main(fit_args(inputs, runs, "--trainer.callbacks+=lightning.pytorch.callbacks.ModelCheckpoint",
-                         "--trainer.callbacks.save_last=true")) == 0  # fmt: skip
+                         "--trainer.callbacks.save_last=true",
+                         "--trainer.callbacks+=capvector.callbacks.ExportOnFitEnd",
+                         f"--trainer.callbacks.dirpath={root / 'cut_tokenizer'}")) == 0  # fmt: skip
     _cut(runs / "lightning_logs" / "version_0" / "checkpoints" / "last.ckpt")
+    _cut(root / "cut_tokenizer" / "tokenizer.json")
+    # LIBERO start states from a folder whose task-0 file was cut short while copying.
+    from capvector.envs.libero.demos import demo_file_name
+
+    (root / "cut_demos").mkdir()
+    shutil.copy(inputs / "demos.hdf5", root / "cut_demos" / demo_file_name("libero_spatial", 0))
+    _cut(root / "cut_demos" / demo_file_name("libero_spatial", 0))
+    # A vector written before metadata digests, whose JSON claims Pi0.5 (edited, or mixed up).
+    shutil.copytree(inputs / "oft_vector", root / "old_vector")
+    meta = json.loads((root / "old_vector" / "capability_vector.json").read_text())
+    del meta["metadata_sha256"]
+    for source in meta["sources"].values():
+        source.update(family="pi05", preset="pi05-tiny")
+    (root / "old_vector" / "capability_vector.json").write_text(json.dumps(meta))
     return root
 
 
@@ -170,6 +206,75 @@ CASES: dict[str, tuple[Case, str]] = {
         lambda i, b, o: ["sweep-scale", "--base", str(i / "oft_sft"), "--vector", str(i / "oft_vector"), "--fit-config", str(b / "libero.yaml"), "--out", str(o)],
         r"data\.eval_tasks has LIBERO's libero_spatial, whose trials start from the official initial states that evaluation reports",
     ),
+    # Round 3 (issue 62, items 7 and 8): the tracebacks left, and the validation gaps.
+    "fit: a log folder through a symlink loop": (
+        lambda i, b, o: fit_args(i, b / "loop" / "a" / "logs"),
+        r"loop/a/logs goes through a symbolic link that loops \(.*loop/a\); remove that link or choose another trainer\.default_root_dir",
+    ),
+    "evaluate: LIBERO start states from a truncated demo file": (
+        lambda i, b, o: ["evaluate", "--ckpt", str(i / "missing.ckpt"), "--suite", "libero_spatial", "--tasks", "0", "--trials", "1", "--from-demos", str(b / "cut_demos"), "--json", str(o / "r.json")],
+        r"cut_demos/pick_up_the_black_bowl.*_demo\.hdf5 is not a readable HDF5 file \(h5py: .*truncated file.*\); re-record or re-download it",
+    ),
+    "evaluate: an export whose tokenizer.json is truncated": (
+        lambda i, b, o: ["evaluate", "--ckpt", str(b / "cut_tokenizer"), "--task", "Lift", "--episodes", "1", "--json", str(o / "r.json")],
+        r"cannot read the tokenizer in .*cut_tokenizer \(.*\): its tokenizer\.json or tokenizer_config\.json is incomplete or corrupt; copy or export it again",
+    ),
+    "recipe: `jobs: two`": (
+        lambda i, b, o: ["recipe", "--config", str(b / "jobs_word.yaml"), f"run_dir={o / 'run'}"],
+        r"jobs_word\.yaml: `jobs` must be an integer \(stages run at once\), got 'two' \(str\); write e\.g\. jobs: 2",
+    ),
+    "recipe: a config file that is not there": (
+        lambda i, b, o: ["recipe", "--config", str(b / "nosuch_recipe.yaml"), f"run_dir={o / 'run'}"],
+        r"--config .*nosuch_recipe\.yaml does not exist; recipes ship in configs/recipes/",
+    ),
+    "recipe: a stage naming its own output, found before any stage runs": (
+        lambda i, b, o: ["recipe", "--config", str(b / "own_output.yaml"), f"run_dir={o / 'run'}"],
+        r"stage 'b' names its own output \$\{out\.b\.export\}: a stage can read only other stages' outputs \(its own \$\{out\.b\.dir\} is where it writes\)",
+    ),
+    "recipe: an unknown command, found before any stage runs": (
+        lambda i, b, o: ["recipe", "--config", str(b / "unknown_command.yaml"), f"run_dir={o / 'run'}"],
+        r"stage 'b' in .*unknown_command\.yaml: unknown command 'exportt' \(did you mean export.*\?\); known: fit, validate, backbone-info",
+    ),
+    "recipe: `args` as a string, found before any stage runs": (
+        lambda i, b, o: ["recipe", "--config", str(b / "string_args.yaml"), f"run_dir={o / 'run'}"],
+        r"stage 'b' in .*string_args\.yaml: `args` must be a list of strings \(one per word, as typed on a shell\), got 'openvla-oft-tiny' \(str\); write args: \[openvla-oft-tiny\]",
+    ),
+    **{f"merge: λ = {scale}, a zero scale": (
+        lambda i, b, o, scale=scale: ["merge", "--base", str(i / "oft_sft"), "--vector", f"{i / 'oft_vector'}:{scale}", "--out", str(o / "m")],
+        rf"λ = {re.escape(scale)} for .*oft_vector is zero \(in float32, in which it is added\): the merge would change nothing yet record the vector as merged; drop --vector .* or give a non-zero λ",
+    ) for scale in ("0", "-0", "1e-310")},
+    "fit: λ = 0 for the merge callback": (
+        lambda i, b, o: fit_args(i, o, "--trainer.callbacks+=capvector.callbacks.MergeCapabilityVector", f"--trainer.callbacks.vector={i / 'oft_vector'}", "--trainer.callbacks.scale=0"),
+        r"λ = 0 for .*oft_vector is zero",
+    ),
+    "merge: a digest-less vector JSON claiming another family": (
+        lambda i, b, o: ["merge", "--base", str(i / "oft_sft"), "--vector", str(b / "old_vector"), "--out", str(o / "m")],
+        r"vector .*old_vector was extracted from pi05 models \(its capability_vector\.json says; written before metadata digests, so unchecked\), but the base .*oft_sft is openvla-oft: merge a vector of openvla-oft models, or extract this one again",
+    ),
+    "fit: a digest-less vector JSON claiming another family": (
+        lambda i, b, o: fit_args(i, o, "--trainer.callbacks+=capvector.callbacks.MergeCapabilityVector", f"--trainer.callbacks.vector={b / 'old_vector'}"),
+        r"vector .*old_vector was extracted from pi05 models .* but the model being fit is openvla-oft",
+    ),
+    "merge: --vector naming a file in the vector folder": (
+        lambda i, b, o: ["merge", "--base", str(i / "oft_sft"), "--vector", str(i / "oft_vector" / "capability_vector.json"), "--out", str(o / "m")],
+        r"vector folder .*capability_vector\.json is a file: pass the folder that holds it, .*oft_vector",
+    ),
+    "fit: scale=nan for the merge callback": (
+        lambda i, b, o: fit_args(i, o, "--trainer.callbacks+=capvector.callbacks.MergeCapabilityVector", f"--trainer.callbacks.vector={i / 'oft_vector'}", "--trainer.callbacks.scale=nan"),
+        r"trainer\.callbacks\.scale \(MergeCapabilityVector\) is nan, which is not finite; expected a finite float \(see capvector fit --help\)",
+    ),
+    "fit: a word where an integer goes": (
+        lambda i, b, o: fit_args(i, o, "--data.batch_size=four"),
+        r"data\.batch_size is 'four'; expected int \(see capvector fit --help\)",
+    ),
+    "fit: a word where an optional integer goes": (
+        lambda i, b, o: fit_args(i, o, "--trainer.max_epochs=abc"),
+        r"trainer\.max_epochs is 'abc'; expected int or None \(see capvector fit --help\)",
+    ),
+    "fit: a word where a callback's integer goes": (
+        lambda i, b, o: fit_args(i, o, "--trainer.callbacks+=lightning.pytorch.callbacks.ModelCheckpoint", "--trainer.callbacks.save_top_k=many"),
+        r"trainer\.callbacks\.save_top_k \(ModelCheckpoint\) is 'many'; expected int \(see capvector fit --help\)",
+    ),
     "demos: a misspelt robot, before simulating": (
         lambda i, b, o: ["demos", "--task", "Lift", "--episodes", "1", "--robot", "Sawyr", "--out", str(o / "d.hdf5")],
         r"unknown one-arm robot 'Sawyr' \(did you mean Sawyer\?\)",
@@ -248,6 +353,17 @@ def test_the_machine_refusing_is_one_line_exit_1(
     monkeypatch.setattr(cli, "broken_main", _failing_tool(missing))
     with pytest.raises(FileNotFoundError):
         main(["broken"])
+
+
+def test_help_into_a_closed_pipe_is_quiet() -> None:
+    """``capvector --help | head -1``: the reader leaves after a line; the rest is not an error."""
+    import subprocess
+    import sys
+
+    shell = f"{shlex.quote(sys.executable)} -m capvector.cli --help | head -1"
+    done = subprocess.run(["bash", "-o", "pipefail", "-c", shell], capture_output=True, text=True)
+    assert done.stdout == "usage: capvector COMMAND [...]\n"
+    assert done.stderr == "" and done.returncode in (0, 141), done.stderr
 
 
 def test_fit_help_still_prints_the_usage(capsys: pytest.CaptureFixture[str]) -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import errno
 import importlib
+import os
 import signal
 import sys
 import threading
@@ -41,7 +42,7 @@ TOOLS: dict[str, tuple[str, str]] = {  # name: ("module:function", help), import
         "record scripted robosuite or LIBERO demonstrations",
     ),
     "evaluate": ("capvector.workflows.evaluate:main", "MuJoCo rollouts of a checkpoint"),
-    "recipe": ("capvector.workflows.recipe:main", "run the whole recipe as resumable stages"),
+    "recipe": ("capvector.cli:recipe_main", "run the whole recipe as resumable stages"),
     "sweep-scale": ("capvector.workflows.sweep:main", "choose the merge scale λ"),
     "extract": ("capvector.workflows.vectors:extract_main", "capability vector = aux - sft"),
     "merge": ("capvector.workflows.vectors:merge_main", "base + sum of scaled vectors"),
@@ -60,7 +61,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run one command. Its bad input (a ``CapVectorError`` raised anywhere, or an environment
     failure such as a full disk) is printed here as one line, for every command alike; anything
     else is a bug and keeps its traceback."""
-    args = list(sys.argv[1:] if argv is None else argv)
+    try:
+        return _run(list(sys.argv[1:] if argv is None else argv), from_shell=argv is None)
+    except BrokenPipeError:
+        # The reader left (`capvector --help | head -1`): what is left to print goes nowhere, as
+        # Python's docs advise (signal.html, "Note on SIGPIPE"), instead of a traceback at exit.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 128 + signal.SIGPIPE
+
+
+def _run(args: list[str], from_shell: bool) -> int:
     if not args or args[0] in ("-h", "--help"):
         print(_usage())
         return 0
@@ -71,7 +81,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if command in LIGHTNING_SUBCOMMANDS:
             # From a shell, LightningCLI reads sys.argv itself (it warns when given both).
-            run_lightning_cli(None if argv is None else [command, *rest])
+            run_lightning_cli(None if from_shell else [command, *rest])
             return 0
         module, function = TOOLS[command][0].split(":")
         tool: Callable[[list[str]], int] = getattr(importlib.import_module(module), function)
@@ -86,6 +96,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         print(f"capvector {command}: error: {error}", file=sys.stderr)
         return code
+
+
+def recipe_main(argv: list[str]) -> int:
+    """``capvector recipe``, told the commands its stages may run, so that a misspelt one is
+    found before any stage runs (the recipe sits below this table and cannot import it)."""
+    from capvector.workflows.recipe import main as recipe
+
+    return recipe(argv, commands=[*LIGHTNING_SUBCOMMANDS, *TOOLS])
 
 
 ENVIRONMENT_ERRORS = frozenset({errno.EROFS, errno.EACCES, errno.EPERM})

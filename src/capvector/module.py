@@ -117,7 +117,8 @@ class VLAModule(L.LightningModule):
             data_spec: cameras, shapes and statistics; the CLI links it from the datamodule.
                 Unset (a data module without training data), ``pretrained``'s own.
             lora: fine-tune with LoRA (only LoRA and the heads train) instead of all weights.
-            optimizer: AdamW and learning-rate schedule.
+            optimizer: AdamW and learning-rate schedule; unset, the backbone family's
+                (``optimizer_preset`` in its ``configuration.py``).
             activation_checkpointing: recompute the backbone's blocks (``shard_units``) in the
                 backward pass instead of storing their activations.
             rollout: videos and chunk execution of the MuJoCo validation loop.
@@ -145,10 +146,14 @@ class VLAModule(L.LightningModule):
         ):
             self.hparams[name] = None if value is None else dataclasses.asdict(value)
         self.data_spec = data_spec or DataSpec()
-        self.optimizer_settings = optimizer or OptimizerSettings()
         self.lora_settings = lora
         overrides = {**self.data_spec.backbone_overrides(), **(backbone_overrides or {})}
         self.backbone: VLABackbone = self._build_backbone(backbone, pretrained, overrides)
+        # Unset, the family's own (its configuration.py's optimizer_preset), as LeRobot's
+        # use_policy_training_preset: a config that sets model.optimizer sets all of it.
+        self.optimizer_settings = optimizer or OptimizerSettings(
+            **self.backbone.config.optimizer_preset
+        )
         # Vectors merged into these weights (by fingerprint and λ): θ_pre's own record, then what
         # MergeCapabilityVector adds. Saved in checkpoints and exports so no vector is merged twice.
         self.merged_vectors: list[MergedVector] = (

@@ -23,12 +23,14 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any, ClassVar, TypeVar
 
 import torch
 from torch import Tensor, nn
 
 from capvector.data.batch import Batch
+from capvector.data.statistics import BOUNDS_Q99
 from capvector.errors import CapVectorError
 from capvector.io.hub import local_folder
 from capvector.io.loading import COPY_AGAIN, load_safetensors, read_json
@@ -49,6 +51,14 @@ class BackboneConfig:
     """Fields every family shares. Families add their own architecture fields in a subclass."""
 
     family: ClassVar[str] = ""
+    # The family's training defaults, as LeRobot's configuration_pi05.py carries
+    # normalization_mapping and get_optimizer_preset: a fit uses them unless its config says
+    # otherwise (data.normalization; model.optimizer, all of it).
+    normalization: ClassVar[str] = BOUNDS_Q99
+    """How states and actions are normalised (``capvector.data.statistics``), by default."""
+    optimizer_preset: ClassVar[Mapping[str, Any]] = MappingProxyType({})
+    """``model.optimizer``'s fields (AdamW, schedule) when a fit's config sets none; a field left
+    out takes ``OptimizerSettings``' default."""
 
     preset: str = ""
     """The registered preset this config started from (filled in by ``preset_config``)."""

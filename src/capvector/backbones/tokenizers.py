@@ -43,4 +43,11 @@ def saved_tokenizer(folder: str | Path, hint: str) -> Any:
         raise BackboneError(f"tokenizer folder {folder} has no tokenizer_config.json; {hint}")
     from transformers import AutoTokenizer
 
-    return AutoTokenizer.from_pretrained(str(folder))
+    try:
+        return AutoTokenizer.from_pretrained(str(folder))
+    except Exception as exc:  # JSONDecodeError, or the tokenizers library's plain Exception
+        reason = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise BackboneError(
+            f"cannot read the tokenizer in {folder} ({reason}): its tokenizer.json or "
+            "tokenizer_config.json is incomplete or corrupt; copy or export it again"
+        ) from exc

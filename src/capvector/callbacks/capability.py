@@ -10,7 +10,7 @@ from lightning.pytorch.utilities.rank_zero import rank_zero_info, rank_zero_warn
 
 from capvector.objectives.orthogonality import OrthogonalityLoss
 from capvector.vectors import VectorFolder, apply_vector_, validate_vector
-from capvector.vectors.merge import check_scale
+from capvector.vectors.merge import check_scale, check_scale_not_zero
 from capvector.vectors.precision import MergePrecision
 from capvector.vectors.record import (
     BY_FIT_START,
@@ -59,7 +59,9 @@ class MergeCapabilityVector(L.Callback):
         if stage != "fit":
             return
         check_scale(self.scale, self.vector, self.allow_large_scale)
+        check_scale_not_zero(self.scale, self.vector, "drop the callback or give a non-zero scale")
         folder = VectorFolder(self.vector)
+        folder.check_family(pl_module.backbone.config.family, "the model being fit")
         self._entry = MergedVector.of(folder, self.scale, BY_FIT_START)
         check_not_merged(
             pl_module.merged_vectors, self._entry, "the pretrained model", self.allow_repeat

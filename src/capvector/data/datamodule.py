@@ -92,7 +92,7 @@ class RobotDataModule(L.LightningDataModule):
         lerobot_root: str | None = None,
         train_episodes: list[int] | None = None,
         val_episodes: list[int] | None = None,
-        normalization: str = BOUNDS_Q99,
+        normalization: str | None = None,
         generate: DemoGeneration | None = None,
         cache_mb: float = DEFAULT_CACHE_MB,
     ) -> None:
@@ -126,7 +126,9 @@ class RobotDataModule(L.LightningDataModule):
                 the family's upstream: ``bounds_q99`` (OpenVLA-OFT: clipped to [-1, 1], gripper
                 raw), ``bounds`` (OpenVLA-OFT's ALOHA recipe: the same with min/max) or
                 ``quantiles`` (Pi0.5 as openpi and LeRobot: not clipped, every dimension).
-                See ``capvector.data.statistics``; the backbone YAMLs set it.
+                See ``capvector.data.statistics``. Unset, ``capvector fit`` sets the model's
+                backbone family's (``normalization`` in its ``configuration.py``); a data module
+                built alone takes ``bounds_q99``.
             generate: record missing HDF5 files with the robosuite experts (``prepare_data``, once
                 per node, with a progress bar) instead of stopping; ``configs/debug.yaml`` turns it
                 on so a fresh checkout trains.
@@ -134,9 +136,11 @@ class RobotDataModule(L.LightningDataModule):
                 among the ``num_workers`` workers (each keeps its own); episodes beyond it are read
                 frame by frame from the files. 0 reads every frame from the files.
         """
+        normalization = normalization or BOUNDS_Q99
         check_normalization(normalization)
         super().__init__()
         self.save_hyperparameters()
+        self.hparams["normalization"] = normalization
         self.hparams["train_files"] = demo_files(train_files, "data.train_files")
         self.hparams["val_files"] = demo_files(val_files, "data.val_files")
         self.eval_tasks = [eval_task(t) for t in eval_tasks or []]

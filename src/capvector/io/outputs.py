@@ -54,6 +54,8 @@ def check_writable(path: str | Path, what: str = "output", inside: bool = False)
     target = Path(path)
     ancestor = target.absolute() if inside else target.absolute().parent
     while not ancestor.exists():
+        if ancestor.is_symlink():  # a link that leads nowhere: nothing can be made through it
+            _refuse_broken_link(target, ancestor, what)
         ancestor = ancestor.parent
     if not ancestor.is_dir():
         raise CapVectorError(
@@ -65,6 +67,21 @@ def check_writable(path: str | Path, what: str = "output", inside: bool = False)
             "you can write to"
         )
     return target
+
+
+def _refuse_broken_link(target: Path, link: Path, what: str) -> None:
+    try:
+        os.stat(link)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise CapVectorError(
+                f"cannot write {what} {target}: a symbolic link on its path points back into "
+                f"itself ({exc.strerror}: {link}); fix the link or choose another folder"
+            ) from None
+    raise CapVectorError(
+        f"cannot write {what} {target}: {link} is a symbolic link to {os.readlink(link)}, which "
+        "does not exist; create that folder, fix the link or choose another folder"
+    )
 
 
 def check_output(

@@ -143,6 +143,19 @@ def check_scale(scale: float, vector: str = "the vector", allow_large_scale: boo
         )
 
 
+def check_scale_not_zero(scale: float, vector: str, what_to_do: str) -> None:
+    """A merge that is recorded (``merge``, the fit-start callback) refuses a λ that is zero in
+    float32, as it refuses a zero vector: it would change nothing, yet record the vector as
+    merged, and a later real merge of it would be refused as already held. (An in-memory λ = 0,
+    ``sweep-scale``'s baseline, records nothing and stays allowed.)"""
+    if abs(scale) < torch.finfo(torch.float32).tiny:  # 0, -0, and what float32 cannot hold
+        raise CapVectorError(
+            f"λ = {scale:g} for {vector} is zero (in float32, in which it is added): the merge "
+            "would change nothing yet record the vector as merged; "
+            + what_to_do.format(path=vector)
+        )
+
+
 # -- streaming merge into an export folder ---------------------------------------------------
 
 
@@ -186,7 +199,9 @@ def merge(
     folders = []
     for path, scale in vectors:
         check_scale(scale, str(path), allow_large_scale)
+        check_scale_not_zero(scale, str(path), "drop --vector {path} or give a non-zero λ")
         folder = VectorFolder(path)
+        folder.check_family(source.config.get("family"), f"the base {base}")
         infos = {k: folder.info(k) for k in folder}
         check_compatible(
             {k: source.info(k) for k in source}, infos, f"the base {base}", f"vector {path}"

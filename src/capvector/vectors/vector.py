@@ -86,6 +86,11 @@ class VectorFolder:
         """``path``: a local vector folder, or a hub id (``io.hub``)."""
         self.path = local_folder(path, "vector folder")
         self.hub_id = hub_id(path)
+        if self.path.is_file():
+            raise CapVectorError(
+                f"vector folder {self.path} is a file: pass the folder that holds it, "
+                f"{self.path.parent}"
+            )
         if not self.path.is_dir():
             raise CapVectorError(f"vector folder {self.path} does not exist")
         self.metadata: dict[str, Any] = {}
@@ -136,6 +141,27 @@ class VectorFolder:
                 "be trusted: restore it, or extract the vector again"
             )
         self._fingerprint: str | None = None
+
+    def check_family(self, family: str | None, target: str) -> None:
+        """Refuse a vector whose metadata says it was extracted from another family's models than
+        ``target``'s ``family``. Matching names and shapes do not make two families' tensors mean
+        the same; a JSON without a digest (written before digests) is held to its claim too."""
+        sources = self.metadata.get("sources")
+        claimed = {
+            str(src["family"])
+            for src in (sources.values() if isinstance(sources, Mapping) else [])
+            if isinstance(src, Mapping) and src.get("family")
+        }
+        if not family or not claimed or claimed == {family}:
+            return
+        trust = "" if METADATA_DIGEST in self.metadata else (
+            "; written before metadata digests, so unchecked"
+        )  # fmt: skip
+        raise CapVectorError(
+            f"vector {self.path} was extracted from {' and '.join(sorted(claimed))} models (its "
+            f"{VECTOR_META} says{trust}), but {target} is {family}: merge a vector of {family} "
+            "models, or extract this one again"
+        )
 
     def _check_listed(self, listed: Mapping[str, Any]) -> None:
         """What ``capability_vector.json`` says of each tensor must be what the weight files hold."""

@@ -5,8 +5,10 @@ sweep-scale``)."""
 from __future__ import annotations
 
 import os
+import re
 import signal
 import sys
+from typing import Any
 
 from capvector.errors import CapVectorError, config_error
 from capvector.io.names import STAGE_CORES
@@ -57,6 +59,8 @@ def run_lightning_cli(args: list[str] | None, run: bool = True) -> object:
                 )
             elif isinstance(trainer.logger, list):
                 trainer.logger = csv_logger_first(trainer.logger)
+            if config.data.get("normalization") is None:
+                config.data.normalization = family_config(config.model).normalization
             if config.data.get("generate"):
                 _check_before_recording(config)
 
@@ -126,7 +130,9 @@ def run_lightning_cli(args: list[str] | None, run: bool = True) -> object:
             run=run,
         )
     except ArgumentError as err:  # the command line, a config file, a checkpoint's hparams
-        raise CapVectorError(f"{err} (see capvector {subcommand} --help)") from err
+        raise CapVectorError(
+            f"{parse_error_line(str(err))} (see capvector {subcommand} --help)"
+        ) from err
     except OmegaConfBaseException as err:  # an interpolation in a config file
         raise config_error(f"a {subcommand} config", err) from err
     except SIGTERMException as stop:
@@ -135,6 +141,57 @@ def run_lightning_cli(args: list[str] | None, run: bool = True) -> object:
         # as done. It ends here as a process killed by SIGTERM does.
         print(f"capvector {subcommand}: stopped by SIGTERM before its end", file=sys.stderr)
         raise SystemExit(128 + signal.SIGTERM) from stop
+
+
+def family_config(model: Any) -> type:
+    """The config class of the backbone family a fit's ``model`` settings build: its preset's, or
+    the ``pretrained`` export's, or the default preset's (``VLAModule``'s rule)."""
+    from capvector.backbones import preset_config
+    from capvector.backbones.base import backbone_class, load_export_config
+    from capvector.module import DEFAULT_PRESET
+
+    if model.get("backbone"):
+        return type(preset_config(model.backbone))
+    if model.get("pretrained"):
+        return backbone_class(load_export_config(model.pretrained)["family"]).config_class
+    return type(preset_config(DEFAULT_PRESET))
+
+
+def parse_error_line(message: str) -> str:
+    """jsonargparse's error for a value of the wrong type, 2 to 12 lines (``Parser key "K":``,
+    the union's subtypes, each subtype's error, nested again for a callback's init argument), as
+    one line naming the key, the value and the expected type: ``data.batch_size is 'four';
+    expected int``. Other errors (an unknown key) are their lines joined."""
+    lines = [line.strip() for line in message.strip().splitlines() if line.strip()]
+    joined = " ".join(lines)
+    key = re.match(r'Parser key "([^"]+)":', joined)
+    if key is None:
+        return joined
+    name, owner = key[1], ""
+    nested = re.search(
+        r"Problem with given class_path '([\w.]+)': Parser key \"([^\"]+)\":", joined
+    )
+    if nested:  # a class's init argument: the first class tried is the one given
+        name, owner = f"{name}.{nested[2]}", f" ({nested[1].rpartition('.')[2]})"
+        joined = joined[nested.end() :]
+    subtypes = re.search(r"Subtypes: \[(.*?)\] Errors:", joined)
+    expected = re.search(r"Expected a (<class '[\w.]+'>|\S+)\.? Got value: (.*?)(?: - |$)", joined)
+    given = re.search(r"Given value: (.*)$", joined)
+    if subtypes and given:
+        kinds, value = _type_names(subtypes[1]), given[1]
+    elif expected:
+        kinds, value = _type_names(expected[1]), expected[2]
+    else:
+        return joined
+    if kinds == "float" and value.strip().lower().lstrip("+-") in ("nan", "inf", "infinity"):
+        return f"{name}{owner} is {value}, which is not finite; expected a finite float"
+    return f"{name}{owner} is {value!r}; expected {kinds}"
+
+
+def _type_names(types: str) -> str:
+    """``[<class 'int'>, <class 'NoneType'>]`` as ``int or None``."""
+    names = [n.rpartition(".")[2] for n in re.findall(r"<class '([\w.]+)'>", types)] or [types]
+    return " or ".join("None" if n == "NoneType" else n for n in names)
 
 
 def _check_before_recording(config: object) -> None:

@@ -57,15 +57,17 @@ from typing import Any
 
 import yaml
 
-from capvector.errors import CapVectorError, config_error, did_you_mean
+from capvector.errors import CapVectorError, config_error, did_you_mean, unknown_name
 from capvector.eval.results import SuccessRow, format_success_table
 from capvector.tool_cli import run_tool
 from capvector.workflows.launchers import (
     DONE,
     LAUNCHERS,
     REQUEUE_SIGNAL,
+    LocalLauncher,
     Resources,
     Started,
+    SubmititLauncher,
     make_launcher,
     running_pid,
     still_running,
@@ -126,11 +128,18 @@ def _load_raw(path: str | Path, overrides: list[str] | None) -> tuple[Path, Any]
 
     if not OmegaConf.has_resolver("best_scale"):
         OmegaConf.register_resolver("best_scale", _best_scale)
+    if not Path(path).is_file():
+        raise CapVectorError(
+            f"--config {path} does not exist; recipes ship in configs/recipes/ "
+            "(e.g. configs/recipes/quick.yaml)"
+        )
     raw = OmegaConf.load(path)
     if overrides:
         raw = OmegaConf.merge(raw, OmegaConf.from_dotlist(overrides))
-    if "run_dir" not in raw or "stages" not in raw:
+    if "run_dir" not in raw or "stages" not in raw or not OmegaConf.is_list(raw.stages):
         raise CapVectorError(f"{path} needs `run_dir` and a list of `stages` (name, command, args)")
+    for entry in raw.stages:
+        check_entry(entry, path)
     raw.stages = expand_seeds(raw.stages, path)
     run_dir = Path(str(raw.run_dir))
     names = [str(s.name) for s in raw.stages]
@@ -138,6 +147,30 @@ def _load_raw(path: str | Path, overrides: list[str] | None) -> tuple[Path, Any]
         raise CapVectorError(f"{path}: stage names must be unique, got {names}")
     raw.out = {name: stage_outputs(run_dir, name) for name in names}
     return run_dir, raw
+
+
+def check_entry(entry: Any, path: str | Path) -> None:
+    """A stage as the recipe wrote it: a mapping with a `name`, a `command`, and `args` as a list
+    of words (a string would be split into characters, a nested list passed as its repr)."""
+    from omegaconf import OmegaConf
+
+    if not OmegaConf.is_dict(entry) or "name" not in entry or "command" not in entry:
+        raise CapVectorError(
+            f"{path}: every stage needs a `name` and a `command` (and `args`), got {entry!r}"
+        )
+    where = f"stage {str(entry.name)!r} in {path}"
+    args = OmegaConf.to_container(entry, resolve=False).get("args", [])  # type: ignore[union-attr]
+    if not isinstance(args, list):
+        raise CapVectorError(
+            f"{where}: `args` must be a list of strings (one per word, as typed on a shell), got "
+            f"{args!r} ({type(args).__name__}); write args: [{args}]"
+        )
+    nested = [i for i, a in enumerate(args) if isinstance(a, list | dict)]
+    if nested:
+        raise CapVectorError(
+            f"{where}: args[{nested[0]}] is {args[nested[0]]!r}, not a word; quote it "
+            '(e.g. "--data.train_files=[a.hdf5, b.hdf5]")'
+        )
 
 
 def expand_seeds(stages: Any, path: str | Path) -> Any:
@@ -261,6 +294,11 @@ def dependencies(raw: Any, index: int) -> set[str]:
                 f"{did_you_mean(stage, names)}; stages: {names}"
             )
         outputs = list(stage_outputs(Path(), stage))
+        if stage == names[index] and output != "dir":
+            raise CapVectorError(
+                f"stage {stage!r} names its own output {reference}: a stage can read only other "
+                f"stages' outputs (its own ${{out.{stage}.dir}} is where it writes)"
+            )
         if output not in outputs:
             raise CapVectorError(
                 f"stage {names[index]!r} names {reference}: a stage's outputs are "
@@ -340,127 +378,220 @@ def run(
     threads: int | None = None,
     launcher: str | None = None,
     status: bool = False,
+    commands: Collection[str] = (),
 ) -> list[dict]:
     """Run the stages, up to ``jobs`` at a time once their dependencies have finished, each with
     ``threads`` torch threads, through ``launcher`` (default: the recipe's, ``local``); with
     ``only``, just those stages and what they wait for; with ``status``, print where they stand
-    instead (``print_status``).
+    instead (``print_status``). ``commands``: the commands a stage may run (``capvector``'s; not
+    checked when empty).
 
+    The whole recipe is checked before any stage runs: its settings, every stage's command and
+    arguments, what the stages wait for (no cycle) and every interpolation.
     Locally with ``jobs > 1``, and always through submitit, each stage's output goes to
     ``<stage>/log.txt``.
     """
     run_dir, raw = _load_raw(recipe, overrides)
-    threads = int(raw.get("threads", DEFAULT_THREADS) if threads is None else threads)
-    if threads < 1:
-        raise CapVectorError(f"threads (torch threads per stage) must be at least 1, got {threads}")
-    launcher = str(launcher or raw.get("launcher", "local"))
+    threads = _count_setting(raw, "threads", threads, DEFAULT_THREADS, recipe)
+    jobs = _count_setting(raw, "jobs", jobs, None, recipe)  # submitit: no limit unless given
+    launcher = _launcher_setting(raw, launcher)
+    if commands:
+        check_commands(raw, commands, recipe)
+    names = [str(s.name) for s in raw.stages]
+    waits_for = {names[i]: dependencies(raw, i) for i in range(len(names))}
+    check_order(waits_for, recipe)
+    scheduler = Scheduler(
+        recipe, run_dir, raw, names, waits_for, make_launcher(launcher, jobs, threads), launcher,
+        dry_run, quiet=launcher == "local" and (jobs or 1) == 1,
+    )  # fmt: skip
+    scheduler.check()
+    if only:
+        scheduler.keep_only(only)
+    if status:
+        print_status(run_dir, [scheduler.resolve(n) for n in scheduler.names], waits_for)
+        return []
+    return scheduler.run()
+
+
+def _count_setting(
+    raw: Any, key: str, given: int | None, default: int | None, path: str | Path
+) -> int | None:
+    """``jobs`` or ``threads``: the option given, else the recipe's, else ``default``; a whole
+    number of at least 1."""
+    value = raw.get(key, default) if given is None else given
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise CapVectorError(
+            f"{path}: `{key}` must be an integer ({SETTINGS[key]}), got {value!r} "
+            f"({type(value).__name__}); write e.g. {key}: 2"
+        )
+    if value < 1:
+        raise CapVectorError(f"{key} ({SETTINGS[key]}) must be at least 1, got {value}")
+    return value
+
+
+SETTINGS = {"jobs": "stages run at once", "threads": "torch threads per stage"}
+
+
+def _launcher_setting(raw: Any, given: str | None) -> str:
+    launcher = str(given or raw.get("launcher", "local"))
     if launcher not in LAUNCHERS:
         raise CapVectorError(
             f"launcher must be one of {', '.join(LAUNCHERS)}, got {launcher!r}"
             f"{did_you_mean(launcher, LAUNCHERS)}"
         )
-    jobs = jobs or raw.get("jobs")  # submitit: no limit unless given; SLURM queues the jobs
-    if jobs is not None and int(jobs) < 1:
-        raise CapVectorError(f"jobs must be at least 1, got {jobs}")
-    names = [str(s.name) for s in raw.stages]
-    waits_for = {names[i]: dependencies(raw, i) for i in range(len(names))}
-    check_order(waits_for, recipe)
-    runner = make_launcher(launcher, None if jobs is None else int(jobs), threads)
-    for i in range(len(names)):  # every interpolation resolves: a typo fails now, not hours in
-        runner.check(names[i], resolve_stage(raw, i, run_dir, recipe).resources)
-    if only:
-        done = {n for n in names if (run_dir / n / DONE).is_file()}
-        required = required_stages(waits_for, only, done)
-        names = [n for n in names if n in required]
-    index = {str(s.name): i for i, s in enumerate(raw.stages)}
-    if status:
-        print_status(
-            run_dir, [resolve_stage(raw, index[n], run_dir, recipe) for n in names], waits_for
-        )
-        return []
-    if not dry_run:  # before anything starts: an earlier run's stage may still be running
-        pids = {n: running_pid(run_dir / n) for n in names if not (run_dir / n / DONE).is_file()}
-        busy = {n: pid for n, pid in pids.items() if pid is not None}
-        if busy:
-            raise CapVectorError(still_running(busy))
-    run_dir.mkdir(parents=True, exist_ok=True)
-    stages: dict[str, Stage] = {}
-    finished: set[str] = set()
-    running: dict[str, Started] = {}
-    failed: list[str] = []
-    quiet = launcher == "local" and (jobs or 1) == 1  # the stage's output is this one's
+    return launcher
 
-    def label(name: str) -> str:
-        return f"[recipe {names.index(name) + 1}/{len(names)}] {name} ({stages[name].command})"
 
-    def start(name: str) -> None:
-        stage = stages[name]
-        left = [n for n in names if n not in finished and n not in running and n != name
-                and not (run_dir / n / DONE).is_file()]  # fmt: skip
-        more = f": {', '.join(left[:3])}{', ...' if len(left) > 3 else ''}" if left else ""
-        print(f"{label(name)} started; {len(left)} more to run{more}", flush=True)
-        if dry_run:
-            print("  " + " ".join(command_line(stage, launcher)[2:]))
-            finished.add(name)
-            return
-        command = functools.partial(command_line, stage, launcher)
-        running[name] = runner.start(name, stage.directory, command, stage.resources,
-                                     stage.command == "fit")  # fmt: skip
-        if not quiet:
-            print(f"  {running[name].where()}", flush=True)
+def check_commands(raw: Any, commands: Collection[str], path: str | Path) -> None:
+    """Every stage runs one of ``commands``: a misspelt one is found before any stage runs."""
+    for entry in raw.stages:
+        if str(entry.command) not in commands:
+            raise CapVectorError(
+                f"stage {str(entry.name)!r} in {path}: "
+                f"{unknown_name('command', str(entry.command), commands)}"
+            )
 
-    def reap(name: str, code: int) -> None:
-        started = running.pop(name)
-        if code != 0:
-            failed.append(name)
-            print(f"{label(name)} failed: {started.failure()}", flush=True)
-            return
-        finished.add(name)
-        if not quiet:
-            marker = json.loads(stages[name].done_marker.read_text())
-            print(f"{label(name)} finished{took(marker)}", flush=True)
 
-    try:
-        while len(finished) < len(names) and not failed:
-            for name in names:
-                if name in finished or name in running:
-                    continue
-                done_earlier = (run_dir / name / DONE).is_file()
-                if not (done_earlier or waits_for[name] <= finished):
-                    continue  # a finished stage waits for nothing: its inputs may be gone
-                # Resolved only now, so the arguments can use what earlier stages produced.
-                stages[name] = resolve_stage(raw, index[name], run_dir, recipe)
-                if done_earlier:
-                    print(f"{label(name)}: done earlier, skipped", flush=True)
-                    finished.add(name)
-                elif runner.has_room(stages[name].resources):
-                    start(name)
-            if not running:
+@dataclass
+class Scheduler:
+    """Runs a checked recipe's stages: each once the stages it waits for have finished, up to the
+    runner's room at once; stops the running ones when the recipe stops (Ctrl-C, SIGTERM, an
+    error) and lets them finish when one fails. Its state is these fields."""
+
+    recipe: str | Path
+    run_dir: Path
+    raw: Any
+    names: list[str]
+    """The stages to run, in the recipe's order."""
+    waits_for: dict[str, set[str]]
+    runner: LocalLauncher | SubmititLauncher
+    launcher: str
+    dry_run: bool
+    quiet: bool
+    """The stages' output is this process's (locally, one job at a time): no ``where`` lines."""
+    stages: dict[str, Stage] = field(default_factory=dict)
+    """Resolved, each right before it runs (it may use what earlier stages produced)."""
+    finished: set[str] = field(default_factory=set)
+    running: dict[str, Started] = field(default_factory=dict)
+    failed: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.index = {str(s.name): i for i, s in enumerate(self.raw.stages)}
+
+    def resolve(self, name: str) -> Stage:
+        return resolve_stage(self.raw, self.index[name], self.run_dir, self.recipe)
+
+    def done_earlier(self, name: str) -> bool:
+        return (self.run_dir / name / DONE).is_file()
+
+    def check(self) -> None:
+        """Every stage's interpolations resolve and the runner can give it what it asks for: a typo
+        fails now, not hours in."""
+        for name in self.names:
+            self.runner.check(name, self.resolve(name).resources)
+
+    def keep_only(self, targets: list[str]) -> None:
+        """Only ``targets`` and what they wait for (``required_stages``)."""
+        done = {n for n in self.names if self.done_earlier(n)}
+        required = required_stages(self.waits_for, targets, done)
+        self.names = [n for n in self.names if n in required]
+
+    def run(self) -> list[dict]:
+        if not self.dry_run:  # before anything starts: an earlier run's stage may still be running
+            pids = {
+                n: running_pid(self.run_dir / n) for n in self.names if not self.done_earlier(n)
+            }
+            busy = {n: pid for n, pid in pids.items() if pid is not None}
+            if busy:
+                raise CapVectorError(still_running(busy))
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        try:
+            while len(self.finished) < len(self.names) and not self.failed:
+                self.start_ready()
+                if self.running:
+                    time.sleep(self.runner.poll_seconds)
+                    self.reap_ended()
+        except BaseException:  # Ctrl-C, SIGTERM, an error: the local stages stop with the recipe
+            self.stop()
+            raise
+        for name in list(self.running):  # a stage failed: let the others finish, then stop
+            self.reap(name, self.running[name].wait())
+        if self.failed:
+            raise CapVectorError(
+                f"stage(s) {self.failed} failed; fix and rerun the same command: finished stages "
+                "are skipped and an interrupted fit resumes"
+            )
+        return collect_results([self.stages[n] for n in self.names])
+
+    def start_ready(self) -> None:
+        """Start (or skip, when done earlier) every stage whose waits are over, while there is
+        room."""
+        for name in self.names:
+            if name in self.finished or name in self.running:
                 continue
-            time.sleep(runner.poll_seconds)
-            for name in list(running):
-                code = running[name].poll()
-                if code is not None:
-                    reap(name, code)
-    except BaseException:  # Ctrl-C, SIGTERM, an error: the local stages stop with the recipe
-        stopping = [name for name, started in running.items() if started.stop()]
+            done_earlier = self.done_earlier(name)
+            if not (done_earlier or self.waits_for[name] <= self.finished):
+                continue  # a finished stage waits for nothing: its inputs may be gone
+            # Resolved only now, so the arguments can use what earlier stages produced.
+            self.stages[name] = self.resolve(name)
+            if done_earlier:
+                print(f"{self.label(name)}: done earlier, skipped", flush=True)
+                self.finished.add(name)
+            elif self.runner.has_room(self.stages[name].resources):
+                self.start(name)
+
+    def label(self, name: str) -> str:
+        number = self.names.index(name) + 1
+        return f"[recipe {number}/{len(self.names)}] {name} ({self.stages[name].command})"
+
+    def start(self, name: str) -> None:
+        stage = self.stages[name]
+        left = [n for n in self.names if n not in self.finished and n not in self.running
+                and n != name and not self.done_earlier(n)]  # fmt: skip
+        more = f": {', '.join(left[:3])}{', ...' if len(left) > 3 else ''}" if left else ""
+        print(f"{self.label(name)} started; {len(left)} more to run{more}", flush=True)
+        if self.dry_run:
+            print("  " + " ".join(command_line(stage, self.launcher)[2:]))
+            self.finished.add(name)
+            return
+        command = functools.partial(command_line, stage, self.launcher)
+        self.running[name] = self.runner.start(
+            name, stage.directory, command, stage.resources, stage.command == "fit"
+        )
+        if not self.quiet:
+            print(f"  {self.running[name].where()}", flush=True)
+
+    def reap_ended(self) -> None:
+        for name in list(self.running):
+            code = self.running[name].poll()
+            if code is not None:
+                self.reap(name, code)
+
+    def reap(self, name: str, code: int) -> None:
+        started = self.running.pop(name)
+        if code != 0:
+            self.failed.append(name)
+            print(f"{self.label(name)} failed: {started.failure()}", flush=True)
+            return
+        self.finished.add(name)
+        if not self.quiet:
+            marker = json.loads(self.stages[name].done_marker.read_text())
+            print(f"{self.label(name)} finished{took(marker)}", flush=True)
+
+    def stop(self) -> None:
+        """The running local stages stop and are waited for; SLURM jobs outlive the recipe, and
+        the user is told which."""
+        stopping = [name for name, started in self.running.items() if started.stop()]
         if stopping:
             print(f"capvector recipe: stopping {', '.join(stopping)}; run the same command "
                   "again to resume", flush=True)  # fmt: skip
             for name in stopping:
-                running[name].wait()
-        left = ", ".join(f"{n} ({s.where()})" for n, s in running.items() if n not in stopping)
+                self.running[name].wait()
+        left = ", ".join(f"{n} ({s.where()})" for n, s in self.running.items() if n not in stopping)
         if left:  # SLURM jobs outlive the recipe: say which, in the state SLURM gives now
             print(f"capvector recipe: stopped waiting for {left}")
-        raise
-    for name in list(running):  # a stage failed: let the others finish their work, then stop
-        reap(name, running[name].wait())
-    if failed:
-        raise CapVectorError(
-            f"stage(s) {failed} failed; fix and rerun the same command: finished stages are "
-            "skipped and an interrupted fit resumes"
-        )
-    return collect_results([stages[n] for n in names])
 
 
 def print_status(run_dir: Path, stages: list[Stage], waits_for: dict[str, set[str]]) -> None:
@@ -559,8 +690,9 @@ def collect_results(stages: list[Stage]) -> list[SuccessRow]:
     return rows
 
 
-def main(argv: list[str] | None = None) -> int:
-    return run_tool(recipe_cli, argv, "recipe")
+def main(argv: list[str] | None = None, commands: Collection[str] = ()) -> int:
+    """``capvector recipe``; ``commands``: those its stages may run (``capvector.cli``'s)."""
+    return run_tool(recipe_cli, argv, "recipe", commands=list(commands))
 
 
 def recipe_cli(
@@ -574,6 +706,7 @@ def recipe_cli(
     only: list[str] | None = None,
     launcher: str | None = None,
     status: bool = False,
+    commands: Collection[str] = (),
 ) -> None:
     """Run the whole recipe, or the stages some need, as resumable stages.
 
@@ -591,7 +724,8 @@ def recipe_cli(
             submitit-local (the slurm path, jobs as local processes); default: the recipe's
             `launcher`, local
         status: run nothing; print where each stage (of --only's) stands
+        commands: the commands a stage may run (given by ``capvector.cli``, not an option)
     """
-    rows = run(config, list(overrides), dry_run, jobs, only, threads, launcher, status)
+    rows = run(config, list(overrides), dry_run, jobs, only, threads, launcher, status, commands)
     if rows:
         print("\nResults\n" + format_success_table(rows))

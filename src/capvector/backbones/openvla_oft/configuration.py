@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from types import MappingProxyType
 
 from capvector.backbones.base import BackboneConfig, nested_config, register_preset
+from capvector.data.statistics import BOUNDS_Q99
 
 
 @nested_config
@@ -60,6 +62,11 @@ class LlamaSpec:
 @dataclass
 class OpenVLAOFTConfig(BackboneConfig):
     family = "openvla-oft"
+    # OpenVLA-OFT (prismatic/vla/datasets/rlds/utils/data_utils.py BOUNDS_Q99): clipped to
+    # [-1, 1] by the 1st/99th percentiles, the gripper raw; its finetune.py: AdamW 5e-4 with
+    # torch's defaults, no warmup (its LIBERO recipe's x0.1 at 100k: configs/backbones/openvla-oft.yaml).
+    normalization = BOUNDS_Q99
+    optimizer_preset = MappingProxyType({"lr": 5e-4, "betas": (0.9, 0.999), "weight_decay": 0.01})
 
     featurizer: ViTConfig = field(default_factory=ViTConfig)
     """DINOv2 half of the fused vision backbone."""

@@ -8,8 +8,10 @@ Field values follow openpi (``Pi0Config(pi05=True)``, ``gemma.py``, ``siglip.py`
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from types import MappingProxyType
 
 from capvector.backbones.base import BackboneConfig, nested_config, register_preset
+from capvector.data.statistics import QUANTILES
 
 
 @nested_config
@@ -41,6 +43,16 @@ class GemmaSpec:
 @dataclass
 class Pi05Config(BackboneConfig):
     family = "pi05"
+    # openpi and LeRobot normalise Pi0.5's states and actions with q01/q99 quantiles, every
+    # dimension, without clipping (LeRobot configuration_pi05.py normalization_mapping: QUANTILES).
+    normalization = QUANTILES
+    # openpi's defaults (src/openpi/training/config.py, optimizer.py; LeRobot's
+    # get_optimizer_preset likewise): AdamW betas (0.9, 0.95), weight decay 1e-10, 1k warmup
+    # steps, cosine from 2.5e-5 down to 2.5e-6.
+    optimizer_preset = MappingProxyType(
+        {"lr": 2.5e-5, "betas": (0.9, 0.95), "weight_decay": 1e-10, "schedule": "cosine",
+         "warmup_steps": 1000, "min_lr_ratio": 0.1}
+    )  # fmt: skip
 
     vision: SiglipSpec = field(default_factory=SiglipSpec)
     vlm: GemmaSpec = field(default_factory=GemmaSpec)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import copy
 from dataclasses import dataclass, field
 from functools import partial
+from types import MappingProxyType
 from typing import Any
 
 from capvector.backbones.base import BackboneConfig, BackboneError, register_preset
@@ -54,6 +55,14 @@ QWEN_VERSIONS = {
 @dataclass
 class StarVLAConfig(BackboneConfig):
     family = "starvla"
+    # StarVLA's LIBERO recipe (examples/simBenchmarks/LIBERO, run_libero_train.sh): AdamW betas
+    # (0.9, 0.95), weight decay 1e-8, 5k warmup, cosine down to 1e-6. StarVLA trains the VLM at 1e-5
+    # and the head at 1e-4; VLAModule has one learning rate, so this is the VLM's. Normalisation:
+    # OpenVLA-OFT's bounds_q99 (the default), as every StarVLA fit here has used.
+    optimizer_preset = MappingProxyType(
+        {"lr": 1e-5, "betas": (0.9, 0.95), "weight_decay": 1e-8, "schedule": "cosine",
+         "warmup_steps": 5000, "min_lr_ratio": 0.1}
+    )  # fmt: skip
 
     qwen_version: str = "qwen2.5-vl"
     """'qwen2.5-vl' or 'qwen3-vl': which transformers classes build the VLM. StarVLA picks the

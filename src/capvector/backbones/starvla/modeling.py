@@ -252,9 +252,9 @@ class StarVLA(VLABackbone):
 
     def load_tokenizer(self, folder: str | Path) -> None:
         if (Path(folder) / "tokenizer_config.json").is_file():
-            from transformers import AutoTokenizer
+            from capvector.backbones.tokenizers import saved_tokenizer
 
-            self._install_tokenizer(AutoTokenizer.from_pretrained(str(folder)))
+            self._install_tokenizer(saved_tokenizer(folder, ""))  # a cut file: one line
 
     @property
     def visual_grid(self) -> tuple[int, int]:

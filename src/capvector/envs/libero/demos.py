@@ -157,7 +157,14 @@ def demo_start(folder: str | Path, suite: str, task_id: int, index: int) -> tupl
             f"from_demos: {folder} has no demos of {suite} task {task_id} ({path.name}); record "
             f"them with `capvector demos --suite {suite} --tasks {task_id} --out {folder}`"
         )
-    with h5py.File(path, "r") as f:
+    try:
+        file = h5py.File(path, "r")
+    except OSError as exc:  # cut short while copying, or not HDF5 (as data/hdf5.py says it)
+        raise CapVectorError(
+            f"from_demos: {path} is not a readable HDF5 file (h5py: {exc}); re-record or "
+            "re-download it"
+        ) from exc
+    with file as f:
         demos, key = f["data"], f"demo_{index}"
         if key not in demos:
             raise CapVectorError(
