@@ -112,7 +112,8 @@ CASES: dict[str, tuple[Callable[[Path, Path], list[str]], str]] = {
     ),
     "fit: a vector of another preset": (
         lambda i, o: fit_args(i, o, "--trainer.callbacks+=capvector.callbacks.MergeCapabilityVector", f"--trainer.callbacks.vector={i / 'pi05_vector'}"),
-        r"vector has \d+ tensor\(s\) the model lacks",
+        r"extracted from pi05 models \(its capability_vector.json says\), but the model being fit "
+        r"is openvla-oft",
     ),
     "fit: logs inside a file": (
         lambda i, o: fit_args(i, o, f"--trainer.logger.init_args.save_dir={i / 'a_file' / 'logs'}"),

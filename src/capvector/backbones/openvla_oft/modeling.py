@@ -328,9 +328,16 @@ class OpenVLAOFT(VLABackbone):
             )
         if config.base_weights not in ("", "packages"):
             raise BackboneError(f"base_weights {config.base_weights!r} is not '' or 'packages'")
-        # On the meta device (counting parameters) nothing is read: no tokenizer, no weights.
+        # On the meta device (counting parameters) no weights are read, nor the packaged tokenizer
+        # (it lives in the dequantised cache); the others load, as the planner's traced step
+        # tokenizes its prompt.
         real = torch.empty(()).device.type != "meta"
-        self._tokenizer = _make_tokenizer(config.tokenizer) if config.tokenizer and real else None
+        packaged = config.tokenizer == PACKAGED_TOKENIZER
+        self._tokenizer = (
+            _make_tokenizer(config.tokenizer)
+            if config.tokenizer and (real or not packaged)
+            else None
+        )
         if config.vision == "fused-vit":
             self.vision_backbone: nn.Module = FusedVisionBackbone(config)
         else:
@@ -660,12 +667,16 @@ def _build_language_model(llm: LlamaSpec) -> nn.Module:
     return LlamaForCausalLM(llama_config)
 
 
+PACKAGED_TOKENIZER = "gemma3-270m"
+"""The tokenizer the packaged GGUF carries (capvector.backbones.packaged)."""
+
+
 def _make_tokenizer(spec: str) -> Any:
     from capvector.backbones.tokenizers import byte_level_tokenizer, saved_tokenizer
 
     if spec == "byte":
         return byte_level_tokenizer()
-    if spec == "gemma3-270m":  # the one the packaged GGUF carries (capvector.backbones.packaged)
+    if spec == PACKAGED_TOKENIZER:
         from capvector.backbones.packaged import gemma3_270m_tokenizer_folder
 
         return saved_tokenizer(gemma3_270m_tokenizer_folder(), f"rebuild {spec}'s cache")
