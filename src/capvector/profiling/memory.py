@@ -43,6 +43,7 @@ from torch.utils._python_dispatch import TorchDispatchMode, _disable_current_mod
 from capvector.backbones.base import VLABackbone, build_backbone, list_presets, preset_config
 from capvector.data.batch import Batch
 from capvector.errors import CapVectorError
+from capvector.profiling.meta import on_meta
 from capvector.profiling.settings import TrainingSettings
 from capvector.training.lora import (
     FROZEN_DTYPES,
@@ -491,7 +492,7 @@ def _check(settings: TrainingSettings) -> torch.dtype:
 
 def meta_backbone(preset: str, lora_rank: int | None, **overrides: Any) -> VLABackbone:
     """``preset`` with its weights on the meta device, trainable as LoRA of ``lora_rank`` or fully."""
-    with torch.device("meta"):
+    with on_meta():
         backbone = build_backbone(preset, **_tiny_tokenizer(preset), **overrides)
         set_trainable(backbone, lora_settings(lora_rank))
     return backbone
