@@ -95,7 +95,7 @@ def check_preset(preset: str, batch: int, gpu_tflops: float) -> Row:
 def egl_renderer() -> str:
     os.environ.setdefault("MUJOCO_GL", "egl")
     try:
-        from capvector.sim.libero_render import gl_renderer
+        from capvector.envs.libero.render import gl_renderer
 
         return gl_renderer() or "none (no GL context)"
     except ImportError as err:
