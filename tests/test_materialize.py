@@ -65,6 +65,28 @@ def test_pretrained_loads_into_bf16_and_keeps_trained_weights_float32(
             assert torch.equal(tensor.detach(), reference.to(tensor.dtype)), name
 
 
+def test_frozen_weights_a_vector_lands_in_get_the_exports_full_precision(
+    demo_file: Path, tmp_path: Path
+) -> None:
+    """Loaded in bf16, then kept in float32 by a callback (MergeCapabilityVector does so in
+    setup): configure_model reads them again from the export, so λc is added to θ_pre itself."""
+    dm = RobotDataModule(train_files=[str(demo_file)], batch_size=4)
+    source = VLAModule(backbone="openvla-oft-tiny", data_spec=dm.spec)
+    folder = source.export(tmp_path / "pre")
+    started = VLAModule(pretrained=str(folder), data_spec=dm.spec, frozen_dtype="bfloat16")
+    exported = source.backbone.state_dict()
+    name = next(  # a frozen weight that bf16 cannot hold exactly
+        n
+        for n, p in started.backbone.named_parameters()
+        if not p.requires_grad and not torch.equal(p.float(), exported[n])
+    )
+    reference = exported[name]
+    started.float32_parameters.add(name)
+    started.configure_model()
+    kept = started.backbone.get_parameter(name)
+    assert kept.dtype == torch.float32 and torch.equal(kept.detach(), reference)
+
+
 # A pi05-3b with fewer layers and a byte vocabulary: ≈ 180 M parameters, built as training builds
 # it (LoRA r 32). Peak memory is the RSS high-water mark of a fresh interpreter (ru_maxrss) above
 # its RSS once everything is imported: tracemalloc does not see torch's allocations.

@@ -24,7 +24,7 @@ from capvector.backbones.base import (
     build_backbone,
     load_export_config,
 )
-from capvector.backbones.materialize import build_stored_in, load_pretrained
+from capvector.backbones.materialize import build_stored_in, load_pretrained, reload_in_float32
 from capvector.data.batch import Batch
 from capvector.data.episodes import EpisodeDataset, EpisodeItem, is_episode_batch
 from capvector.data.spec import DataSpec
@@ -172,6 +172,7 @@ class VLAModule(L.LightningModule):
         self.episode_count = SumMetric()
         self._episode_rows: list[list[Any]] = []
         self._parallelized = False
+        self._pretrained = pretrained
 
     @staticmethod
     def _build_backbone(
@@ -223,6 +224,8 @@ class VLAModule(L.LightningModule):
         if self.frozen_dtype != torch.float32:
             self._check_autocast()
             cast_frozen_parameters(self.backbone, self.frozen_dtype, keep=self.float32_parameters)
+            if self._pretrained is not None:
+                reload_in_float32(self.backbone, self._pretrained, self.float32_parameters)
         parallelize(
             self.backbone,
             self.backbone.shard_units(),

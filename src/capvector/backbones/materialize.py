@@ -154,6 +154,22 @@ def load_streaming(model: nn.Module, source: WeightSource, label: str) -> None:
             del value
 
 
+def reload_in_float32(model: nn.Module, folder: str, names: set[str]) -> None:
+    """Read the parameters named in ``names`` (export names) again from the export ``folder`` into
+    their float32 storage. They were loaded while stored in the frozen dtype and are kept in float32
+    only once a callback asks (a capability vector lands in them): without this they would keep the
+    rounded values, and the merge would add λc to weights the float32 build never had."""
+    if not names:
+        return
+    source = SafetensorsFolder(local_folder(folder, "export folder"))
+    available = set(source.keys())
+    with torch.no_grad():
+        for name, param in model.named_parameters():
+            key = export_key(name)
+            if key in names and key in available and param.dtype == torch.float32:
+                param.copy_(source.read(key))
+
+
 def load_pretrained(
     folder: str,
     dtype: torch.dtype = torch.float32,
