@@ -1,5 +1,6 @@
 """Shared test helpers: small real HDF5 demo files written with h5py, a quiet CPU ``Trainer``, the
-distributed fit script, a local Hugging Face Hub cache, and the ``slow``/``sim`` markers."""
+distributed fit script, a local Hugging Face Hub cache, and the ``slow``/``sim`` markers and
+the opt-in ``install``/``fullsize`` ones."""
 
 from __future__ import annotations
 
@@ -212,13 +213,17 @@ def cache_snapshot(cache: Path, repo_id: str, folder: Path) -> Path:
     return snapshot
 
 
+OPT_IN_MARKERS = ("install", "fullsize")
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """The install tests build a fresh environment (minutes): they run only when ``-m`` names them
-    (`make test` adds them with ``-m "install or not install"``), not in a plain or a
-    ``-m "not sim"`` run."""
-    if "install" in config.getoption("markexpr"):
-        return
-    kept = [item for item in items if item.get_closest_marker("install") is None]
+    """Opt-in tests run only when ``-m`` names their marker, not in a plain or a ``-m "not sim"``
+    run: the install tests build a fresh environment (minutes; `make test` adds them with
+    ``-m "install or not install"``); the ``fullsize`` ones build a full-size preset (≈ 10 GB of
+    RAM, minutes; `make test` leaves them out: ``-m fullsize`` runs them)."""
+    named = config.getoption("markexpr")
+    opted_out = [m for m in OPT_IN_MARKERS if m not in named]
+    kept = [item for item in items if not any(item.get_closest_marker(m) for m in opted_out)]
     if len(kept) < len(items):
         config.hook.pytest_deselected(items=[i for i in items if i not in kept])
         items[:] = kept

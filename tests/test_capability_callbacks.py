@@ -333,8 +333,10 @@ def test_bf16_frozen_weights_train_merge_resume_and_export_under_ddp_and_fsdp2(
     data = setup["data"]
     recipe = [
         "--frozen-dtype", "bfloat16", "--precision", "bf16-mixed", "--vector", str(setup["vector"]),
-        "--scale", "0.5", "--orth-weight", "100",
+        "--scale", "0.5", "--orth-weight", "100", "--pretrained", str(setup["initial"]),
     ]  # fmt: skip
+    # From θ_init's export, as the downstream recipe starts: the weights c lands in are read again
+    # in float32 (a random build in bf16 would start them rounded, on another loss curve).
     # bf16 autocast rounds sharded and unsharded sums differently: the curves agree to ~1.5 %
     # (the loss swings between 0.5 and 3 at orth weight 100, and step 6 is where rounding has
     # grown most; merging twice on resume would move them by far more). An epoch is 6 steps at global batch

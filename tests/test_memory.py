@@ -189,3 +189,17 @@ def test_backbone_info_takes_the_new_options(capsys: pytest.CaptureFixture[str])
     out = capsys.readouterr().out
     assert "frozen_dtype=bfloat16" in out and "attention=math" in out
     assert "(checkpointed)" in out
+    assert "assumes: SDPA as the math kernel" in out and "not counted: the CUDA context" in out
+
+
+@pytest.mark.parametrize("preset", TINY_PRESETS)
+@pytest.mark.parametrize("lora_rank", [None, 4])
+def test_no_term_is_negative(preset: str, lora_rank: int | None) -> None:
+    """Issue 58: "working memory -0.388 GiB" (openvla-oft-7b, batch 8, LoRA r 32, bf16 frozen).
+    Where the step's peak comes after part of the activations is freed, working memory is 0."""
+    for batch in (1, 8):
+        settings = TrainingSettings(batch, lora_rank=lora_rank, frozen_dtype="bfloat16")
+        estimate = estimate_memory(preset, settings)
+        terms = estimate.table().split("\n")
+        values = [float(line.split()[-2]) for line in terms if line.strip().endswith("GiB")]
+        assert values and all(v >= 0 for v in values), terms

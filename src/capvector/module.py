@@ -22,9 +22,9 @@ from capvector.backbones.base import (
     VLABackbone,
     backbone_class,
     build_backbone,
-    from_pretrained,
     load_export_config,
 )
+from capvector.backbones.materialize import build_stored_in, load_pretrained, reload_in_float32
 from capvector.data.batch import Batch
 from capvector.data.episodes import EpisodeDataset, EpisodeItem, is_episode_batch
 from capvector.data.spec import DataSpec
@@ -148,7 +148,10 @@ class VLAModule(L.LightningModule):
         self.data_spec = data_spec or DataSpec()
         self.lora_settings = lora
         overrides = {**self.data_spec.backbone_overrides(), **(backbone_overrides or {})}
-        self.backbone: VLABackbone = self._build_backbone(backbone, pretrained, overrides)
+        self.frozen_dtype = frozen_dtype_of(frozen_dtype)
+        self.backbone: VLABackbone = self._build_backbone(
+            backbone, pretrained, overrides, lora, self.frozen_dtype
+        )
         # Unset, the family's own (its configuration.py's optimizer_preset), as LeRobot's
         # use_policy_training_preset: a config that sets model.optimizer sets all of it.
         self.optimizer_settings = optimizer or OptimizerSettings(
@@ -159,10 +162,8 @@ class VLAModule(L.LightningModule):
         self.merged_vectors: list[MergedVector] = (
             read_record(load_export_config(pretrained).get(MERGED_VECTORS)) if pretrained else []
         )
-        set_trainable(self.backbone, lora)
         self.objectives = nn.ModuleDict()
         self.activation_checkpointing = activation_checkpointing
-        self.frozen_dtype = frozen_dtype_of(frozen_dtype)
         self.float32_parameters: set[str] = set()
         """Names (without wrapper modules) kept in float32 even when frozen: callbacks add the
         parameters a capability vector is merged into, so λc is not rounded away."""
@@ -171,13 +172,31 @@ class VLAModule(L.LightningModule):
         self.episode_count = SumMetric()
         self._episode_rows: list[list[Any]] = []
         self._parallelized = False
+        self._pretrained = pretrained
 
     @staticmethod
     def _build_backbone(
-        preset: str | None, pretrained: str | None, overrides: dict[str, Any]
+        preset: str | None,
+        pretrained: str | None,
+        overrides: dict[str, Any],
+        lora: LoraSettings | None,
+        frozen_dtype: torch.dtype,
     ) -> VLABackbone:
+        """The backbone with what does not train already in ``frozen_dtype`` (built so, never a
+        float32 copy of the whole model: ``backbones.materialize``), what trains in float32."""
+
+        def prepare(model: VLABackbone) -> None:
+            set_trainable(model, lora)
+            if frozen_dtype != torch.float32:
+                cast_frozen_parameters(model, frozen_dtype, keep=set())
+
         if pretrained is None:
-            return build_backbone(preset or DEFAULT_PRESET, **overrides)
+            model = build_stored_in(
+                lambda: build_backbone(preset or DEFAULT_PRESET, **overrides), frozen_dtype
+            )
+            assert isinstance(model, VLABackbone)
+            prepare(model)
+            return model
         config = load_export_config(pretrained)["backbone_config"]
         if preset is not None and preset != config["preset"]:
             raise BackboneError(
@@ -195,7 +214,7 @@ class VLAModule(L.LightningModule):
                     f"{k} is {a} in the model but {b} in the data" for k, (a, b) in clashes.items()
                 )
             )
-        return from_pretrained(pretrained)
+        return load_pretrained(pretrained, frozen_dtype, prepare)
 
     def configure_model(self) -> None:
         """FSDP2 under ``ModelParallelStrategy`` (units from the backbone's ``shard_units``) and
@@ -205,6 +224,8 @@ class VLAModule(L.LightningModule):
         if self.frozen_dtype != torch.float32:
             self._check_autocast()
             cast_frozen_parameters(self.backbone, self.frozen_dtype, keep=self.float32_parameters)
+            if self._pretrained is not None:
+                reload_in_float32(self.backbone, self._pretrained, self.float32_parameters)
         parallelize(
             self.backbone,
             self.backbone.shard_units(),

@@ -43,6 +43,7 @@ from torch.utils._python_dispatch import TorchDispatchMode, _disable_current_mod
 from capvector.backbones.base import VLABackbone, build_backbone, list_presets, preset_config
 from capvector.data.batch import Batch
 from capvector.errors import CapVectorError
+from capvector.profiling.meta import on_meta
 from capvector.profiling.settings import TrainingSettings
 from capvector.training.lora import (
     FROZEN_DTYPES,
@@ -68,8 +69,10 @@ class MemoryEstimate:
     activations_checkpointed: float
     working: float = 0.0
     """The traced step's peak beyond activations and gradients: the backward's activation
-    gradients and temporaries, the loss, AdamW's temporaries (negative when activations are
-    already freed at the peak)."""
+    gradients and temporaries, the loss, AdamW's temporaries. Never negative: when the peak comes
+    after part of the activations is freed (it can, in the backward: issue 58 saw -0.388 GiB for
+    openvla-oft-7b at batch 8), it is 0 and the total counts every activation and gradient at
+    once, an upper bound by that overlap."""
     working_checkpointed: float = 0.0
     """The same with checkpointing: includes the blocks recomputed in the backward pass."""
     checkpointing: bool = False
@@ -491,7 +494,7 @@ def _check(settings: TrainingSettings) -> torch.dtype:
 
 def meta_backbone(preset: str, lora_rank: int | None, **overrides: Any) -> VLABackbone:
     """``preset`` with its weights on the meta device, trainable as LoRA of ``lora_rank`` or fully."""
-    with torch.device("meta"):
+    with on_meta():
         backbone = build_backbone(preset, **_tiny_tokenizer(preset), **overrides)
         set_trainable(backbone, lora_settings(lora_rank))
     return backbone
@@ -556,16 +559,35 @@ def estimate_memory(
         optimizer=2 * grads,
         activations=saved,
         activations_checkpointed=saved_checkpointed,
-        working=peak - saved - traced_grads,
-        working_checkpointed=peak_checkpointed - saved_checkpointed - traced_grads,
+        working=_beyond(peak, saved + traced_grads),
+        working_checkpointed=_beyond(peak_checkpointed, saved_checkpointed + traced_grads),
         checkpointing=settings.activation_checkpointing,
         trainable_parameters=trainable / (devices if shard_params else 1),
     )
 
 
+def _beyond(peak: float, counted: float) -> float:
+    """What of ``peak`` the counted terms do not hold (0 if they hold it all; NaN stays NaN)."""
+    return peak - counted if not peak - counted < 0 else 0.0
+
+
+def assumptions(settings: TrainingSettings) -> list[str]:
+    """What the GPU estimate takes for granted, printed next to it."""
+    return [
+        "AdamW (foreach); what trains, its gradients and both moments in float32"
+        + ("" if settings.precision != "bf16-true" else " (bf16 under bf16-true)"),
+        f"frozen weights in {settings.frozen_dtype}; CUDA autocast's casts under bf16-mixed",
+        f"SDPA as the {settings.attention} kernel; attention outside SDPA keeps its matrices",
+        "one synthetic batch of the preset's shapes (its prompt length, images, action chunk)",
+        "not counted: the CUDA context and kernels (~0.5-1 GiB), allocator fragmentation and "
+        "cache, NCCL buffers, the data loader, other processes on the GPU",
+    ]
+
+
 def describe(estimate: MemoryEstimate, settings: TrainingSettings) -> str:
     header = ", ".join(f"{k}={v}" for k, v in dataclasses.asdict(settings).items())
-    return f"per-device memory estimate ({header}):\n{estimate.table()}"
+    notes = "\n".join(f"  assumes: {line}" for line in assumptions(settings))
+    return f"per-device memory estimate ({header}):\n{estimate.table()}\n{notes}"
 
 
 __all__ = [

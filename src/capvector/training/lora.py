@@ -58,13 +58,16 @@ def frozen_dtype_of(name: str) -> torch.dtype:
 
 def cast_frozen_parameters(module: nn.Module, dtype: torch.dtype, keep: set[str]) -> list[str]:
     """Store every parameter that does not train in ``dtype``, except those named in ``keep``
-    (names without wrapper modules such as peft's ``base_layer``). Returns the names cast.
+    (names without wrapper modules such as peft's ``base_layer``); those and what trains in
+    float32 (a backbone built in ``dtype`` has them there too). Returns the names cast to ``dtype``.
 
     Follows peft's adapter autocasting and OpenVLA-OFT's recipe: the frozen base in bf16, what
     trains in float32 (its gradients and AdamW state too)."""
     cast = []
     for name, param in module.named_parameters():
         if param.requires_grad or name.replace(".base_layer.", ".") in keep:
+            if param.is_floating_point() and param.dtype != torch.float32:
+                param.data = param.data.float()
             continue
         param.data = param.data.to(dtype)
         cast.append(name)

@@ -36,9 +36,8 @@ def backbone_info_cli(
         mfu: model FLOPs utilisation (--flops)
         gpu_tflops: peak dense TFLOP/s (H100 bf16: 989)
     """
-    import torch
-
     from capvector.backbones import build_backbone, list_presets
+    from capvector.profiling.meta import on_meta
 
     if list or not preset:
         print("\n".join(list_presets()))
@@ -47,7 +46,7 @@ def backbone_info_cli(
         from capvector.profiling.memory import describe, estimate_memory
 
         estimate = describe(estimate_memory(preset, settings), settings)
-    with torch.device("meta"):
+    with on_meta():
         model = build_backbone(preset)
     print(f"{preset} ({type(model).__name__})")
     rows = [

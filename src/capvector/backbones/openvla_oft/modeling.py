@@ -32,6 +32,7 @@ from capvector.backbones.base import (
     register_family,
 )
 from capvector.backbones.common import IGNORE_INDEX, MLPResNet, check_cameras, right_pad
+from capvector.backbones.materialize import float32_until_attached
 from capvector.backbones.openvla_oft.configuration import LlamaSpec, OpenVLAOFTConfig, ViTConfig
 from capvector.data.batch import Batch
 
@@ -44,22 +45,25 @@ SIGLIP_STD = (0.5, 0.5, 0.5)
 def _build_vit(spec: ViTConfig, image_size: int, film: bool = False) -> nn.Module:
     from timm.models.vision_transformer import Block, VisionTransformer
 
-    return VisionTransformer(
-        img_size=image_size,
-        patch_size=spec.patch_size,
-        num_classes=0,
-        global_pool=spec.global_pool,
-        embed_dim=spec.embed_dim,
-        depth=spec.depth,
-        num_heads=spec.num_heads,
-        mlp_ratio=spec.mlp_ratio,
-        init_values=spec.layer_scale_init,
-        class_token=spec.class_token,
-        no_embed_class=spec.no_embed_class,
-        reg_tokens=spec.reg_tokens,
-        act_layer=spec.act_layer,
-        block_fn=_filmed_block_class() if film else Block,
-    )
+    # timm re-draws every weight at the end of the constructor (``init_weights``), with its own
+    # truncated normal: built in float32, cast when attached (a frozen-dtype build).
+    with float32_until_attached():
+        return VisionTransformer(
+            img_size=image_size,
+            patch_size=spec.patch_size,
+            num_classes=0,
+            global_pool=spec.global_pool,
+            embed_dim=spec.embed_dim,
+            depth=spec.depth,
+            num_heads=spec.num_heads,
+            mlp_ratio=spec.mlp_ratio,
+            init_values=spec.layer_scale_init,
+            class_token=spec.class_token,
+            no_embed_class=spec.no_embed_class,
+            reg_tokens=spec.reg_tokens,
+            act_layer=spec.act_layer,
+            block_fn=_filmed_block_class() if film else Block,
+        )
 
 
 class FiLM(nn.Module):

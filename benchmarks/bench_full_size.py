@@ -1,0 +1,192 @@
+"""Full-size presets, executed: two real training steps at batch 1 per preset, against the planner.
+
+Each preset runs in a process of its own (``--run``), built with random weights (no download) as
+``capvector fit`` builds it: frozen weights in bf16 (``model.frozen_dtype``, built so:
+``backbones.materialize``), LoRA r 32 alpha 16 (OpenVLA-OFT's recipe; Pi0.5's recipe trains every
+weight, which no 24 GiB host holds: its full fine-tuning figure is the planner's), ``bf16-mixed``,
+through ``VLAModule`` and Lightning's loop with the recipe's ``StepCost`` callback (its
+``ExportOnFitEnd`` is left out: a full-size export is 7-15 GB of disk per run). Text goes through
+a byte-level tokenizer standing in for the real one, at the preset's real vocabulary size (the
+embedding and LM head keep their full shape); no real tokenizer can be had offline here.
+
+Recorded per preset and variant: the two losses (finite), which parameters received gradients
+(LoRA and heads only), the seconds of the second step, the peak RSS above the process's RSS once
+everything is imported (``resource.getrusage`` high-water mark; torch has no CPU allocator
+statistics, so RSS stands in for the allocator's peak) and the planner's CPU estimate for the same
+settings (``estimate_memory(..., device="cpu")``, math attention as the CPU runs it).
+
+Results go to ``--out`` (JSON, rewritten atomically after each preset); a preset already there is
+skipped, so an interrupted run resumes preset by preset.
+
+    python benchmarks/bench_full_size.py --presets pi05-3b [--variants sft] [--out FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+FULL_SIZE = [
+    "openvla-oft-7b", "openvla-oft-aloha-7b", "pi05-3b",
+    "starvla-qwen2.5-vl-3b-oft", "starvla-qwen2.5-vl-3b-gr00t", "starvla-qwen2.5-vl-3b-layerwise",
+    "starvla-qwen3-vl-4b-oft", "starvla-qwen3-vl-4b-gr00t", "starvla-qwen3-vl-4b-layerwise",
+]  # fmt: skip
+VARIANTS = ("sft", "sft+ckpt")
+"""Plain SFT, and plain SFT with activation checkpointing. (Aux-SFT and CapVector with the merge
+callback are the issue's next rows; not run yet.)"""
+GIB = 1024**3
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def high_water() -> int:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def run_one(preset: str, variant: str) -> dict[str, Any]:
+    """Two steps of ``preset`` in this process; the row for the JSON."""
+    import lightning as L
+    import torch
+
+    from capvector.callbacks import StepCost
+    from capvector.data.datamodule import RobotDataModule
+    from capvector.module import VLAModule
+    from capvector.profiling.memory import estimate_memory
+    from capvector.profiling.meta import import_build_dependencies
+    from capvector.profiling.settings import TrainingSettings
+    from capvector.training.lora import LoraSettings
+
+    sys.path.insert(0, str(ROOT / "tests"))
+    from conftest import write_demo_file
+
+    checkpointing = variant.endswith("+ckpt")
+    settings = TrainingSettings(
+        batch=1, precision="bf16-mixed", strategy="ddp", lora_rank=32, frozen_dtype="bfloat16",
+        attention="math", activation_checkpointing=checkpointing,
+    )  # fmt: skip
+    import_build_dependencies()
+
+    class Record(L.Callback):
+        def __init__(self) -> None:
+            self.losses: list[float] = []
+            self.seconds: list[float] = []
+            self.with_grad: set[str] = set()
+
+        def on_train_batch_start(self, *args: Any) -> None:
+            self._start = time.perf_counter()
+
+        def on_after_backward(self, trainer: L.Trainer, module: L.LightningModule) -> None:
+            self.with_grad |= {n for n, p in module.named_parameters() if p.grad is not None}
+
+        def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx) -> None:  # noqa: ANN001
+            self.seconds.append(time.perf_counter() - self._start)
+            self.losses.append(float(outputs["loss"]))
+
+    with tempfile.TemporaryDirectory() as tmp:
+        demos = write_demo_file(Path(tmp) / "demos.hdf5", lengths=(12,), image_size=224)
+        torch.manual_seed(0)
+        dm = RobotDataModule(train_files=[str(demos)], batch_size=1, augment=False)
+        baseline = high_water()
+        start = time.perf_counter()
+        module = VLAModule(
+            backbone=preset, backbone_overrides={"tokenizer": "byte"}, data_spec=dm.spec,
+            lora=LoraSettings(r=32, alpha=16), frozen_dtype="bfloat16",
+            activation_checkpointing=checkpointing,
+        )  # fmt: skip
+        build_seconds = time.perf_counter() - start
+        built_peak = high_water() - baseline
+        record = Record()
+        trainer = L.Trainer(
+            max_steps=2, accelerator="cpu", precision="bf16-mixed", logger=False,
+            enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
+            enable_checkpointing=False, callbacks=[StepCost(), record], default_root_dir=tmp,
+            gradient_clip_val=1.0,
+        )  # fmt: skip
+        trainer.fit(module, dm)
+    peak = high_water() - baseline
+    # After the fit, so its meta trace (small, but minutes at full size) delays nothing measured.
+    planned = estimate_memory(preset, settings, device="cpu")
+    params = dict(module.named_parameters())
+    trainable = {n for n, p in params.items() if p.requires_grad}
+    unexpected = sorted(
+        n for n in record.with_grad if ".lora_" not in n and n not in trainable
+    )  # fmt: skip
+    stored = sum(p.numel() * p.element_size() for p in params.values())
+    return {
+        "preset": preset,
+        "variant": variant,
+        "parameters": sum(p.numel() for p in params.values()),
+        "stored_gib": stored / GIB,
+        "losses": record.losses,
+        "finite": all(math.isfinite(x) for x in record.losses),
+        "with_grad": len(record.with_grad),
+        "with_grad_lora": sum(".lora_" in n for n in record.with_grad),
+        "with_grad_other": sorted(
+            {n.split(".lora_")[0] for n in record.with_grad if ".lora_" not in n}
+        ),
+        "grad_outside_trainable": unexpected,
+        "build_seconds": build_seconds,
+        "step_seconds": record.seconds,
+        "peak_rss_above_baseline_gib": peak / GIB,
+        "build_peak_rss_above_baseline_gib": built_peak / GIB,
+        "planner_cpu_gib": planned.total / GIB,
+        "planner_cpu_terms_gib": {
+            "parameters": planned.parameters / GIB,
+            "gradients": planned.gradients / GIB,
+            "optimizer": planned.optimizer / GIB,
+            "activations": (
+                planned.activations_checkpointed if checkpointing else planned.activations
+            )
+            / GIB,
+            "working": (planned.working_checkpointed if checkpointing else planned.working) / GIB,
+        },  # fmt: skip
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--presets", nargs="+", default=FULL_SIZE)
+    parser.add_argument("--variants", nargs="+", default=["sft"], choices=VARIANTS)
+    parser.add_argument("--out", type=Path, default=ROOT / "docs/results/full_size.json")
+    parser.add_argument("--run", nargs=2, metavar=("PRESET", "VARIANT"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.run:
+        print(json.dumps(run_one(*args.run)))
+        return
+    rows: list[dict[str, Any]] = json.loads(args.out.read_text()) if args.out.is_file() else []
+    done = {(r["preset"], r["variant"]) for r in rows}
+    for preset in args.presets:
+        for variant in args.variants:
+            if (preset, variant) in done:
+                print(f"{preset} {variant}: already in {args.out}, skipped")
+                continue
+            out = subprocess.run(
+                [sys.executable, __file__, "--run", preset, variant],
+                capture_output=True, text=True, env={**os.environ, "OMP_NUM_THREADS": "2"},
+            )  # fmt: skip
+            if out.returncode != 0:
+                print(f"{preset} {variant}: failed (exit {out.returncode})\n{out.stderr[-3000:]}")
+                continue
+            row = json.loads(out.stdout.strip().splitlines()[-1])
+            row["command"] = (
+                f"python benchmarks/bench_full_size.py --presets {preset} --variants {variant}"
+            )
+            rows.append(row)
+            tmp = args.out.with_suffix(".json.tmp")
+            tmp.write_text(json.dumps(rows, indent=2) + "\n")
+            tmp.replace(args.out)
+            print(json.dumps(row))
+
+
+if __name__ == "__main__":
+    main()
