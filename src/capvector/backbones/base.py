@@ -572,13 +572,25 @@ def read_sharded(folder: str | Path, index_name: str = EXPORT_INDEX) -> dict[str
 
 def load_state_dict_strictly(model: nn.Module, state: Mapping[str, Tensor], source: str) -> None:
     """Load with every key and shape checked first; errors name the offending keys."""
-    expected = model.state_dict()
-    missing = sorted(set(expected) - set(state))
-    unexpected = sorted(set(state) - set(expected))
+    expected = {k: tuple(v.shape) for k, v in model.state_dict().items()}
+    check_fits(model, expected, {k: tuple(v.shape) for k, v in state.items()}, source)
+    model.load_state_dict(dict(state), strict=True)
+
+
+def check_fits(
+    model: nn.Module,
+    expected: Mapping[str, tuple[int, ...]],
+    found: Mapping[str, tuple[int, ...]],
+    source: str,
+) -> None:
+    """Raise naming the missing, unexpected and mis-shaped keys when the tensors ``found`` in
+    ``source`` (name -> shape) are not exactly those ``model`` ``expected``."""
+    missing = sorted(set(expected) - set(found))
+    unexpected = sorted(set(found) - set(expected))
     mismatched = [
-        f"{k}: checkpoint {tuple(state[k].shape)} vs model {tuple(expected[k].shape)}"
-        for k in sorted(set(expected) & set(state))
-        if tuple(state[k].shape) != tuple(expected[k].shape)
+        f"{k}: checkpoint {found[k]} vs model {expected[k]}"
+        for k in sorted(set(expected) & set(found))
+        if found[k] != expected[k]
     ]
     problems = []
     if missing:
@@ -593,7 +605,6 @@ def load_state_dict_strictly(model: nn.Module, state: Mapping[str, Tensor], sour
             "Is it a checkpoint of another architecture or preset? Build the model with the preset "
             "the checkpoint was trained with."
         )
-    model.load_state_dict(dict(state), strict=True)
 
 
 def _examples(items: Sequence[str], n: int = 3) -> str:

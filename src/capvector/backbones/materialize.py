@@ -23,10 +23,9 @@ from torch.nn.modules.module import register_module_module_registration_hook
 from torch.overrides import TorchFunctionMode
 
 from capvector.backbones.base import (
-    BackboneError,
     VLABackbone,
-    _examples,
     backbone_class,
+    check_fits,
     load_export_config,
 )
 from capvector.io.hub import local_folder
@@ -125,27 +124,9 @@ def load_streaming(model: nn.Module, source: WeightSource, label: str) -> None:
         key = export_key(name)
         if key is not None:
             targets.setdefault(key, []).append(tensor)
-    found = set(source.keys())
-    missing = sorted(set(targets) - found)
-    unexpected = sorted(found - set(targets))
-    mismatched = [
-        f"{k}: checkpoint {source.info(k).shape} vs model {tuple(targets[k][0].shape)}"
-        for k in sorted(set(targets) & found)
-        if tuple(source.info(k).shape) != tuple(targets[k][0].shape)
-    ]
-    problems = []
-    if missing:
-        problems.append(f"{len(missing)} missing key(s), e.g. {_examples(missing)}")
-    if unexpected:
-        problems.append(f"{len(unexpected)} unexpected key(s), e.g. {_examples(unexpected)}")
-    if mismatched:
-        problems.append(f"{len(mismatched)} shape mismatch(es), e.g. {_examples(mismatched)}")
-    if problems:
-        raise BackboneError(
-            f"{label} does not fit {type(model).__name__}: " + "; ".join(problems) + ". "
-            "Is it a checkpoint of another architecture or preset? Build the model with the preset "
-            "the checkpoint was trained with."
-        )
+    expected = {k: tuple(tensors[0].shape) for k, tensors in targets.items()}
+    names = source.keys()  # a WeightSource, not a mapping
+    check_fits(model, expected, {k: tuple(source.info(k).shape) for k in names}, label)
     with torch.no_grad():
         for key, tensors in targets.items():
             value = source.read(key)
