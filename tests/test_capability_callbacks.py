@@ -323,11 +323,11 @@ def test_the_record_travels_into_exports_and_merge_refuses_a_repeat(
 
 @pytest.mark.distributed
 @pytest.mark.slow
-def test_bf16_frozen_weights_train_merge_resume_and_export_under_ddp_and_fsdp2(
+def test_bf16_frozen_weights_train_merge_resume_and_export_under_fsdp2(
     setup: dict, tmp_path: Path
 ) -> None:
     """LoRA with the frozen base in bf16 (bf16-mixed autocast), the vector merged at fit start and
-    orthogonal regularization: 2 processes under DDP and FSDP2 follow the 1-process loss curve, the
+    orthogonal regularization: 2 processes under FSDP2 follow the 1-process loss curve, the
     parameters c lands in stay float32 (the merge keeps all of λc), an FSDP2 run resumes onto the
     same curve, and exports say their frozen dtype."""
     data = setup["data"]
@@ -342,11 +342,13 @@ def test_bf16_frozen_weights_train_merge_resume_and_export_under_ddp_and_fsdp2(
     # grown most; merging twice on resume would move them by far more). An epoch is 6 steps at global batch
     # 4: stopping there makes the resumed step see the batch the uninterrupted run saw (Lightning
     # restarts the data loader on resume).
+    # DDP is left out: each DDP rank holds the whole model as one process does, so bf16 frozen
+    # weights meet nothing there that the single run and test_merge_callback_equals_the_offline_merge
+    # (DDP) do not cover; FSDP2 shards them.
     single = torch.tensor(run(tmp_path / "single", data, "--steps", "7", *recipe))
-    for strategy, steps in (("ddp", 3), ("fsdp2", 6)):
-        args = ["--steps", str(steps), "--devices", "2", "--strategy", strategy]
-        two = torch.tensor(run(tmp_path / strategy, data, *args, *recipe))
-        torch.testing.assert_close(two, single[:steps], rtol=2e-2, atol=1e-3)
+    args = ["--steps", "6", "--devices", "2", "--strategy", "fsdp2"]
+    sharded = torch.tensor(run(tmp_path / "fsdp2", data, *args, *recipe))
+    torch.testing.assert_close(sharded, single[:6], rtol=2e-2, atol=1e-3)
     resumed = run(
         tmp_path / "resumed", data, "--steps", "7", "--devices", "2", "--strategy", "fsdp2",
         "--ckpt-path", str(tmp_path / "fsdp2" / "last.ckpt"), *recipe,

@@ -113,6 +113,7 @@ def test_planner_total_is_within_25_percent_of_a_real_step(preset: str, frozen_d
     peak during a real CPU step."""
     settings = TrainingSettings(2, "bf16-mixed", "ddp", lora_rank=4, frozen_dtype=frozen_dtype)
     estimate = estimate_memory(preset, settings, device="cpu")
+    assert_no_negative_term(estimate)
     torch.manual_seed(0)
     model = build_backbone(preset)
     set_trainable(model, lora_settings(4))
@@ -192,14 +193,16 @@ def test_backbone_info_takes_the_new_options(capsys: pytest.CaptureFixture[str])
     assert "assumes: SDPA as the math kernel" in out and "not counted: the CUDA context" in out
 
 
+def assert_no_negative_term(estimate: MemoryEstimate) -> None:
+    terms = estimate.table().split("\n")
+    values = [float(line.split()[-2]) for line in terms if line.strip().endswith("GiB")]
+    assert values and all(v >= 0 for v in values), terms
+
+
 @pytest.mark.parametrize("preset", TINY_PRESETS)
-@pytest.mark.parametrize("lora_rank", [None, 4])
-def test_no_term_is_negative(preset: str, lora_rank: int | None) -> None:
+def test_no_term_is_negative(preset: str) -> None:
     """Issue 58: "working memory -0.388 GiB" (openvla-oft-7b, batch 8, LoRA r 32, bf16 frozen).
-    Where the step's peak comes after part of the activations is freed, working memory is 0."""
-    for batch in (1, 8):
-        settings = TrainingSettings(batch, lora_rank=lora_rank, frozen_dtype="bfloat16")
-        estimate = estimate_memory(preset, settings)
-        terms = estimate.table().split("\n")
-        values = [float(line.split()[-2]) for line in terms if line.strip().endswith("GiB")]
-        assert values and all(v >= 0 for v in values), terms
+    Where the step's peak comes after part of the activations is freed, working memory is 0. The
+    issue's settings here; batch 2 with and without bf16 in the planner test above."""
+    settings = TrainingSettings(8, lora_rank=4, frozen_dtype="bfloat16")
+    assert_no_negative_term(estimate_memory(preset, settings))
