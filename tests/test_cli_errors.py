@@ -88,15 +88,15 @@ CASES: dict[str, tuple[Callable[[Path, Path], list[str]], str]] = {
     ),
     "demos: an unknown LIBERO suite, before simulating": (
         lambda i, o: ["demos", "--suite", "libero_spatail", "--episodes-per-task", "2", "--out", str(o / "d")],
-        r"unknown LIBERO suite 'libero_spatail' \(did you mean libero_spatial",
+        r"unknown task or task set 'libero_spatail' \(did you mean libero_spatial",
     ),
-    "demos: --suite without --episodes-per-task": (
-        lambda i, o: ["demos", "--suite", "libero_spatial", "--episodes", "2", "--out", str(o / "d")],
-        r"--suite records LIBERO tasks: give --tasks ID ... and --episodes-per-task",
+    "demos: --suite without --episodes": (
+        lambda i, o: ["demos", "--suite", "libero_spatial", "--out", str(o / "d")],
+        r"give --episodes N: successful demos of libero_spatial to record",
     ),
     "demos: --workers for a robosuite task": (
         lambda i, o: ["demos", "--task", "Lift", "--episodes", "2", "--workers", "2", "--out", str(o / "d.hdf5")],
-        r"--workers go with --suite; with --task give --episodes",
+        r"--workers does not apply to robosuite demos; its options: --cameras, ",
     ),
     "demos: negative --workers, before simulating": (
         lambda i, o: ["demos", "--suite", "libero_spatial", "--episodes-per-task", "2", "--workers", "-1", "--out", str(o / "d")],

@@ -80,6 +80,7 @@ class PointEpisode:
 @SUITES.register("point")
 class PointSuite(Suite):
     name = "point"
+    task_sets = ("reach",)
     cameras = ("top",)
     example = {"task_set": "reach", "episodes": 2}
 
@@ -105,6 +106,12 @@ policy = lambda obs: np.concatenate([-2 * obs["proprio"][:3], np.zeros(4)])
 for batch_size in (1, 2):
     results = RolloutEvaluator(("top",), 8, batch_size=batch_size, workers=0).run(policy, specs)
     assert [(r.success, r.steps, r.seed) for r in results] == [(True, 1, s.seed) for s in specs]
+# a config's data.eval_tasks entry finds the suite by its task set, as `capvector evaluate --suite`
+from capvector.data.episodes import EpisodeDataset, eval_task
+
+task = eval_task({"task": "reach", "episodes": 3, "max_steps": 5})
+assert task.suite == "point", task
+assert [s.step_limit for s in EpisodeDataset([task]).specs] == [5, 5, 5]
 """
 
 

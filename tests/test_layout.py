@@ -39,10 +39,9 @@ LAYERS = [
 UPWARD: set[tuple[str, str]] = set()
 """Imports allowed to point up a layer: none."""
 
-# Demo recording is the one way into the simulator besides evaluation: `data.generate` records the
-# missing demo files with the scripted experts. The import stays inside `prepare_data`, so
-# importing the datamodule loads no simulator (tests/test_import_boundary.py).
-LAZY_SIM_IMPORTS = {("capvector.data.datamodule", "capvector.envs.robosuite.demos")}
+# None: `data.generate` records the missing demo files through the registry (Suite.record_demos),
+# which imports a suite's simulator only when it records.
+LAZY_SIM_IMPORTS: set[tuple[str, str]] = set()
 # The evaluate, demo and expert tools run the suites themselves.
 MAY_IMPORT_SIM = (
     "capvector.envs",
@@ -280,6 +279,27 @@ def test_only_evaluation_and_demo_recording_import_the_simulator() -> None:
                 continue
             wrong.append(str(imp))
     assert not wrong, "only eval/ and the demo tools may import envs/:\n" + "\n".join(wrong)
+
+
+REGISTRY_ONLY = (
+    "capvector.data",
+    "capvector.workflows.evaluate",
+    "capvector.workflows.demos",
+    "capvector.workflows.sweep",
+)
+"""Reach suites only through ``envs.base`` and ``envs.registry`` (never a suite's package, not even
+its spec module): a new suite is then found by its name, with no edit here."""
+
+
+def test_data_and_the_suite_tools_dispatch_through_the_registry() -> None:
+    wrong = [
+        str(imp)
+        for module in modules()
+        if inside(module, *REGISTRY_ONLY)
+        for imp in project_imports(module)
+        if inside(imp.target, "capvector.envs") and imp.target not in SIMULATOR_FREE
+    ]
+    assert not wrong, "import envs.base / envs.registry instead:\n" + "\n".join(wrong)
 
 
 @pytest.mark.parametrize("source,target", sorted(LAZY_SIM_IMPORTS | UPWARD))

@@ -144,7 +144,7 @@ def test_the_command_line_overrides_a_config_file(
          r"argument --workers: expected int \| None, got many"),
         (["merge", "--base", "B", "--vector", "V", "--out", "O", "--dtype", "float64"],
          r"argument --dtype: expected .*'float32', 'bfloat16', 'float16'.*, got float64"),
-        (["demos", "--task", "Lift", "--out", "d.hdf5"], r"give --task and --episodes"),
+        (["demos", "--task", "Lift", "--out", "d.hdf5"], r"give --episodes N"),
         (["inspect"], r"required: path"),
         (["export", "--ckpt", "C", "--out", "O", "--overwrite=yes"], r"--overwrite"),
         (["extract", "--aux", "A", "--sft", "S", "--out", "O", "--rnak", "4"],

@@ -18,7 +18,6 @@ from capvector.data.episodes import (
     EpisodeItem,
     EpisodeSampler,
     EvalTask,
-    LiberoEvalTask,
     eval_task,
     is_episode_batch,
 )
@@ -28,6 +27,7 @@ from capvector.data.resumable import ResumableLoader, ResumableSampler
 from capvector.data.spec import DataSpec
 from capvector.data.statistics import BOUNDS_Q99, check_normalization
 from capvector.data.transforms import ImageTransform
+from capvector.envs.registry import suite_for_task_set
 from capvector.errors import require_extra
 
 DEFAULT_CAMERAS = ("agentview", "robot0_eye_in_hand")
@@ -37,10 +37,11 @@ DEFAULT_PROPRIO = ("robot0_eef_pos", "robot0_eef_axis_angle", "robot0_gripper_qp
 @dataclasses.dataclass
 class DemoGeneration:
     """``data.generate``: record the demos the config names when a file does not exist yet, as
-    ``capvector demos`` would (cameras, depth and annotations follow the data config)."""
+    ``capvector demos --task`` would (cameras, depth and annotations follow the data config), with
+    the scripted expert of the task's suite (``Suite.record_demos``)."""
 
     task: str = "Lift"
-    robot: str = "Panda"
+    robot: str | None = "Panda"
     gripper: str | None = None
     episodes: int = 20
     seed: int = 0
@@ -76,7 +77,7 @@ class RobotDataModule(L.LightningDataModule):
         self,
         train_files: list[str] | None = None,
         val_files: list[str] | None = None,
-        eval_tasks: list[EvalTask | LiberoEvalTask] | None = None,
+        eval_tasks: list[EvalTask | dict[str, Any]] | None = None,
         cameras: Sequence[str] = DEFAULT_CAMERAS,
         proprio_keys: Sequence[str] = DEFAULT_PROPRIO,
         chunk_size: int = 8,
@@ -102,9 +103,10 @@ class RobotDataModule(L.LightningDataModule):
                 ``*.hdf5`` in it but hidden ones (a LIBERO suite's released datasets: one file
                 per task).
             val_files: held-out files (or folders); validation then reports the action L1 on them.
-            eval_tasks: MuJoCo rollout episodes for the validation loop (success rates):
-                robosuite tasks (``{task: Lift, episodes: 20}``) and LIBERO trials under the
-                official protocol (``{suite: libero_spatial, tasks: [0, 1], trials: 5}``).
+            eval_tasks: rollout episodes for the validation loop (success rates), each a task
+                set of a registered suite under its protocol (``capvector.data.episodes.EvalTask``):
+                ``{task: Lift, episodes: 20, options: {robot: Sawyer}}``, or flat as before,
+                ``{task: Lift, robot: Sawyer}``, ``{suite: libero_spatial, tasks: [0, 1], trials: 5}``.
             cameras: camera names (``obs/<camera>_image``), in the order the model sees them.
             proprio_keys: ``obs`` keys concatenated into the proprio vector.
             chunk_size: actions per sample (the model's chunk size follows it).
@@ -202,18 +204,18 @@ class RobotDataModule(L.LightningDataModule):
         """Record the missing demo files (``data.generate``). Lightning calls it once per node."""
         if self.generate is None:
             return
-        from capvector.envs.robosuite.demos import record_demos  # the simulator only when recording
-
         hp, gen = self.hparams, self.generate
+        suite = suite_for_task_set(gen.task)  # its simulator loads only when recording
+        own = {k: v for k, v in {"robot": gen.robot, "gripper": gen.gripper}.items() if v}
         files = [*(hp.train_files or []), *(hp.val_files or [])]
         for i, file in enumerate(files):
             if Path(file).is_file():
                 continue
             try:
-                record_demos(
-                    gen.task, gen.episodes, file, robot=gen.robot, gripper=gen.gripper,
-                    cameras=list(hp.cameras), image_size=gen.image_size, depth=hp.load_depth,
-                    seed=gen.seed + 10_000 * i,
+                suite.record_demos(
+                    gen.task, gen.episodes, file, cameras=list(hp.cameras),
+                    image_size=gen.image_size, depth=hp.load_depth, seed=gen.seed + 10_000 * i,
+                    **own,
                 )  # fmt: skip
             except (RuntimeError, ValueError, KeyError) as exc:  # as `capvector demos` reports them
                 raise DatasetError(f"data.generate could not record {file}: {exc}") from exc

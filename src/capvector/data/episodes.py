@@ -10,84 +10,72 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from torch.utils.data import Dataset, DistributedSampler
 
-from capvector.envs.base import DEFAULT_ROBOT, EVAL_SEED_START, Spec
-from capvector.envs.libero.spec import libero_specs
-from capvector.envs.robosuite.spec import eval_specs
+from capvector.envs.base import Spec, check_options
+from capvector.envs.registry import SUITES, get_suite, suite_for_task_set
+from capvector.errors import CapVectorError
+
+DEFAULT_SUITE = "robosuite"
+"""The suite of an ``eval_tasks`` entry that names none (every config before the registry)."""
 
 
 @dataclass
 class EvalTask:
-    """Episodes of one task for the rollout validation loop. Seeds start far above demo seeds."""
+    """Episodes of one task set of a registered suite for the rollout validation loop: its specs
+    are ``Suite.specs(task, episodes, **options)``, the suite's own protocol (robosuite's seeds
+    start far above demo seeds; LIBERO's trial i starts from the task's official state i)."""
 
     task: str
+    """The task set: a robosuite task (``Lift``), a LIBERO suite (``libero_spatial``), ..."""
     episodes: int = 10
-    robot: str = DEFAULT_ROBOT
-    start_seed: int = EVAL_SEED_START
-    max_steps: int | None = None
-    gripper: str | None = None
-    """Gripper override for arms whose own gripper lacks 2 finger joints (IIWA, UR5e, Kinova3,
-    Jaco take PandaGripper), as the demos were recorded."""
-    variant: str | None = None
-    """A zero-shot scene variant (``capvector.envs.robosuite.variants``: camera, lighting, color, all,
-    sawyer, ur5e, ...); None evaluates the scene as trained."""
+    """Episodes of each task of the set (LIBERO: trials per task, 1..50)."""
+    suite: str = DEFAULT_SUITE
+    """The registered suite (``capvector.envs.registry``) that runs ``task``."""
+    options: dict[str, Any] = field(default_factory=dict)
+    """The suite's own ``specs`` options: robosuite's ``robot``, ``start_seed``, ``gripper``,
+    ``variant``, ``max_steps``; LIBERO's ``tasks``, ``max_steps``, ``rendering``, ``from_demos``."""
 
     def specs(self) -> list[Spec]:
-        return list(
-            eval_specs(
-                self.task,
-                self.episodes,
-                robot=self.robot,
-                start_seed=self.start_seed,
-                max_steps=self.max_steps,
-                gripper=self.gripper,
-                variant=self.variant,
-            )  # fmt: skip
-        )
+        suite = get_suite(self.suite)
+        check_options(suite.specs, self.options, f"eval task {self.task} of suite {self.suite}")
+        return suite.specs(self.task, self.episodes, **self.options)
 
 
-@dataclass
-class LiberoEvalTask:
-    """Trials of LIBERO tasks under the official protocol (``capvector.envs.libero.episode``): trial i
-    starts from the task's official initial state i, which no demo of ours starts from."""
-
-    suite: str
-    """libero_spatial, libero_object, libero_goal, libero_10 or libero_90."""
-    tasks: list[int] | None = None
-    """Task ids in the suite's canonical order; None: all of them."""
-    trials: int = 10
-    """Trials per task, 1..50 (the official protocol runs 50)."""
-    max_steps: int | None = None
-    """Step limit after the wait steps; None: the suite's (220 spatial, 280 object, ...)."""
-    rendering: str = "auto"
-    """Who draws the images: auto (the fast renderer on a CPU's OpenGL, robosuite's on a GPU),
-    fast, or official (LIBERO's own; ``capvector.envs.libero.env.make_libero_env``)."""
-    from_demos: str | None = None
-    """A folder of demos (``capvector demos``): trial i starts where the task's demo i started,
-    not from official state i (success from the placements trained on: a diagnostic)."""
-
-    def specs(self) -> list[Spec]:
-        return list(
-            libero_specs(
-                self.suite,
-                self.tasks,
-                self.trials,
-                self.max_steps,
-                self.rendering,  # type: ignore[arg-type]
-                self.from_demos,
-            )
-        )
+_FIELDS = {"task", "episodes", "suite", "options"}
 
 
-def eval_task(entry: EvalTask | LiberoEvalTask | Mapping[str, Any]) -> EvalTask | LiberoEvalTask:
-    """An ``eval_tasks`` entry as its dataclass: a mapping with ``suite`` is a LIBERO one."""
-    if not isinstance(entry, Mapping):
+def eval_task(entry: EvalTask | Mapping[str, Any] | Any) -> EvalTask:
+    """An ``eval_tasks`` entry as an :class:`EvalTask`. Flat entries, as configs and checkpoints
+    wrote them before the registry, still load: ``{task: Lift, robot: Sawyer, episodes: 10}``
+    (keys other than ``task``/``episodes``/``suite`` are the suite's options) and LIBERO's
+    ``{suite: libero_spatial, tasks: [0, 1], trials: 5}`` (``suite`` naming a task set, whose suite
+    the registry finds; ``trials`` for ``episodes``)."""
+    if isinstance(entry, EvalTask):
         return entry
-    return LiberoEvalTask(**entry) if "suite" in entry else EvalTask(**entry)
+    entry = dict(entry) if isinstance(entry, Mapping) else vars(entry)  # a config's Namespace
+    flat = {k: v for k, v in entry.items() if v is not None or k not in _FIELDS}
+    options = dict(flat.pop("options", None) or {})
+    options.update({k: flat.pop(k) for k in list(flat) if k not in _FIELDS | {"trials"}})
+    if "trials" in flat:
+        if "episodes" in flat:
+            raise CapVectorError("an eval_tasks entry gives episodes and trials: give one")
+        flat["episodes"] = flat.pop("trials")
+    suite = flat.pop("suite", None)
+    task = flat.pop("task", None)
+    if suite is not None and task is None and suite not in SUITES.names():
+        task, suite = suite, suite_for_task_set(suite).name  # {suite: libero_spatial, ...}
+    if task is None:
+        raise CapVectorError(
+            f"an eval_tasks entry names no task: {entry}; give task (e.g. Lift, "
+            "libero_spatial) and, for a suite other than the task's, suite"
+        )
+    if suite is None:
+        suite = suite_for_task_set(task).name
+    return EvalTask(task, suite=suite, options=options, **flat)
 
 
 @dataclass(frozen=True)
@@ -105,7 +93,7 @@ def is_episode_batch(batch: object) -> bool:
 
 
 class EpisodeDataset(Dataset):
-    def __init__(self, tasks: list[EvalTask | LiberoEvalTask]) -> None:
+    def __init__(self, tasks: list[EvalTask]) -> None:
         self.specs: list[Spec] = [spec for t in tasks for spec in t.specs()]
 
     def __len__(self) -> int:

@@ -23,12 +23,17 @@ seeds a training demo used; demos start at ``--seed`` (default 0), evaluation at
 
 from __future__ import annotations
 
+import inspect
+import os
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Hashable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, ClassVar, Protocol, TypedDict
 
 import numpy as np
+
+from capvector.errors import CapVectorError
 
 ACTION_DIM = 7
 EVAL_SEED_START = 1_000_000
@@ -52,6 +57,25 @@ class Observation(TypedDict, total=False):
 
 Policy = Callable[[Observation], Any]
 """``policy(observation) -> (T, 7)`` actions (a single (7,) action counts as a chunk of 1)."""
+
+
+@dataclass
+class DemoSummary:
+    """What :meth:`Suite.record_demos` wrote for one task (``capvector demos`` prints it)."""
+
+    path: Path
+    task: str
+    demos: int = 0
+    attempts: int = 0
+    samples: int = 0
+    seeds: list[int] = field(default_factory=list)
+    lengths: list[int] = field(default_factory=list)
+    """Steps to success of each demo."""
+    seconds: float = 0.0
+
+    @property
+    def success_rate(self) -> float:
+        return self.demos / max(self.attempts, 1)
 
 
 @dataclass
@@ -82,6 +106,27 @@ def as_chunk(actions: Any) -> np.ndarray:
     if chunk.ndim != 2 or chunk.shape[1] != ACTION_DIM or chunk.shape[0] == 0:
         raise ValueError(f"policy must return (T, {ACTION_DIM}) actions, got shape {chunk.shape}")
     return chunk
+
+
+def check_options(
+    method: Callable[..., Any],
+    options: Mapping[str, Any],
+    where: str,
+    spell: Callable[[str], str] = str,
+) -> None:
+    """Refuse, in one line, ``options`` that ``method`` (a suite's ``specs`` or ``record_demos``,
+    whose options are its parameters with a default) does not take; ``spell`` names an option as
+    the caller knows it (``--start-seed`` on a command line)."""
+    params = inspect.signature(method).parameters.values()
+    if any(p.kind is p.VAR_KEYWORD for p in params):
+        return
+    named = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+    own = [p.name for p in params if p.kind in named and p.default is not p.empty]
+    bad = [spell(name) for name in options if name not in own]
+    if bad:
+        verb = "does" if len(bad) == 1 else "do"
+        takes = ", ".join(spell(name) for name in own) or "none"
+        raise CapVectorError(f"{', '.join(bad)} {verb} not apply to {where}; its options: {takes}")
 
 
 class Spec(Protocol):
@@ -164,6 +209,17 @@ class Suite(ABC):
 
     name: ClassVar[str]
     """The registered name, the ``SUITE`` of its specs."""
+    task_sets: ClassVar[tuple[str, ...]] = ()
+    """The names :meth:`specs` and :meth:`record_demos` take (a task, or a named set of tasks):
+    how ``capvector evaluate``/``demos`` and ``data.eval_tasks`` find the suite of a name
+    (:func:`capvector.envs.registry.suite_for_task_set`). Unique across registered suites."""
+    seeded: ClassVar[bool] = True
+    """Initial states are drawn from seeds, :meth:`specs`' ``start_seed`` option: the λ sweep
+    validates on seeds from ``VALIDATION_SEED_START``, disjoint from evaluation's. False: the
+    protocol's initial states are fixed (LIBERO's official ones), and the sweep refuses them (it
+    would choose λ on the reported episodes)."""
+    eval_episodes: ClassVar[int] = 20
+    """Episodes per task under the suite's evaluation protocol (``capvector evaluate``'s default)."""
     release_envs: ClassVar[bool] = False
     """Close the cached envs (and worker processes) after each evaluation that ran this suite."""
     cameras: ClassVar[tuple[str, ...]]
@@ -191,6 +247,15 @@ class Suite(ABC):
         """The episode of ``spec``, reset to its initial state. ``cameras``, ``image_size`` and
         ``camera_fovy`` are the policy's (its data spec); ``video`` records a frame per state;
         ``execute_steps`` executes only the first k actions of each chunk."""
+
+    def record_demos(
+        self, task_set: str, episodes: int, out: str | os.PathLike[str], **options: Any
+    ) -> list[DemoSummary]:
+        """Record ``episodes`` successful scripted-expert demos of each task of ``task_set`` into
+        ``out`` (written atomically), in the HDF5 layout :mod:`capvector.data.hdf5` reads;
+        ``options`` are the suite's own (cameras, image_size, seed, ...). A suite without experts
+        keeps this default, which refuses."""
+        raise CapVectorError(f"the {self.name} suite records no demos (it has no scripted expert)")
 
     def instruction(self, spec: Spec) -> str | None:
         """The language instruction of ``spec``'s task, for result tables (None: not shown)."""

@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from capvector.envs.base import Spec, Suite
+from capvector.errors import CapVectorError, unknown_name
 from capvector.registry import Registry
 
 ENTRY_POINT_GROUP = "capvector.envs"
@@ -40,6 +41,21 @@ def suite_of(spec: Spec) -> Suite:
     return get_suite(type(spec).SUITE)
 
 
+def suite_for_task_set(task_set: str) -> Suite:
+    """The registered suite whose :attr:`~capvector.envs.base.Suite.task_sets` holds
+    ``task_set`` (``Lift``: robosuite, ``libero_spatial``: LIBERO); one line naming the close
+    names otherwise. This is how a command line or a config entry reaches its suite."""
+    owners = {name: get_suite(name) for name in registered_suites()}
+    found = [suite for suite in owners.values() if task_set in suite.task_sets]
+    if len(found) > 1:
+        names = ", ".join(suite.name for suite in found)
+        raise CapVectorError(f"task set {task_set!r} is claimed by several suites: {names}")
+    if not found:
+        known = [name for suite in owners.values() for name in suite.task_sets]
+        raise unknown_name("task or task set", task_set, known)
+    return found[0]
+
+
 def check_specs(specs: Sequence[Spec]) -> None:
     """Each suite's :meth:`~capvector.envs.base.Suite.check` of its specs, before any episode."""
     by_suite: dict[str, list[Spec]] = {}
@@ -60,5 +76,6 @@ __all__ = [
     "check_specs",
     "get_suite",
     "registered_suites",
+    "suite_for_task_set",
     "suite_of",
 ]

@@ -1,22 +1,21 @@
-"""``capvector demos``: record scripted-expert demonstrations of robosuite tasks
-(:mod:`capvector.envs.robosuite.demos`) or of a LIBERO suite (:mod:`capvector.envs.libero.demos`)."""
+"""``capvector demos``: record scripted-expert demonstrations of a task set of any registered suite
+(``Suite.record_demos``: robosuite tasks to one robomimic-layout file, a LIBERO suite to a folder of
+files in LIBERO's released layout, ...)."""
 
 from __future__ import annotations
 
 import sys
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
-from capvector.envs.robosuite.demos import (
-    DEFAULT_CAMERAS,
-    DEFAULT_EXTRA_STEPS,
-    DEFAULT_IMAGE_SIZE,
-    DEFAULT_NOISE,
-    record_demos,
-)
+from capvector.envs.base import check_options
+from capvector.envs.registry import suite_for_task_set
 from capvector.errors import CapVectorError
 from capvector.tool_cli import run_tool
+
+DEFAULT_CAMERAS = ("agentview", "robot0_eye_in_hand")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -31,29 +30,31 @@ def demos_cli(
     suite: str | None = None,
     tasks: Sequence[int] = (),
     episodes_per_task: int | None = None,
-    robot: str = "Panda",
+    robot: str | None = None,
     gripper: str | None = None,
     image_size: int | None = None,
     cameras: Sequence[str] = DEFAULT_CAMERAS,
     depth: bool = False,
     seed: int = 0,
-    noise: float = DEFAULT_NOISE,
-    extra_steps: int = DEFAULT_EXTRA_STEPS,
+    noise: float | None = None,
+    extra_steps: int | None = None,
     max_attempts: int | None = None,
     fovy: Sequence[str] = (),
     progress: bool = True,
-    workers: int = 0,
+    workers: int | None = None,
 ) -> None:
-    """Record scripted-expert demonstrations: robosuite tasks (--task) to robomimic-layout HDF5,
-    or a LIBERO suite (--suite) to LIBERO's released layout, one file per task.
+    """Record scripted-expert demonstrations of a task (--task, e.g. a robosuite task, to one
+    robomimic-layout HDF5 file) or a task set (--suite, e.g. a LIBERO suite, to a folder of one
+    file per task in LIBERO's released layout): any registered suite's, found by the name.
 
     Args:
         out: HDF5 file to write (atomically); with --suite a folder for one file per task
         task: Lift, Stack, PickPlaceCan, ... (capvector.envs.robosuite.tasks)
-        episodes: successful demos to save (--task)
-        suite: a LIBERO suite (libero_spatial, libero_object, libero_goal, ...) instead of --task
-        tasks: with --suite, the task ids to record (default: every task of the suite)
-        episodes_per_task: with --suite, successful demos per task
+        episodes: successful demos to save (of each task)
+        suite: a task set instead of --task: a LIBERO suite (libero_spatial, libero_object,
+            libero_goal, ...)
+        tasks: with --suite, the task ids to record (default: every task of the set)
+        episodes_per_task: --episodes, as LIBERO's demos were asked for
         robot: robosuite arm: Panda, IIWA, UR5e, Kinova3, ...
         gripper: gripper override, e.g. PandaGripper (arms whose default gripper has 6 joints
             need one)
@@ -62,7 +63,8 @@ def demos_cli(
         image_size: image height and width (default 64; LIBERO: 128, its released size)
         seed: first seed; attempts use seed, seed+1, ... (LIBERO: seeds of its placement
             initializer, skipping any that lands on an official evaluation initial state)
-        noise: DART noise std on xyz
+        noise: DART noise std on xyz (robosuite; default 0.1)
+        extra_steps: steps recorded after the first success (robosuite; default 6)
         max_attempts: attempts before giving up (default: max(2 x episodes, episodes + 20))
         fovy: CAMERA=DEG: override a camera's vertical field of view (task defaults: Lift/Stack
             agentview=35)
@@ -70,67 +72,43 @@ def demos_cli(
         workers: with --suite, processes recording tasks side by side, a task each (0: this
             one); the files are the same either way
     """
-    if suite is not None:
-        _libero_demos(suite, tasks, episodes_per_task, out, task, episodes, image_size, cameras,
-                      depth, seed, max_attempts, progress, workers)  # fmt: skip
-        return
-    if task is None or episodes is None:
+    if (task is None) == (suite is None):
         raise CapVectorError(
-            "give --task and --episodes (robosuite), or --suite and --episodes-per-task (LIBERO) "
+            "give --task (e.g. Lift) or --suite (e.g. libero_spatial), and --episodes "
             "(see capvector demos --help)"
         )
-    if tasks or episodes_per_task is not None or workers:
+    if episodes is not None and episodes_per_task is not None:
+        raise CapVectorError("--episodes and --episodes-per-task are the same: give one")
+    episodes = episodes if episodes is not None else episodes_per_task
+    if episodes is None:
         raise CapVectorError(
-            "--tasks, --episodes-per-task and --workers go with --suite; with --task give --episodes"
+            f"give --episodes N: successful demos of {task or suite} to record "
+            "(see capvector demos --help)"
         )
-    image_size = DEFAULT_IMAGE_SIZE if image_size is None else image_size
-    summary = record_demos(
-        task, episodes, out, robot=robot, gripper=gripper, cameras=cameras, image_size=image_size,
-        depth=depth, seed=seed, noise=noise, extra_steps=extra_steps, max_attempts=max_attempts,
-        camera_fovy=_parse_fovy(fovy), progress=progress,
+    task_set = task if task is not None else suite
+    assert task_set is not None
+    found = suite_for_task_set(task_set)
+    # the common options always; a suite's own ones (robot, noise, tasks, workers, ...) when given
+    options: dict[str, Any] = dict(
+        cameras=cameras, image_size=image_size, depth=depth, seed=seed,
+        max_attempts=max_attempts, progress=progress,
     )  # fmt: skip
-    lengths = np.asarray(summary.lengths)
-    print(
-        f"wrote {summary.demos} {task} demos ({robot}, {summary.samples} samples) to "
-        f"{summary.path}: expert success {summary.demos}/{summary.attempts} attempts "
-        f"({summary.success_rate:.1%}), steps to success mean {lengths.mean():.1f} "
-        f"max {lengths.max()}, {summary.seconds / summary.demos:.2f} s/demo"
-    )
-
-
-def _libero_demos(
-    suite: str,
-    tasks: Sequence[int],
-    episodes_per_task: int | None,
-    out: str,
-    task: str | None,
-    episodes: int | None,
-    image_size: int | None,
-    cameras: Sequence[str],
-    depth: bool,
-    seed: int,
-    max_attempts: int | None,
-    progress: bool,
-    workers: int,
-) -> None:
-    if task is not None or episodes is not None:
-        raise CapVectorError(
-            "--suite records LIBERO tasks: give --tasks ID ... and --episodes-per-task, not --task/--episodes"
-        )
-    if episodes_per_task is None:
-        raise CapVectorError("--suite needs --episodes-per-task N")
-    from capvector.envs.libero.demos import LIBERO_IMAGE_SIZE, record_suite
-
-    summaries = record_suite(
-        suite, episodes_per_task, out, tasks=tasks, cameras=cameras, depth=depth, seed=seed,
-        image_size=LIBERO_IMAGE_SIZE if image_size is None else image_size,
-        max_attempts=max_attempts, progress=progress, workers=workers,
-    )  # fmt: skip
-    for s in summaries:
+    own = dict(robot=robot, gripper=gripper, noise=noise, extra_steps=extra_steps,
+               fovy=_parse_fovy(fovy) or None, tasks=tuple(tasks) or None, workers=workers)  # fmt: skip
+    options.update({k: v for k, v in own.items() if v is not None})
+    check_options(found.record_demos, options, f"{found.name} demos", _flag)
+    for summary in found.record_demos(task_set, episodes, out, **options):
+        lengths = np.asarray(summary.lengths)
         print(
-            f"{suite} task {s.task_id}: {s.demos} demos in {s.attempts} attempts "
-            f"(mean {np.mean(s.lengths):.0f} steps) -> {s.path}"
+            f"wrote {summary.demos} {summary.task} demos ({summary.samples} samples) to "
+            f"{summary.path}: expert success {summary.demos}/{summary.attempts} attempts "
+            f"({summary.success_rate:.1%}), steps to success mean {lengths.mean():.1f} "
+            f"max {lengths.max()}, {summary.seconds / max(summary.demos, 1):.2f} s/demo"
         )
+
+
+def _flag(option: str) -> str:
+    return "--" + option.replace("_", "-")
 
 
 def _parse_fovy(items: Sequence[str]) -> dict[str, float]:

@@ -1,5 +1,5 @@
-"""``capvector evaluate``: roll a trained policy out in MuJoCo (robosuite tasks, or LIBERO's suites
-under the official protocol) and print a success table."""
+"""``capvector evaluate``: roll a trained policy out in a registered suite (robosuite tasks, LIBERO's
+suites under the official protocol, ...: found by the task set's name) and print a success table."""
 
 from __future__ import annotations
 
@@ -9,10 +9,9 @@ from json import dumps
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from capvector.data.episodes import EpisodeDataset, EvalTask, LiberoEvalTask
-from capvector.envs.base import Spec
-from capvector.envs.libero.env import LIBERO_TRIALS, Rendering
-from capvector.envs.registry import check_specs, suite_of
+from capvector.data.episodes import EpisodeDataset, EvalTask
+from capvector.envs.base import Spec, check_options
+from capvector.envs.registry import check_specs, suite_for_task_set, suite_of
 from capvector.errors import CapVectorError
 from capvector.eval.device import Precision, resolve_device, resolve_precision
 from capvector.eval.results import SuccessRow, format_success_table, pooled_row, success_rows
@@ -27,7 +26,7 @@ if TYPE_CHECKING:
 
 def evaluate(
     checkpoint: str,
-    tasks: list[EvalTask | LiberoEvalTask],
+    tasks: list[EvalTask],
     video_dir: str | None = None,
     videos: int = 2,
     execute_steps: int | None = None,
@@ -66,16 +65,16 @@ def main(argv: list[str] | None = None) -> int:
 def evaluate_cli(
     ckpt: str,
     task: Sequence[str] | None = None,
-    robot: str = "Panda",
+    robot: str | None = None,
     gripper: str | None = None,
-    episodes: int = 20,
+    episodes: int | None = None,
     variant: Sequence[str | None] = (None,),
-    start_seed: int = EvalTask.start_seed,
+    start_seed: int | None = None,
     suite: str | None = None,
     tasks: Sequence[int] | None = None,
-    trials: int = LIBERO_TRIALS,
+    trials: int | None = None,
     max_steps: int | None = None,
-    rendering: Rendering = "auto",
+    rendering: str | None = None,
     from_demos: str | None = None,
     image_size: int | None = None,
     video: str | None = None,
@@ -87,21 +86,24 @@ def evaluate_cli(
     device: str | None = None,
     precision: Precision | None = None,
 ) -> None:
-    """MuJoCo rollouts of a checkpoint: robosuite tasks, or a LIBERO suite (--suite) under the
-    official protocol.
+    """Rollouts of a checkpoint in a registered suite: robosuite tasks (--task), or a task set
+    (--suite: a LIBERO suite, ...) under its suite's protocol.
 
     Args:
         ckpt: Lightning checkpoint or export folder
         task: robosuite task(s) (default Lift)
+        robot: robosuite arm (default Panda)
         gripper: e.g. PandaGripper for IIWA/UR5e/Kinova3/Jaco
+        episodes: episodes of each task (default: the suite's protocol: robosuite 20, LIBERO 50)
         variant: zero-shot scene variants (camera, camera-strong, lighting, color, all, sawyer,
             ur5e); each task is evaluated in each
-        start_seed: first evaluation seed
-        suite: a LIBERO suite (libero_spatial, libero_object, libero_goal, libero_10,
-            libero_90), evaluated as OpenVLA-OFT and openpi do: trial i from the task's official
-            initial state i, 10 wait steps, the suite's step limit, LIBERO's success predicate
-        tasks: LIBERO task ids (default: every task of the suite)
-        trials: LIBERO trials per task, 1..50 (the official protocol runs 50)
+        start_seed: first evaluation seed (robosuite; default 1000000)
+        suite: a task set of a registered suite instead of --task, e.g. a LIBERO suite
+            (libero_spatial, libero_object, libero_goal, libero_10, libero_90), evaluated as
+            OpenVLA-OFT and openpi do: trial i from the task's official initial state i, 10 wait
+            steps, the suite's step limit, LIBERO's success predicate
+        tasks: task ids of the set (default: every task of it)
+        trials: --episodes, as LIBERO calls them (1..50; the official protocol runs 50)
         max_steps: step limit of an episode (default: the task's; LIBERO: the suite's)
         rendering: who draws LIBERO's images: auto (the fast renderer where OpenGL runs on the
             CPU, robosuite's on a GPU), fast, or official (LIBERO's own: for policies trained on
@@ -113,7 +115,8 @@ def evaluate_cli(
             renders 256); the backbone resizes to its own input size
         video: folder for mp4s of the first --videos episodes
         batch_size: episodes in flight at once, one batched policy forward for all (1: one at a
-            time; default 8, for LIBERO one per usable core: each holds an env of ~1.2 GB)
+            time; default 8, for suites whose envs hold gigabytes, LIBERO's ~1.2 GB, one per
+            usable core)
         workers: processes stepping the simulators (0: this one; default: one per core)
         json: also write the rows as JSON, with every episode's outcome and final proprio
         device: where the policy runs, e.g. cpu, cuda, cuda:1 (default: cuda when there is one)
@@ -123,14 +126,16 @@ def evaluate_cli(
     for what, path in (("--json", json), ("--video", video)):
         if path is not None:  # before minutes of rollouts
             check_output(path, overwrite=True, inputs=[ckpt], what=what)
-    eval_tasks = _eval_tasks(
-        task, robot, gripper, episodes, variant, start_seed, suite, tasks, trials, max_steps,
-        rendering, from_demos,
+    options = dict(
+        robot=robot, gripper=gripper, start_seed=start_seed, tasks=tasks, max_steps=max_steps,
+        rendering=rendering, from_demos=from_demos,
     )  # fmt: skip
+    eval_tasks = _eval_tasks(task, suite, episodes, trials, variant, options)
     specs = EpisodeDataset(eval_tasks).specs
     check_specs(specs)  # e.g. every trial's demo is there, before minutes of rollouts
     if batch_size is None:
-        batch_size = 8 if suite is None else _libero_batch_size(workers)
+        heavy = any(suite_of(s).release_envs for s in specs)
+        batch_size = _one_per_worker(workers) if heavy else 8
     results = evaluate(
         ckpt, eval_tasks, video, videos, execute_steps, batch_size, workers, image_size, device,
         precision,
@@ -139,16 +144,14 @@ def evaluate_cli(
     by_row: dict[tuple[Any, ...], list[tuple[Spec, EpisodeResult]]] = {}
     for s, r in zip(specs, results, strict=True):
         by_row.setdefault((s.task, s.robot, s.variant), []).append((s, r))
-    rows = success_rows(results)
-    table = rows
-    if suite is not None:
 
-        def instruction(row: SuccessRow) -> str | None:
-            spec = by_row[row.task, row.robot, row.variant][0][0]
-            return suite_of(spec).instruction(spec)
+    def instruction(row: SuccessRow) -> str | None:
+        spec = by_row[row.task, row.robot, row.variant][0][0]
+        return suite_of(spec).instruction(spec)
 
-        rows = [dataclasses.replace(row, instruction=instruction(row)) for row in rows]
-        table = [*rows, pooled_row(rows, f"{suite} (all)")]
+    rows = [dataclasses.replace(row, instruction=instruction(row)) for row in success_rows(results)]
+    # a task set of several tasks (--suite) also gets its pooled row
+    table = rows if suite is None else [*rows, pooled_row(rows, f"{suite} (all)")]
     print(format_success_table(table))
     if json:
         payload = [
@@ -182,47 +185,39 @@ def _refuse_non_finite_actions(specs: Sequence[Spec], results: Sequence[EpisodeR
 
 def _eval_tasks(
     task: Sequence[str] | None,
-    robot: str,
-    gripper: str | None,
-    episodes: int,
-    variant: Sequence[str | None],
-    start_seed: int,
     suite: str | None,
-    tasks: Sequence[int] | None,
-    trials: int,
-    max_steps: int | None,
-    rendering: Rendering,
-    from_demos: str | None,
-) -> list[EvalTask | LiberoEvalTask]:
-    """The command line's episodes; options of the other kind of evaluation are refused."""
-    if suite is None:
-        if tasks is not None or trials != LIBERO_TRIALS or from_demos is not None:
-            raise CapVectorError(
-                "--tasks, --trials and --from-demos choose LIBERO trials: give --suite too"
-            )
-        return [
-            EvalTask(t, episodes, robot, start_seed, max_steps, gripper, v)
-            for t in task or ["Lift"]
-            for v in variant
-        ]
-    robosuite = {"--task": task is not None, "--robot": robot != "Panda",
-                 "--gripper": gripper is not None, "--variant": list(variant) != [None]}  # fmt: skip
-    if any(robosuite.values()):
-        given = ", ".join(name for name, on in robosuite.items() if on)
+    episodes: int | None,
+    trials: int | None,
+    variant: Sequence[str | None],
+    options: dict[str, Any],
+) -> list[EvalTask]:
+    """The command line's episodes: each task set (``--task``s, or ``--suite``) in each variant,
+    with the options given; an option the set's suite does not take is refused by its flag."""
+    if task is not None and suite is not None:
         raise CapVectorError(
-            f"{given} choose robosuite episodes; --suite {suite} runs LIBERO's own scenes: "
-            "give one or the other"
+            f"--task names a task, --suite {suite} a task set: give one or the other"
         )
-    return [
-        LiberoEvalTask(
-            suite, None if tasks is None else list(tasks), trials, max_steps, rendering, from_demos
-        )
-    ]
+    if episodes is not None and trials is not None:
+        raise CapVectorError("--episodes and --trials are the same: give one")
+    given = {k: v for k, v in options.items() if v is not None}
+    out = []
+    for name in [suite] if suite is not None else task or ["Lift"]:
+        owner = suite_for_task_set(name)
+        for v in variant:
+            own = given if v is None else {**given, "variant": v}
+            check_options(owner.specs, own, f"{name} ({owner.name})", _flag)
+            count = episodes or trials or owner.eval_episodes
+            out.append(EvalTask(name, count, owner.name, own))
+    return out
 
 
-def _libero_batch_size(workers: int | None) -> int:
-    """One LIBERO episode per worker: a worker steps its episodes one after the other, so more
-    would only hold more envs (~1.2 GB each)."""
+def _flag(option: str) -> str:
+    return "--" + option.replace("_", "-")
+
+
+def _one_per_worker(workers: int | None) -> int:
+    """One episode per worker for suites whose envs hold gigabytes (``Suite.release_envs``): a
+    worker steps its episodes one after the other, so more would only hold more envs."""
     from capvector.eval.rollout import usable_cores
 
     return max(1, usable_cores() if workers is None else workers)

@@ -22,10 +22,11 @@ from typing import Any
 from lightning.pytorch.loggers import Logger
 from tqdm import tqdm
 
-from capvector.data.episodes import EpisodeDataset, EvalTask
+from capvector.data.episodes import EpisodeDataset, eval_task
 from capvector.data.spec import DataSpec
 from capvector.data.statistics import BOUNDS_Q99
-from capvector.envs.base import VALIDATION_SEED_START
+from capvector.envs.base import EVAL_SEED_START, VALIDATION_SEED_START
+from capvector.envs.registry import get_suite
 from capvector.errors import CapVectorError
 from capvector.eval.device import Precision, resolve_device, resolve_precision
 from capvector.eval.results import success_cell, wilson_interval
@@ -65,8 +66,7 @@ def fit_settings(
         cli = run_lightning_cli([a for c in fit_configs for a in ("--config", c)], run=False)
     config = cli.config
     if task and episodes:
-        tasks = [EvalTask(task, episodes, robot)]
-        config["data.eval_tasks"] = [Namespace(**dataclasses.asdict(t)) for t in tasks]
+        config["data.eval_tasks"] = [{"task": task, "episodes": episodes, "robot": robot}]
     if demos:
         config["data.val_files"] = [demos]
     data = config.data
@@ -76,15 +76,18 @@ def fit_settings(
             "whose data has eval_tasks or val_files"
         )
     check_no_merge_callback(config.trainer.callbacks)
-    for t in data.eval_tasks or []:  # validation seeds, never the evaluation ones
-        if "suite" in vars(t):
+    tasks = [eval_task(t) for t in data.eval_tasks or []]
+    for t in tasks:  # validation seeds, never the evaluation ones
+        if not get_suite(t.suite).seeded:
             raise CapVectorError(
-                f"data.eval_tasks has LIBERO's {t.suite}, whose trials start from the official "
+                f"data.eval_tasks has {t.task} ({t.suite}), whose episodes start from the fixed "
                 "initial states that evaluation reports: choosing λ on them would tune on the "
-                "test episodes; sweep with robosuite tasks or held-out demos (--demos)"
+                "test episodes; sweep with seeded tasks (robosuite's) or held-out demos (--demos)"
             )
-        t.start_seed = max(t.start_seed, VALIDATION_SEED_START)
-    EpisodeDataset([EvalTask(**vars(t)) for t in data.eval_tasks or []])  # unknown task: fails
+        start = t.options.get("start_seed") or EVAL_SEED_START
+        t.options["start_seed"] = max(start, VALIDATION_SEED_START)
+    config["data.eval_tasks"] = [Namespace(**dataclasses.asdict(t)) for t in tasks]
+    EpisodeDataset(tasks)  # an unknown task fails here
     load_export_config(base)  # an export folder, before any work
     config["model.pretrained"] = base
     if not fit_configs:

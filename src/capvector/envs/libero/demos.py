@@ -48,6 +48,7 @@ import os
 import queue
 import signal
 import sys
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -58,6 +59,7 @@ import numpy as np
 from robosuite.utils import transform_utils as T
 from tqdm import tqdm
 
+from capvector.envs.base import DemoSummary
 from capvector.envs.libero.annotations import LiberoAnnotator
 from capvector.envs.libero.env import (
     LIBERO_NUM_TASKS,
@@ -110,15 +112,12 @@ def _metric_depth(env: Any, obs: Any, camera: str) -> np.ndarray:
 
 
 @dataclass
-class TaskDemos:
-    path: Path
-    task_id: int
-    demos: int = 0
-    attempts: int = 0
-    seeds: list[int] = field(default_factory=list)
+class TaskDemos(DemoSummary):
+    """A task's :class:`~capvector.envs.base.DemoSummary` (``task``: ``libero_spatial/3``)."""
+
+    task_id: int = 0
     skipped_seeds: list[int] = field(default_factory=list)
     """Seeds whose placement was an official init state's (never recorded)."""
-    lengths: list[int] = field(default_factory=list)
 
 
 def demo_file_name(suite: str, task_id: int) -> str:
@@ -314,7 +313,8 @@ def record_task(
         raise CapVectorError("--depth needs cameras to render; drop the bare --cameras")
     max_attempts = max_attempts or max(2 * episodes, episodes + 20)
     path = out_dir / demo_file_name(suite, task_id)
-    summary = TaskDemos(path, task_id)
+    summary = TaskDemos(path, f"{suite}/{task_id}", task_id=task_id)
+    start = time.perf_counter()
     env = make_libero_env(
         suite,
         task_id,
@@ -356,6 +356,7 @@ def record_task(
                     summary.demos += 1
                     summary.seeds.append(attempt_seed)
                     summary.lengths.append(len(episode["actions"]))
+                    summary.samples += len(episode["actions"])
                     if bar is not None:
                         bar.update(1)
                 attempt_seed += 1
@@ -365,6 +366,7 @@ def record_task(
             _write_data_attrs(data, env, suite, task_id, summary, image_size, depth_cameras)
     finally:
         env.close()
+    summary.seconds = time.perf_counter() - start
     return summary
 
 

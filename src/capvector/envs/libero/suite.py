@@ -4,10 +4,12 @@ task's official initial state i), its step limits the OpenVLA-OFT / openpi proto
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from typing import Any
 
-from capvector.envs.base import EnvPool, Episode, Spec, Suite
+from capvector.envs.base import DemoSummary, EnvPool, Episode, Spec, Suite
+from capvector.envs.libero.env import LIBERO_NUM_TASKS, LIBERO_TRIALS, Rendering
 from capvector.envs.libero.spec import LiberoEpisodeSpec, libero_specs
 from capvector.envs.registry import SUITES
 
@@ -15,15 +17,26 @@ from capvector.envs.registry import SUITES
 @SUITES.register("libero")
 class LiberoSuite(Suite):
     name = "libero"
+    task_sets = tuple(LIBERO_NUM_TASKS)  # LIBERO's suites: libero_spatial, ...
+    seeded = False  # trial i starts from the task's official initial state i
+    eval_episodes = LIBERO_TRIALS  # the official protocol: 50 trials per task
     release_envs = True  # a stepped LIBERO env holds ~1 GB
     cameras = ("agentview", "robot0_eye_in_hand")  # LIBERO_CAMERAS
     example = {"task_set": "libero_spatial", "episodes": 2, "tasks": [0]}
 
-    def specs(self, task_set: str, episodes: int, **options: Any) -> list[Spec]:
-        """``episodes`` trials of each task of the LIBERO suite ``task_set``; ``options``:
-        ``tasks``, ``max_steps``, ``rendering``, ``from_demos``
-        (:func:`~capvector.envs.libero.spec.libero_specs`)."""
-        return list(libero_specs(task_set, trials=episodes, **options))
+    def specs(
+        self,
+        task_set: str,
+        episodes: int,
+        *,
+        tasks: Sequence[int] | None = None,
+        max_steps: int | None = None,
+        rendering: Rendering = "auto",
+        from_demos: str | None = None,
+    ) -> list[Spec]:
+        """``episodes`` trials of each of ``tasks`` (default: all) of the LIBERO suite
+        ``task_set`` (:func:`~capvector.envs.libero.spec.libero_specs`)."""
+        return list(libero_specs(task_set, tasks, episodes, max_steps, rendering, from_demos))
 
     def start(self, spec: Spec, envs: EnvPool, **settings: Any) -> Episode:
         from capvector.envs.libero.episode import LiberoEpisode  # LIBERO and the simulator
@@ -43,3 +56,30 @@ class LiberoSuite(Suite):
             from capvector.envs.libero.episode import check_trial_starts
 
             check_trial_starts(specs)
+
+    def record_demos(
+        self,
+        task_set: str,
+        episodes: int,
+        out: str | os.PathLike[str],
+        *,
+        cameras: Sequence[str] = ("agentview", "robot0_eye_in_hand"),
+        image_size: int | None = None,
+        depth: bool = False,
+        seed: int = 0,
+        max_attempts: int | None = None,
+        progress: bool = True,
+        tasks: Sequence[int] = (),
+        workers: int = 0,
+    ) -> list[DemoSummary]:
+        """A folder ``out`` of one file per task of the LIBERO suite ``task_set`` (default: every
+        task), in LIBERO's released layout, 128 px as released
+        (:func:`~capvector.envs.libero.demos.record_suite`); ``workers`` processes record tasks
+        side by side."""
+        from capvector.envs.libero.demos import LIBERO_IMAGE_SIZE, record_suite  # LIBERO
+
+        return record_suite(
+            task_set, episodes, out, tasks=tasks, cameras=cameras, depth=depth, seed=seed,
+            image_size=LIBERO_IMAGE_SIZE if image_size is None else image_size,
+            max_attempts=max_attempts, progress=progress, workers=workers,
+        )  # fmt: skip

@@ -37,13 +37,13 @@ import logging
 import os
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
-from pathlib import Path
+from dataclasses import dataclass
 
 import h5py
 import numpy as np
 from tqdm import tqdm
 
+from capvector.envs.base import DemoSummary
 from capvector.envs.robosuite.annotations import Annotator
 from capvector.envs.robosuite.env import (
     DEFAULT_CAMERAS,
@@ -82,21 +82,6 @@ class Episode:
     @property
     def num_samples(self) -> int:
         return int(self.actions.shape[0])
-
-
-@dataclass
-class RecordingSummary:
-    path: Path
-    demos: int
-    attempts: int
-    samples: int
-    seeds: list[int] = field(default_factory=list)
-    lengths: list[int] = field(default_factory=list)
-    seconds: float = 0.0
-
-    @property
-    def success_rate(self) -> float:
-        return self.demos / max(self.attempts, 1)
 
 
 def record_episode(
@@ -224,7 +209,7 @@ def record_demos(
     camera_fovy: Mapping[str, float] | None = None,
     progress: bool = True,
     sim: SimEnv | None = None,
-) -> RecordingSummary:
+) -> DemoSummary:
     """Record ``episodes`` successful expert demos of ``task`` into ``out`` (written atomically).
 
     Attempts use seeds ``seed, seed+1, ...`` until ``episodes`` succeed; more than
@@ -253,7 +238,7 @@ def record_demos(
     expert = make_expert(sim)
     annotator = Annotator(sim.task, sim.spec)
     model_xml = sim.model_xml()
-    summary = RecordingSummary(path=out, demos=0, attempts=0, samples=0)
+    summary = DemoSummary(out, sim.task)
     start = time.perf_counter()
     bar = tqdm(total=episodes, desc=f"{sim.task} demos", unit="demo", disable=not progress)
     try:

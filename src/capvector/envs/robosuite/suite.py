@@ -4,28 +4,89 @@ the task's own."""
 
 from __future__ import annotations
 
+import os
+from collections.abc import Mapping, Sequence
 from typing import Any
 
-from capvector.envs.base import EVAL_SEED_START, EnvPool, Episode, Spec, Suite
+from capvector.envs.base import (
+    DEFAULT_ROBOT,
+    EVAL_SEED_START,
+    DemoSummary,
+    EnvPool,
+    Episode,
+    Spec,
+    Suite,
+)
 from capvector.envs.registry import SUITES
 from capvector.envs.robosuite.spec import EpisodeSpec, eval_specs
+from capvector.envs.robosuite.tasks import TASKS
 
 
 @SUITES.register("robosuite")
 class RobosuiteSuite(Suite):
     name = "robosuite"
+    task_sets = tuple(TASKS)  # a task set is one task
     cameras = ("agentview", "robot0_eye_in_hand")
     example = {"task_set": "Lift", "episodes": 2}
 
     def specs(
-        self, task_set: str, episodes: int, *, start_seed: int = EVAL_SEED_START, **options: Any
+        self,
+        task_set: str,
+        episodes: int,
+        *,
+        robot: str = DEFAULT_ROBOT,
+        start_seed: int = EVAL_SEED_START,
+        max_steps: int | None = None,
+        gripper: str | None = None,
+        variant: str | None = None,
     ) -> list[Spec]:
-        """``episodes`` seeds of the task ``task_set``; ``options``: ``robot``, ``max_steps``,
-        ``gripper``, ``variant`` (:func:`~capvector.envs.robosuite.spec.eval_specs`)."""
-        return list(eval_specs(task_set, episodes, start_seed=start_seed, **options))
+        """``episodes`` seeds of the task ``task_set`` from ``start_seed``
+        (:func:`~capvector.envs.robosuite.spec.eval_specs`)."""
+        return list(
+            eval_specs(
+                task_set,
+                episodes,
+                robot=robot,
+                start_seed=start_seed,
+                max_steps=max_steps,
+                gripper=gripper,
+                variant=variant,
+            )  # fmt: skip
+        )
 
     def start(self, spec: Spec, envs: EnvPool, **settings: Any) -> Episode:
         from capvector.envs.robosuite.episode import Episode as RobosuiteEpisode  # the simulator
 
         assert isinstance(spec, EpisodeSpec), spec
         return RobosuiteEpisode(spec, envs, **settings)
+
+    def record_demos(
+        self,
+        task_set: str,
+        episodes: int,
+        out: str | os.PathLike[str],
+        *,
+        cameras: Sequence[str] = ("agentview", "robot0_eye_in_hand"),
+        image_size: int | None = None,
+        depth: bool = False,
+        seed: int = 0,
+        max_attempts: int | None = None,
+        progress: bool = True,
+        robot: str = DEFAULT_ROBOT,
+        gripper: str | None = None,
+        noise: float | None = None,
+        extra_steps: int | None = None,
+        fovy: Mapping[str, float] | None = None,
+    ) -> list[DemoSummary]:
+        """One robomimic-layout file ``out`` of the task ``task_set``
+        (:func:`~capvector.envs.robosuite.demos.record_demos`; defaults: 64 px images, DART noise
+        0.1, 6 steps after success)."""
+        from capvector.envs.robosuite import demos  # the simulator
+
+        given = {"noise": noise, "extra_steps": extra_steps, "image_size": image_size}
+        summary = demos.record_demos(
+            task_set, episodes, out, robot=robot, gripper=gripper, cameras=cameras, depth=depth,
+            seed=seed, max_attempts=max_attempts, camera_fovy=fovy, progress=progress,
+            **{k: v for k, v in given.items() if v is not None},
+        )  # fmt: skip
+        return [summary]
