@@ -34,8 +34,9 @@ from capvector.eval.metrics import SuccessRate
 from capvector.eval.results import metric_key
 from capvector.io.hub import local_folder
 from capvector.io.loading import load_torch, read_json
-from capvector.io.lora_layers import constant_scaling, merge_lora
+from capvector.io.lora_layers import constant_scaling, lora_form_state, merge_lora
 from capvector.io.names import (
+    BASE_DELTA,
     CHECKPOINT_METADATA,
     DATA_SPEC_FILE,
     EPISODES_LOG,
@@ -467,8 +468,15 @@ class VLAModule(L.LightningModule):
                 "non-finite loss)"
             )
         lora_settings = self.lora_settings
-        if lora_settings is not None:
+        base_delta = self.backbone.base_delta
+        if base_delta is not None:
+            # The base is rebuilt from weight packages: LoRA stays low-rank, stacked on the
+            # deltas the base already carries (an export of what trains, not 135 MB of Gemma).
+            scaling = constant_scaling(lora_settings.scaling if lora_settings else 1.0)
+            state = lora_form_state(state, scaling, base_delta)
+        elif lora_settings is not None:
             state = merge_lora(state, constant_scaling(lora_settings.scaling))
+        has_delta = any(".lora_" in k for k in state) and base_delta is not None
         extra = {
             DATA_SPEC_FILE: dataclasses.asdict(self.data_spec),
             STATISTICS_FILE: self.data_spec.statistics,
@@ -482,6 +490,7 @@ class VLAModule(L.LightningModule):
                 MERGED_VECTORS: record_dicts(self.merged_vectors),
                 # Trained and merged-into weights are float32, the frozen rest this dtype.
                 "frozen_dtype": dtype_name(self.frozen_dtype),
+                **({BASE_DELTA: {"form": "lora", "scaling": 1.0}} if has_delta else {}),
             },
             overwrite=overwrite,
             card_facts={

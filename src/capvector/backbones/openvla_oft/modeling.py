@@ -16,6 +16,7 @@ Sequence layout (one row, right padded):
 from __future__ import annotations
 
 import functools
+from collections.abc import Mapping
 from typing import Any
 
 import torch
@@ -384,6 +385,22 @@ class OpenVLAOFT(VLABackbone):
         from capvector.backbones.openvla_oft.packaged_base import provenance
 
         return provenance()
+
+    @property
+    def saves_tokenizer(self) -> bool:
+        return self.config.tokenizer != PACKAGED_TOKENIZER
+
+    @property
+    def base_delta(self) -> dict[str, tuple[Tensor, Tensor]] | None:
+        return getattr(self, "packaged_delta", None)
+
+    def set_base_delta(self, deltas: Mapping[str, tuple[Tensor, Tensor]]) -> None:
+        if self.config.base_weights != "packages":
+            super().set_base_delta(deltas)
+            return
+        from capvector.backbones.openvla_oft.packaged_base import set_base_delta
+
+        set_base_delta(self, deltas)
 
     def unused_parameter_names(self) -> list[str]:
         # Features come from the second-to-last ViT block without the final norm, and SigLIP's
