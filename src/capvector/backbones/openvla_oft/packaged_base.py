@@ -6,10 +6,10 @@ A fresh model rebuilds them from the packages, so a checkpoint or export needs o
 changed: LoRA, projector, heads. Base weights may also carry a low-rank delta over the packages
 (``set_base_delta``: the LoRA of the fine-tune an export came from, a merged capability vector),
 W = packaged + B @ A: such a weight is left out too while it equals that value, and the export
-stores (B, A) (``capvector.io.lora_layers``). A tensor changed any other way (a vector merged into
-it in place) is saved whole. Loading a state dict without those tensors keeps the packaged ones (a load pre-hook puts
-the model's own values in their place), so Lightning's strict resume and ``from_pretrained`` work
-unchanged.
+stores (B, A) (``capvector.io.lora_layers``). A tensor changed any other way (a vector merged into it in
+place) is saved whole. Loading a state dict without those tensors keeps the packaged ones (a load
+pre-hook puts the model's own values in their place), so Lightning's strict resume and
+``from_pretrained`` work unchanged.
 """
 
 from __future__ import annotations
