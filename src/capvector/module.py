@@ -444,11 +444,21 @@ class VLAModule(L.LightningModule):
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         checkpoint[CHECKPOINT_METADATA] = self.checkpoint_metadata().to_dict()
+        # A base rebuilt from weight packages leaves its weights out of the state dict, and with
+        # them the deltas they carry (θ_pre's LoRA): those travel beside it, as (B, A).
+        deltas = self.backbone.base_delta
+        if deltas:
+            checkpoint[BASE_DELTA] = {k: {"B": b, "A": a} for k, (b, a) in deltas.items()}
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         self.merged_vectors = read_record(
             checkpoint.get(CHECKPOINT_METADATA, {}).get(MERGED_VECTORS)
         )
+        # Before the state dict loads (Lightning and load_module both call this first): a model
+        # rebuilt from the packages alone (load_module, or θ_pre's export gone) gets its deltas.
+        deltas = checkpoint.get(BASE_DELTA)
+        if deltas:
+            self.backbone.set_base_delta({k: (v["B"], v["A"]) for k, v in deltas.items()})
 
     def export(self, folder: str | Path, overwrite: bool = False) -> Path:
         """An export folder: ``model.safetensors`` (LoRA merged) + config + statistics + tokenizer.

@@ -20,7 +20,7 @@ from capvector.backbones import from_pretrained
 from capvector.backbones.packaged import EFFICIENTNET_LITE0, GEMMA3_270M
 from capvector.data import keys
 from capvector.io.names import BASE_DELTA
-from capvector.module import VLAModule
+from capvector.module import VLAModule, load_module
 from capvector.training.lora import LoraSettings
 from capvector.vectors import extract, merge
 
@@ -125,3 +125,31 @@ def test_exports_extract_and_merge_stay_lora_form(module: VLAModule, tmp_path: P
     assert loaded.base_delta is not None and Q_PROJ in loaded.base_delta
     with torch.no_grad():
         torch.testing.assert_close(loaded.predict_action(obs), expected, rtol=1e-4, atol=1e-5)
+
+    # A fit from that export (θ_pre for the next stage): its base carries θ_meta's deltas, its
+    # state dict still leaves Gemma out, and its export stacks the new LoRA on them.
+    torch.manual_seed(1)
+    downstream = VLAModule(pretrained=str(meta_export), lora=LoraSettings(r=R, alpha=2 * R))
+    with torch.no_grad():
+        torch.testing.assert_close(
+            downstream.backbone.eval().predict_action(obs), expected, rtol=1e-4, atol=1e-5
+        )
+    assert not [k for k in downstream.backbone.state_dict() if "q_proj.base_layer" in k]
+    train_like(downstream, 3)
+    state = tensors(downstream.export(tmp_path / "downstream"))
+    rank = merged[Q_PROJ[:-7] + ".lora_A.weight"].shape[0]
+    assert state[Q_PROJ[:-7] + ".lora_A.weight"].shape[0] == rank + R
+
+    # Its checkpoint carries those deltas: rebuilt from its saved config alone (as `capvector
+    # evaluate --ckpt` does, θ_pre's export not read), it acts as the fit left it.
+    checkpoint = {
+        "state_dict": {f"backbone.{k}": v for k, v in downstream.backbone.state_dict().items()},
+        "hyper_parameters": dict(downstream.hparams),
+    }
+    downstream.on_save_checkpoint(checkpoint)
+    torch.save(checkpoint, tmp_path / "downstream.ckpt")
+    again = load_module(tmp_path / "downstream.ckpt").backbone.eval()
+    with torch.no_grad():
+        torch.testing.assert_close(
+            again.predict_action(obs), downstream.backbone.eval().predict_action(obs)
+        )
