@@ -5,15 +5,17 @@ projector and heads in full, AdamW; in float32 and under bf16 autocast with the 
 in bf16 (``model.frozen_dtype: bfloat16``). The tiny preset runs the same step at its own 64 px.
 Time is the median over interleaved rounds (each round times every arm once, so machine load hits
 all arms alike). Report the ratio: on a shared machine seconds mean little; on an idle 2-core CPU
-the mini's bf16 step is the one the ``<= 1 s`` target is about.
+the mini's bf16 step is the one the ``<= 1 s`` target is about. The load average (``uptime``'s
+1/5/15-minute numbers) is printed before and after, so absolute seconds carry their context.
 
-    python benchmarks/bench_mini.py [--rounds 8] [--batch 8] [--threads 2]
+    nice python benchmarks/bench_mini.py [--rounds 8] [--batch 8] [--threads 1]
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import os
 import statistics
 import time
 
@@ -55,13 +57,19 @@ def step(arm: tuple) -> float:
     return time.perf_counter() - start
 
 
+def load_average() -> str:
+    """The 1, 5 and 15-minute load averages, as ``uptime`` prints them."""
+    return ", ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=8)
     parser.add_argument("--batch", type=int, default=8)
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    print(f"load average before: {load_average()}", flush=True)
     arms = {
         "tiny fp32": make_arm("openvla-oft-tiny", False, args.batch),
         "mini fp32": make_arm("openvla-oft-mini", False, args.batch),
@@ -76,6 +84,7 @@ def main() -> None:
         round_times = ", ".join(f"{name} {t[-1]:.3f} s" for name, t in times.items())
         print(f"round {index + 1}: {round_times}", flush=True)
     base = statistics.median(times["tiny fp32"])
+    print(f"load average after: {load_average()} on {os.cpu_count()} cores")
     print(f"batch {args.batch}, {args.threads} threads, median of {args.rounds} interleaved rounds")
     print(f"{'arm':<10} {'trainable':>10} {'step s':>8} {'x tiny':>7}")
     for name, arm in arms.items():

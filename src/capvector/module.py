@@ -34,8 +34,9 @@ from capvector.eval.metrics import SuccessRate
 from capvector.eval.results import metric_key
 from capvector.io.hub import local_folder
 from capvector.io.loading import load_torch, read_json
-from capvector.io.lora_layers import constant_scaling, merge_lora
+from capvector.io.lora_layers import constant_scaling, lora_form_state, merge_lora
 from capvector.io.names import (
+    BASE_DELTA,
     CHECKPOINT_METADATA,
     DATA_SPEC_FILE,
     EPISODES_LOG,
@@ -443,11 +444,21 @@ class VLAModule(L.LightningModule):
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         checkpoint[CHECKPOINT_METADATA] = self.checkpoint_metadata().to_dict()
+        # A base rebuilt from weight packages leaves its weights out of the state dict, and with
+        # them the deltas they carry (θ_pre's LoRA): those travel beside it, as (B, A).
+        deltas = self.backbone.base_delta
+        if deltas:
+            checkpoint[BASE_DELTA] = {k: {"B": b, "A": a} for k, (b, a) in deltas.items()}
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         self.merged_vectors = read_record(
             checkpoint.get(CHECKPOINT_METADATA, {}).get(MERGED_VECTORS)
         )
+        # Before the state dict loads (Lightning and load_module both call this first): a model
+        # rebuilt from the packages alone (load_module, or θ_pre's export gone) gets its deltas.
+        deltas = checkpoint.get(BASE_DELTA)
+        if deltas:
+            self.backbone.set_base_delta({k: (v["B"], v["A"]) for k, v in deltas.items()})
 
     def export(self, folder: str | Path, overwrite: bool = False) -> Path:
         """An export folder: ``model.safetensors`` (LoRA merged) + config + statistics + tokenizer.
@@ -467,8 +478,15 @@ class VLAModule(L.LightningModule):
                 "non-finite loss)"
             )
         lora_settings = self.lora_settings
-        if lora_settings is not None:
+        base_delta = self.backbone.base_delta
+        if base_delta is not None:
+            # The base is rebuilt from weight packages: LoRA stays low-rank, stacked on the
+            # deltas the base already carries (an export of what trains, not 135 MB of Gemma).
+            scaling = constant_scaling(lora_settings.scaling if lora_settings else 1.0)
+            state = lora_form_state(state, scaling, base_delta)
+        elif lora_settings is not None:
             state = merge_lora(state, constant_scaling(lora_settings.scaling))
+        has_delta = any(".lora_" in k for k in state) and base_delta is not None
         extra = {
             DATA_SPEC_FILE: dataclasses.asdict(self.data_spec),
             STATISTICS_FILE: self.data_spec.statistics,
@@ -482,6 +500,7 @@ class VLAModule(L.LightningModule):
                 MERGED_VECTORS: record_dicts(self.merged_vectors),
                 # Trained and merged-into weights are float32, the frozen rest this dtype.
                 "frozen_dtype": dtype_name(self.frozen_dtype),
+                **({BASE_DELTA: {"form": "lora", "scaling": 1.0}} if has_delta else {}),
             },
             overwrite=overwrite,
             card_facts={

@@ -34,8 +34,15 @@ from capvector.data.statistics import BOUNDS_Q99
 from capvector.errors import CapVectorError
 from capvector.io.hub import local_folder
 from capvector.io.loading import COPY_AGAIN, load_safetensors, read_json
+from capvector.io.lora_layers import split_base_delta
 from capvector.io.modelcard import render_model_card, write_model_card
-from capvector.io.names import EXPORT_CONFIG, EXPORT_FORMAT, EXPORT_INDEX, EXPORT_WEIGHTS
+from capvector.io.names import (
+    BASE_DELTA,
+    EXPORT_CONFIG,
+    EXPORT_FORMAT,
+    EXPORT_INDEX,
+    EXPORT_WEIGHTS,
+)
 from capvector.io.outputs import Inputs, atomic_directory
 from capvector.registry import Registry
 
@@ -242,6 +249,12 @@ class VLABackbone(nn.Module, ABC):
         """Build the family's tokenizer from saved files (families with a tokenizer override this)."""
         return None
 
+    @property
+    def saves_tokenizer(self) -> bool:
+        """Whether exports carry the tokenizer's files (not when the config rebuilds it from an
+        installed package: the mini's 33 MB Gemma tokenizer would outweigh its trained weights)."""
+        return True
+
     def load_tokenizer(self, folder: str | Path) -> None:
         """Load tokenizer files saved beside the weights, when there are any."""
         if (Path(folder) / "tokenizer_config.json").is_file():
@@ -251,6 +264,21 @@ class VLABackbone(nn.Module, ABC):
         """Where pretrained weights built into the model at construction came from (packages,
         versions, SHA-256, licence terms); written into the model card of every export."""
         return []
+
+    @property
+    def base_delta(self) -> dict[str, tuple[Tensor, Tensor]] | None:
+        """For a backbone whose frozen base is rebuilt from installed packages and left out of its
+        state dict: the low-rank deltas its base weights carry over those packages (export name
+        ``X.weight`` -> (B, A), W = packaged + B @ A; empty when none). ``None`` for a backbone
+        whose exports hold whole weights."""
+        return None
+
+    def set_base_delta(self, deltas: Mapping[str, tuple[Tensor, Tensor]]) -> None:
+        """Set base weights to packaged + B @ A (what an export's ``base_delta`` holds)."""
+        raise BackboneError(
+            f"{type(self).__name__} ({self.config.preset}) saves whole weights; an export with a "
+            "base_delta needs a backbone whose base is rebuilt from weight packages"
+        )
 
     def capability_parameter_names(self) -> list[str]:
         names = [name for name, _ in self.named_parameters()]
@@ -310,7 +338,7 @@ class VLABackbone(nn.Module, ABC):
             (tmp / EXPORT_CONFIG).write_text(json.dumps(config, indent=2))
             for name, content in (extra_json or {}).items():
                 (tmp / name).write_text(json.dumps(content, indent=2))
-            if self.tokenizer is not None:
+            if self.tokenizer is not None and self.saves_tokenizer:
                 self.tokenizer.save_pretrained(str(tmp))
             write_model_card(tmp, self._model_card(tensors, card_facts or {}, base_model))
         return Path(folder)
@@ -540,6 +568,9 @@ def from_pretrained(folder: str | Path, **overrides: Any) -> VLABackbone:
         if _single_file(folder)
         else read_sharded(folder)
     )
+    if config.get(BASE_DELTA) is not None:
+        state, deltas = split_base_delta(state)
+        model.set_base_delta(deltas)
     load_state_dict_strictly(model, state, source=str(folder))
     return model
 

@@ -29,6 +29,8 @@ from capvector.backbones.base import (
     load_export_config,
 )
 from capvector.io.hub import local_folder
+from capvector.io.lora_layers import split_base_delta
+from capvector.io.names import BASE_DELTA
 from capvector.io.weights import SafetensorsFolder, WeightSource
 
 
@@ -116,16 +118,22 @@ def export_key(name: str) -> str | None:
     return name.replace(".base_layer.", ".")
 
 
-def load_streaming(model: nn.Module, source: WeightSource, label: str) -> None:
-    """Copy every tensor of ``source`` into ``model``'s parameter or buffer of the same export name,
-    one tensor at a time; keys and shapes are all checked before anything is copied."""
+def load_streaming(
+    model: nn.Module,
+    source: WeightSource,
+    label: str,
+    skip: set[str] | frozenset[str] = frozenset(),
+) -> None:
+    """Copy every tensor of ``source`` (but those in ``skip``) into ``model``'s parameter or buffer
+    of the same export name, one tensor at a time; keys and shapes are all checked before anything
+    is copied."""
     targets: dict[str, list[torch.Tensor]] = {}
     for name, tensor in model.state_dict(keep_vars=True).items():
         key = export_key(name)
         if key is not None:
             targets.setdefault(key, []).append(tensor)
     expected = {k: tuple(tensors[0].shape) for k, tensors in targets.items()}
-    names = source.keys()  # a WeightSource, not a mapping
+    names = [k for k in source if k not in skip]  # a WeightSource, not a mapping
     check_fits(model, expected, {k: tuple(source.info(k).shape) for k in names}, label)
     with torch.no_grad():
         for key, tensors in targets.items():
@@ -167,5 +175,11 @@ def load_pretrained(
     model.load_tokenizer(path)
     if prepare is not None:
         prepare(model)
-    load_streaming(model, SafetensorsFolder(path), label=str(folder))
+    source = SafetensorsFolder(path)
+    skip: set[str] = set()
+    if config.get(BASE_DELTA) is not None:  # base weights = packages + B @ A (io.lora_layers)
+        skip = {k for k in source if ".lora_" in k}
+        _, deltas = split_base_delta({k: source.read(k) for k in skip})
+        model.set_base_delta(deltas)
+    load_streaming(model, source, label=str(folder), skip=skip)
     return model

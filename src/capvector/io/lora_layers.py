@@ -157,3 +157,78 @@ def adapter_scaling(config: Mapping[str, Any]) -> Callable[[str, int], float]:
 def constant_scaling(value: float) -> Callable[[str, int], float]:
     """One scaling for every layer (our checkpoints record ``lora.scaling`` = alpha / r)."""
     return lambda module, rank: value
+
+
+# -- low-rank deltas over a base rebuilt from packages --------------------------------------
+#
+# A backbone whose frozen base is rebuilt from installed weight packages (``openvla-oft-mini``)
+# exports only what differs from those packages. Its base weights may carry a low-rank delta
+# W = packaged + B @ A (a LoRA fine-tune, a merged capability vector): the export stores (B, A) under
+# an adapter file's names ``X.lora_A.weight`` (A: k x in) and ``X.lora_B.weight`` (B: out x k) with
+# scaling 1, so ranks may differ per layer and grow as deltas are stacked.
+
+Factors = tuple[Tensor, Tensor]
+"""(B, A) in float32: ``B @ A`` is the delta of the weight, scaling included."""
+
+
+def stack_factors(*terms: Factors) -> Factors:
+    """``Σ B_i @ A_i`` as one pair (ranks add): ``[B_1 B_2 ...] @ [A_1; A_2; ...]``."""
+    return torch.cat([b for b, _ in terms], 1), torch.cat([a for _, a in terms], 0)
+
+
+def compact_factors(factors: Factors, rtol: float = 1e-6) -> Factors:
+    """The same delta at its numerical rank: QR of both factors, an SVD of the small core, singular
+    values under ``rtol`` times the largest dropped (what two stacked deltas share cancels: θ_aux
+    − θ_sft of two fine-tunes of one θ_pre keeps rank ≤ 2r, not 2(r_pre + r)). Splits the singular
+    values evenly, as ``mergekit-extract-lora`` does."""
+    b, a = factors
+    qb, rb = torch.linalg.qr(b.double())
+    qa, ra = torch.linalg.qr(a.double().T)
+    u, s, vh = torch.linalg.svd(rb @ ra.T)
+    keep = max(1, int((s > rtol * s[0]).sum())) if s.numel() and s[0] > 0 else 1
+    root = s[:keep].sqrt()
+    return (
+        (qb @ (u[:, :keep] * root)).float().contiguous(),
+        ((root[:, None] * vh[:keep]) @ qa.T).float().contiguous(),
+    )
+
+
+def lora_form_state(
+    state: Mapping[str, Tensor],
+    scaling: Callable[[str, int], float],
+    base_deltas: Mapping[str, Factors],
+) -> dict[str, Tensor]:
+    """A live LoRA state dict whose base was left out (it equals packages + ``base_deltas``) as
+    an export's tensors: plain tensors, and per weight the base delta stacked with the trained
+    LoRA (``s·B``, ``A``) under ``X.lora_A/B.weight``. A base weight the state dict does hold (it
+    no longer equals packages + delta: a vector was merged into it in place) is written whole,
+    its LoRA merged, as ``merge_lora`` does."""
+    plain, layers = split_lora(state, scaling)
+    deltas = dict(base_deltas)
+    for module, layer in layers.items():
+        key = f"{module}.weight"
+        if layer.bias is not None or layer.transposed:
+            raise LoraFormatError(f"LoRA layer `{module}` is not a plain linear LoRA")
+        if key in plain:
+            plain[key] = layer.merged(plain[key])
+            continue
+        b, a = layer.factors()
+        trained = (b.float() * layer.scaling, a.float())
+        deltas[key] = stack_factors(deltas[key], trained) if key in deltas else trained
+    for key, (b, a) in deltas.items():
+        if key not in plain:
+            module = key.removesuffix(".weight")
+            plain[f"{module}.lora_A.weight"] = a.contiguous()
+            plain[f"{module}.lora_B.weight"] = b.contiguous()
+    return plain
+
+
+def split_base_delta(state: Mapping[str, Tensor]) -> tuple[dict[str, Tensor], dict[str, Factors]]:
+    """An export's tensors as (plain tensors, {``X.weight``: (B, A)}): the inverse of
+    ``lora_form_state``."""
+    plain, layers = split_lora(state, constant_scaling(1.0))
+    deltas = {}
+    for module, layer in layers.items():
+        b, a = layer.factors()
+        deltas[f"{module}.weight"] = (b.float(), a.float())
+    return plain, deltas

@@ -42,6 +42,9 @@ CHECKPOINT_MODEL_PREFIX = "backbone."
 CHECKPOINT_OBJECTIVES_PREFIX = "objectives."
 CHECKPOINT_METADATA = "capvector"
 MERGED_VECTORS = "merged_vectors"
+BASE_DELTA = "base_delta"
+"""``config.json`` field of an export whose base is rebuilt from weight packages: present when its
+base weights carry low-rank deltas, stored as ``X.lora_A/B.weight`` (``io.lora_layers``)."""
 
 # What `capvector recipe` tells a stage's process besides its fixed torch thread count.
 STAGE_CORES = "CAPVECTOR_CORES"

@@ -7,6 +7,7 @@ a few times the largest 2-D tensor.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,6 +35,7 @@ from capvector.io.weights import (
     row_chunks,
     select_keys,
 )
+from capvector.vectors.lora_form import LoraFormExport, delta_difference, lora_form_views
 from capvector.vectors.lowrank import lowrank_candidate, svd_factors
 from capvector.vectors.vector import VectorFolderWriter
 
@@ -114,6 +116,9 @@ def extract(
     sources: dict[str, WeightSource] = {"aux": open_weights(aux), "sft": open_weights(sft)}
     if base is not None:
         sources["base"] = open_weights(base)
+    # Exports of a packaged-base preset (the mini): base deltas, exactly low-rank (lora_form).
+    sources = lora_form_views(sources)
+    lora_form = isinstance(sources["aux"], LoraFormExport)
     include, include_origin = _default_include(include, sources["aux"], sources["sft"])
     keys, skipped = _select(sources, include, exclude)
 
@@ -131,6 +136,8 @@ def extract(
         and lowrank_candidate(k, len(infos[k].shape))
         and not select_keys([k], list(full_rank), None)
     }
+    exact = {k for k in keys if lora_form and sources["aux"].is_delta(k)}  # type: ignore[attr-defined]
+    lowrank_keys |= exact
     full = [(k, infos[k]) for k in keys if k not in lowrank_keys]
 
     outputs = [_Output("", "aux", "sft", "capability_vector")]
@@ -148,6 +155,8 @@ def extract(
         "lowrank": (
             {"rank": rank, "energy": energy, "full_rank": list(full_rank)} if lowrank else None
         ),
+        # The inputs' base deltas over the weight packages, differenced exactly (no SVD of them).
+        "exact_lowrank": sorted(exact) if exact else None,
         "skipped": skipped,
         "command": command,
     }
@@ -175,6 +184,12 @@ def extract(
                         )
                         continue
                     for o, w in zip(outputs, writers, strict=True):
+                        if key in exact:
+                            minuend, subtrahend = sources[o.minuend], sources[o.subtrahend]
+                            factors = delta_difference(minuend, subtrahend, key)  # type: ignore[arg-type]
+                            norm = math.sqrt(max(factors.norm_sq(), 0.0))
+                            w.add_lowrank(key, factors, norm, 1.0, infos[key].dtype)
+                            continue
                         delta = _whole_delta(sources, o, key, infos[key])
                         norm = float(torch.linalg.vector_norm(delta))
                         factors, retained = svd_factors(delta, rank, energy)

@@ -21,6 +21,7 @@ from capvector.io.names import MODEL_CARD
 from capvector.io.outputs import atomic_directory, check_output
 from capvector.io.weights import (
     EXPORT_CONFIG,
+    EXPORT_WEIGHTS,
     CapVectorError,
     SafetensorsFolder,
     SafetensorsWriter,
@@ -38,6 +39,13 @@ from capvector.io.weights import (
     row_chunks,
     short_fingerprint,
     write_json,
+)
+from capvector.vectors.lora_form import (
+    LoraFormExport,
+    delta_config,
+    delta_infos,
+    is_lora_form,
+    merged_tensors,
 )
 from capvector.vectors.precision import MergePrecision
 from capvector.vectors.record import (
@@ -200,14 +208,20 @@ def merge(
     for path, scale in vectors:
         check_scale(scale, str(path), allow_large_scale)
         check_scale_not_zero(scale, str(path), "drop --vector {path} or give a non-zero λ")
-        folder = VectorFolder(path)
+        folders.append((VectorFolder(path), float(scale)))
+    # A base rebuilt from weight packages (the mini): its deltas and the vector's stay low-rank.
+    view = (
+        LoraFormExport(source, delta_infos(f for f, _ in folders)) if is_lora_form(source) else None
+    )
+    target = view or source
+    for folder, _ in folders:
+        path = folder.path
         folder.check_family(source.config.get("family"), f"the base {base}")
         infos = {k: folder.info(k) for k in folder}
         check_compatible(
-            {k: source.info(k) for k in source}, infos, f"the base {base}", f"vector {path}"
+            {k: target.info(k) for k in target}, infos, f"the base {base}", f"vector {path}"
         )
         folder.check_not_zero()
-        folders.append((folder, float(scale)))
     record = read_record(source.config.get(MERGED_VECTORS))
     for folder, scale in folders:
         entry = MergedVector.of(folder, scale, BY_MERGE)
@@ -239,7 +253,8 @@ def merge(
 
     with atomic_directory(out, overwrite, inputs) as tmp:
         skip = set(source.weight_files()) | {MERGE_RECORD, EXPORT_CONFIG, MODEL_CARD}
-        write_json(tmp / EXPORT_CONFIG, {**source.config, MERGED_VECTORS: record_dicts(record)})
+        config = {**source.config, MERGED_VECTORS: record_dicts(record)}
+        write_json(tmp / EXPORT_CONFIG, delta_config(config) if view else config)
         write_model_card(tmp, _merged_card(source, provenance))
         for item in source.path.iterdir():
             if item.name in skip:
@@ -248,6 +263,19 @@ def merge(
                 shutil.copytree(item, tmp / item.name)
             else:
                 shutil.copy2(item, tmp / item.name)
+        if view is not None:  # small: the trained tensors and the deltas' factors, in memory
+            from safetensors.torch import save_file
+
+            tensors, summed = merged_tensors(view, folders)
+            for key, before, after, change in summed:
+                precision.add(key, before, after, change)
+            bad = [k for k, t in tensors.items() if not all_finite(t)]
+            if bad:
+                raise CapVectorError(f"merging gives NaN/Inf in `{bad[0]}`. Nothing was written")
+            save_file(tensors, str(tmp / EXPORT_WEIGHTS), metadata=first_meta or None)
+            provenance["precision"] = precision.summary()
+            write_json(tmp / MERGE_RECORD, provenance)
+            return provenance
         writer = SafetensorsWriter(tmp, layout, metadata=first_meta)
         total = sum(info.nbytes for _, items in layout.files for _, info in items)
         try:

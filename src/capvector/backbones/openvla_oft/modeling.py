@@ -16,6 +16,7 @@ Sequence layout (one row, right padded):
 from __future__ import annotations
 
 import functools
+from collections.abc import Mapping
 from typing import Any
 
 import torch
@@ -353,7 +354,10 @@ class OpenVLAOFT(VLABackbone):
             if config.projector_hidden
             else FusedProjector(vision_dim, llm.hidden_size)
         )
-        self.language_model = _build_language_model(llm)
+        # The packaged base overwrites every weight of the language model: drawing 168 M random
+        # embedding values first costs seconds for nothing (transformers' own no_init_weights, as
+        # its from_pretrained does).
+        self.language_model = _build_language_model(llm, init=config.base_weights != "packages")
         self.proprio_projector = (
             ProprioProjector(config.proprio_dim, llm.hidden_size) if config.proprio_dim else None
         )
@@ -384,6 +388,22 @@ class OpenVLAOFT(VLABackbone):
         from capvector.backbones.openvla_oft.packaged_base import provenance
 
         return provenance()
+
+    @property
+    def saves_tokenizer(self) -> bool:
+        return self.config.tokenizer != PACKAGED_TOKENIZER
+
+    @property
+    def base_delta(self) -> dict[str, tuple[Tensor, Tensor]] | None:
+        return getattr(self, "packaged_delta", None)
+
+    def set_base_delta(self, deltas: Mapping[str, tuple[Tensor, Tensor]]) -> None:
+        if self.config.base_weights != "packages":
+            super().set_base_delta(deltas)
+            return
+        from capvector.backbones.openvla_oft.packaged_base import set_base_delta
+
+        set_base_delta(self, deltas)
 
     def unused_parameter_names(self) -> list[str]:
         # Features come from the second-to-last ViT block without the final norm, and SigLIP's
@@ -618,9 +638,17 @@ def _splice_after_bos(text: Tensor, text_valid: Tensor, prefix: Tensor) -> tuple
     return embeds, torch.cat([text_valid[:, :1], ones, text_valid[:, 1:]], dim=1)
 
 
-def _build_language_model(llm: LlamaSpec) -> nn.Module:
+def _build_language_model(llm: LlamaSpec, init: bool = True) -> nn.Module:
     """Llama (OpenVLA) or Gemma-3 (the mini) as transformers builds it, attention through SDPA with
-    the explicit masks ``forward`` passes (bidirectional for the action pass)."""
+    the explicit masks ``forward`` passes (bidirectional for the action pass); with ``init``
+    false, weights are left uninitialised (the caller loads every one of them)."""
+    if not init:
+        from transformers.initialization import no_init_weights
+
+        with no_init_weights():
+            model = _build_language_model(llm)
+        model.tie_weights()
+        return model
     if llm.architecture == "gemma3":
         from transformers import Gemma3ForCausalLM, Gemma3TextConfig
 
@@ -675,15 +703,23 @@ PACKAGED_TOKENIZER = "gemma3-270m"
 """The tokenizer the packaged GGUF carries (capvector.backbones.packaged)."""
 
 
+@functools.cache
+def _packaged_tokenizer() -> Any:
+    """Gemma's tokenizer from the dequantised cache, read once per process (262 k tokens: seconds
+    per read; nothing mutates it)."""
+    from capvector.backbones.packaged import gemma3_270m_tokenizer_folder
+    from capvector.backbones.tokenizers import saved_tokenizer
+
+    return saved_tokenizer(gemma3_270m_tokenizer_folder(), f"rebuild {PACKAGED_TOKENIZER}'s cache")
+
+
 def _make_tokenizer(spec: str) -> Any:
     from capvector.backbones.tokenizers import byte_level_tokenizer, saved_tokenizer
 
     if spec == "byte":
         return byte_level_tokenizer()
     if spec == PACKAGED_TOKENIZER:
-        from capvector.backbones.packaged import gemma3_270m_tokenizer_folder
-
-        return saved_tokenizer(gemma3_270m_tokenizer_folder(), f"rebuild {spec}'s cache")
+        return _packaged_tokenizer()
     tok = saved_tokenizer(spec, "point `tokenizer` at an OpenVLA-OFT checkpoint folder")
     if tok.pad_token is None:  # Prismatic adds <PAD> = 32000 to Llama-2's tokenizer
         tok.add_special_tokens({"pad_token": "<PAD>"})

@@ -3,15 +3,18 @@ from the installed weight packages (``capvector.backbones.packaged``), frozen, a
 every state dict while they still equal those packages.
 
 A fresh model rebuilds them from the packages, so a checkpoint or export needs only what training
-changed: LoRA, projector, heads (and, should a vector be merged into the base, the tensors it
-moved). Loading a state dict without those tensors keeps the packaged ones (a load pre-hook puts
-the model's own values in their place), so Lightning's strict resume and ``from_pretrained`` work
-unchanged.
+changed: LoRA, projector, heads. Base weights may also carry a low-rank delta over the packages
+(``set_base_delta``: the LoRA of the fine-tune an export came from, a merged capability vector),
+W = packaged + B @ A: such a weight is left out too while it equals that value, and the export
+stores (B, A) (``capvector.io.lora_layers``). A tensor changed any other way (a vector merged into it in
+place) is saved whole. Loading a state dict without those tensors keeps the packaged ones (a load
+pre-hook puts the model's own values in their place), so Lightning's strict resume and
+``from_pretrained`` work unchanged.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from typing import Any
 
 import torch
@@ -26,6 +29,7 @@ from capvector.backbones.packaged import (
     gemma3_270m_weights,
 )
 from capvector.io.loading import read_json
+from capvector.io.lora_layers import Factors
 
 LM_PREFIX = "language_model."
 VISION_PREFIX = "vision_backbone.model."
@@ -60,6 +64,7 @@ def attach_packaged_base(model: VLABackbone, load: bool) -> None:
                 own[name].copy_(value)
     model.vision_backbone.requires_grad_(False)
     model.language_model.get_input_embeddings().requires_grad_(False)
+    model.packaged_delta = {}
     model.register_state_dict_post_hook(_drop_packaged)
     model.register_load_state_dict_pre_hook(_keep_packaged)
 
@@ -70,6 +75,38 @@ def provenance() -> list[dict[str, Any]]:
 
 
 _PREFIXES = (LM_PREFIX, VISION_PREFIX)
+
+
+def set_base_delta(model: VLABackbone, deltas: Mapping[str, Factors]) -> None:
+    """Base weights (export names ``X.weight``) set to packaged + B @ A, computed in float32 and
+    stored in the parameter's dtype; the deltas are kept on the model (``packaged_delta``) for
+    the state-dict hook and the next export."""
+    packaged = dict(_packaged_tensors(model))
+    params = {_local(name, ""): param for name, param in _base_parameters(model)}
+    kept: dict[str, Factors] = {}
+    with torch.no_grad():
+        for key, (b, a) in deltas.items():
+            if key not in packaged or key not in params:
+                raise BackboneError(
+                    f"base delta `{key}` is not a weight of the packaged base: the export is not "
+                    f"of this preset ({model.config.preset})"
+                )
+            if (b.shape[0], a.shape[1]) != tuple(params[key].shape) or b.shape[1] != a.shape[0]:
+                raise BackboneError(
+                    f"base delta `{key}` is {tuple(b.shape)} @ {tuple(a.shape)}, the weight "
+                    f"{tuple(params[key].shape)}: the export is not of this preset"
+                )
+            kept[key] = (b.float(), a.float())
+            params[key].copy_(_with_delta(packaged[key], kept[key]))
+    model.packaged_delta = kept
+
+
+def _with_delta(packaged: Tensor, delta: Factors | None) -> Tensor:
+    """The value a base weight has: packaged (+ B @ A in float32)."""
+    if delta is None:
+        return packaged
+    b, a = delta
+    return packaged.float() + b @ a
 
 
 def _check_architecture(model: VLABackbone) -> None:
@@ -114,15 +151,16 @@ def _local(key: str, prefix: str) -> str:
 def _drop_packaged(
     module: nn.Module, state_dict: dict[str, Any], prefix: str, _metadata: Any
 ) -> None:
-    """State-dict post hook: remove each base tensor that still equals its packaged value (in the
-    stored dtype, so a bf16 frozen base counts as the packages too)."""
+    """State-dict post hook: remove each base tensor that still equals its packaged value, plus
+    its base delta if it has one (in the stored dtype, so a bf16 frozen base counts too)."""
     names = {_local(k, prefix): k for k in state_dict if k.startswith(prefix)}
     packaged = dict(_packaged_tensors(module))  # type: ignore[arg-type]
     embedding = LM_PREFIX + "model.embed_tokens.weight"
     packaged[TIED_HEAD] = packaged[embedding]
+    deltas = getattr(module, "packaged_delta", {})
     for name, value in packaged.items():
         key = names.get(name)
-        if key is not None and _equal(state_dict[key], value):
+        if key is not None and _equal(state_dict[key], _with_delta(value, deltas.get(name))):
             del state_dict[key]
 
 
