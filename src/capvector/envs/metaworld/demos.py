@@ -30,9 +30,11 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import h5py
 import numpy as np
+from tqdm import tqdm
 
 from capvector.envs.metaworld.env import PROPRIO_KEYS, MetaWorldEnv, to_env_action
 from capvector.envs.metaworld.experts import MetaWorldExpert
@@ -187,19 +189,25 @@ def record_task(
 
 
 def record_task_set(
-    task_set: str, episodes: int, out: str | os.PathLike[str], **options: object
+    task_set: str,
+    episodes: int,
+    out: str | os.PathLike[str],
+    *,
+    progress: bool = True,
+    **options: Any,
 ) -> list[DemoSummary]:
     """A folder ``out`` with one file per task of ``task_set`` (``<task>.hdf5``), each written
-    atomically as it finishes; ``options`` as :func:`record_task`'s."""
+    atomically as it finishes; ``options`` as :func:`record_task`'s; ``progress``: a bar over
+    the tasks."""
     tasks = task_set_tasks(task_set)
     folder = Path(out)
     if folder.exists() and not folder.is_dir():
         raise CapVectorError(f"--out {folder} is a file; give a folder for one file per task")
     folder.mkdir(parents=True, exist_ok=True)
-    return [
-        record_task(task, episodes, folder / f"{task}.hdf5", **options)  # type: ignore[arg-type]
-        for task in tasks
-    ]
+    summaries = []
+    for task in tqdm(tasks, desc=f"{task_set} demos", unit="task", disable=not progress):
+        summaries.append(record_task(task, episodes, folder / f"{task}.hdf5", **options))
+    return summaries
 
 
 # to_env_action is the map the rollout loop applies; the recorder steps through env.step, which

@@ -4,6 +4,8 @@ task (``reach-v3``), its episodes the seeds from ``EVAL_SEED_START`` on, its pro
 
 from __future__ import annotations
 
+import os
+from collections.abc import Sequence
 from typing import Any
 
 from capvector.envs.base import EVAL_SEED_START, EnvPool, Episode, Spec, Suite
@@ -17,6 +19,7 @@ from capvector.envs.metaworld.spec import (
     metaworld_specs,
 )
 from capvector.envs.registry import SUITES
+from capvector.errors import CapVectorError
 
 
 @SUITES.register(SUITE_NAME)
@@ -48,3 +51,37 @@ class MetaWorldSuite(Suite):
     def instruction(self, spec: Spec) -> str | None:
         assert isinstance(spec, MetaWorldEpisodeSpec), spec
         return INSTRUCTIONS[spec.task]
+
+    def record_demos(
+        self,
+        task_set: str,
+        episodes: int,
+        out: str | os.PathLike[str],
+        *,
+        cameras: Sequence[str] | None = None,
+        image_size: int | None = None,
+        depth: bool = False,
+        seed: int = 0,
+        max_attempts: int | None = None,
+        progress: bool = True,
+        noise: float | None = None,
+        extra_steps: int | None = None,
+    ) -> list[Any]:
+        """A folder ``out`` of one file per task of ``task_set`` (``<task>.hdf5``), ``episodes``
+        successful expert demos each (:func:`~capvector.envs.metaworld.demos.record_task_set`);
+        ``cameras`` default to the protocol's ``corner2``, ``image_size`` to 64."""
+        from capvector.envs.metaworld import demos  # Meta-World and MuJoCo
+
+        if depth:
+            raise CapVectorError("Meta-World demos record no depth; drop --depth")
+        own = {"noise": noise, "extra_steps": extra_steps, "max_attempts": max_attempts}
+        return demos.record_task_set(
+            task_set,
+            episodes,
+            out,
+            cameras=tuple(cameras or CAMERAS),
+            image_size=image_size or demos.DEFAULT_IMAGE_SIZE,
+            seed=seed,
+            progress=progress,
+            **{k: v for k, v in own.items() if v is not None},
+        )
