@@ -64,20 +64,26 @@ def test_the_rotation_dims_change_nothing_and_xyz_move_the_hand(env) -> None:
 
 
 @pytest.mark.sim
-def test_an_expert_demo_reads_back_and_replays_from_its_seed(env, tmp_path: Path) -> None:
+def test_capvector_demos_records_the_suites_camera_and_the_demo_replays(
+    env, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``capvector demos --suite`` finds Meta-World by its task set and records its own camera
+    (corner2, not the robosuite default); the reader reads the file; its executed actions
+    replayed from its seed give its states."""
     from capvector.data.datamodule import DEFAULT_PROPRIO
     from capvector.data.hdf5 import HDF5RobotDataset
-    from capvector.envs.metaworld.demos import record_task
+    from capvector.workflows.demos import main
 
-    out = tmp_path / "reach.hdf5"
-    summary = record_task("reach-v3", 1, out, image_size=32, seed=3)
-    assert summary.demos == 1 and summary.seeds == [3]
+    argv = ["--suite", "reach-v3", "--episodes", "1", "--image-size", "32", "--seed", "3"]
+    assert main([*argv, "--out", str(tmp_path), "--no-progress"]) == 0
+    assert "wrote 1 reach-v3 demos" in capsys.readouterr().out
+    out = tmp_path / "reach-v3.hdf5"
     data = HDF5RobotDataset([out], ["corner2"], DEFAULT_PROPRIO, chunk_size=4)
-    sample = data[0]
-    assert sample["instruction"] == INSTRUCTIONS["reach-v3"]
+    assert data[0]["instruction"] == INSTRUCTIONS["reach-v3"]
     assert data.action_dim == 7 and data.proprio_dim == 8 and data.image_size == 32
     with h5py.File(out) as f:
         demo = f["data/demo_0"]
+        assert demo.attrs["seed"] == 3
         labels, executed = demo["actions"][:], demo["executed_actions"][:]
         states = demo["states"][:]
         assert not labels[:, 3:6].any()  # Meta-World controls no rotation

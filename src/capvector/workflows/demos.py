@@ -16,6 +16,8 @@ from capvector.errors import CapVectorError
 from capvector.tool_cli import run_tool
 
 DEFAULT_CAMERAS = ("agentview", "robot0_eye_in_hand")
+"""robosuite's and LIBERO's ``Suite.cameras``; a suite with other cameras records its own when
+``--cameras`` is left at this default."""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -58,7 +60,9 @@ def demos_cli(
         robot: robosuite arm: Panda, IIWA, UR5e, Kinova3, ...
         gripper: gripper override, e.g. PandaGripper (arms whose default gripper has 6 joints
             need one)
-        cameras: cameras to render; none (a bare --cameras) records low-dim demos only, fast
+        cameras: cameras to render (default: the suite's, Suite.cameras: agentview and
+            robot0_eye_in_hand; Meta-World: corner2); none (a bare --cameras) records low-dim
+            demos only, fast
         depth: also store <camera>_depth in metres and the cameras' intrinsics
         image_size: image height and width (default 64; LIBERO: 128, its released size)
         seed: first seed; attempts use seed, seed+1, ... (LIBERO: seeds of its placement
@@ -90,7 +94,7 @@ def demos_cli(
     found = suite_for_task_set(task_set)
     # the common options always; a suite's own ones (robot, noise, tasks, workers, ...) when given
     options: dict[str, Any] = dict(
-        cameras=cameras, image_size=image_size, depth=depth, seed=seed,
+        cameras=_cameras(cameras, found.cameras), image_size=image_size, depth=depth, seed=seed,
         max_attempts=max_attempts, progress=progress,
     )  # fmt: skip
     own = dict(robot=robot, gripper=gripper, noise=noise, extra_steps=extra_steps,
@@ -105,6 +109,13 @@ def demos_cli(
             f"({summary.success_rate:.1%}), steps to success mean {lengths.mean():.1f} "
             f"max {lengths.max()}, {summary.seconds / max(summary.demos, 1):.2f} s/demo"
         )
+
+
+def _cameras(given: Sequence[str], own: Sequence[str]) -> tuple[str, ...]:
+    """``--cameras`` as given, the suite's own when left at the default: the option's default
+    must be a list for a bare ``--cameras`` (no cameras) to parse, so "not given" is the default
+    value; robosuite and LIBERO have exactly these cameras, Meta-World has none of them."""
+    return tuple(own) if tuple(given) == DEFAULT_CAMERAS else tuple(given)
 
 
 def _flag(option: str) -> str:

@@ -28,7 +28,6 @@ import json
 import os
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +35,8 @@ import h5py
 import numpy as np
 from tqdm import tqdm
 
-from capvector.envs.metaworld.env import PROPRIO_KEYS, MetaWorldEnv, to_env_action
+from capvector.envs.base import DemoSummary
+from capvector.envs.metaworld.env import PROPRIO_KEYS, MetaWorldEnv
 from capvector.envs.metaworld.experts import MetaWorldExpert
 from capvector.envs.metaworld.spec import CAMERAS, MAX_STEPS, SUITE_NAME, task_set_tasks
 from capvector.errors import CapVectorError
@@ -48,25 +48,6 @@ DEFAULT_NOISE = 0.2
 DEFAULT_EXTRA_STEPS = 6
 """Steps recorded after the first success, so a policy also learns to hold the result."""
 DEFAULT_IMAGE_SIZE = 64
-
-
-@dataclass
-class DemoSummary:
-    """What :func:`record_task` wrote for one task."""
-
-    path: Path
-    task: str
-    demos: int = 0
-    attempts: int = 0
-    samples: int = 0
-    seeds: list[int] = field(default_factory=list)
-    lengths: list[int] = field(default_factory=list)
-    """Steps to success of each demo."""
-    seconds: float = 0.0
-
-    @property
-    def success_rate(self) -> float:
-        return self.demos / max(self.attempts, 1)
 
 
 def record_episode(
@@ -208,8 +189,3 @@ def record_task_set(
     for task in tqdm(tasks, desc=f"{task_set} demos", unit="task", disable=not progress):
         summaries.append(record_task(task, episodes, folder / f"{task}.hdf5", **options))
     return summaries
-
-
-# to_env_action is the map the rollout loop applies; the recorder steps through env.step, which
-# applies it too, so a replay of executed_actions reproduces a demo.
-__all__ = ["DemoSummary", "record_episode", "record_task", "record_task_set", "to_env_action"]

@@ -8,7 +8,7 @@ import os
 from collections.abc import Sequence
 from typing import Any
 
-from capvector.envs.base import EVAL_SEED_START, EnvPool, Episode, Spec, Suite
+from capvector.envs.base import EVAL_SEED_START, DemoSummary, EnvPool, Episode, Spec, Suite
 from capvector.envs.metaworld.spec import (
     CAMERAS,
     EVAL_EPISODES,
@@ -66,7 +66,7 @@ class MetaWorldSuite(Suite):
         progress: bool = True,
         noise: float | None = None,
         extra_steps: int | None = None,
-    ) -> list[Any]:
+    ) -> list[DemoSummary]:
         """A folder ``out`` of one file per task of ``task_set`` (``<task>.hdf5``), ``episodes``
         successful expert demos each (:func:`~capvector.envs.metaworld.demos.record_task_set`);
         ``cameras`` default to the protocol's ``corner2``, ``image_size`` to 64."""
