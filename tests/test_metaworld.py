@@ -27,6 +27,13 @@ def test_the_task_sets_are_meta_worlds() -> None:
     specs = metaworld_specs("metaworld_mt10", 3, start_seed=7)
     assert [s.task for s in specs[::3]] == list(MT10)
     assert [s.seed for s in specs[:3]] == [7, 8, 9] and specs[0].step_limit == MAX_STEPS
+    # data.eval_tasks and capvector evaluate --suite find the suite by the task set's name
+    from capvector.data.episodes import eval_task
+
+    entry = eval_task({"task": "metaworld_mt10", "episodes": 2, "start_seed": 7})
+    assert entry.suite == "metaworld" and entry.specs() == metaworld_specs(
+        "metaworld_mt10", 2, start_seed=7
+    )
     with pytest.raises(CapVectorError, match="did you mean reach-v3"):
         metaworld_specs("reach-v2", 1)
     with pytest.raises(CapVectorError, match="max_steps must be 1..500"):

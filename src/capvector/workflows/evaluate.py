@@ -94,17 +94,20 @@ def evaluate_cli(
         task: robosuite task(s) (default Lift)
         robot: robosuite arm (default Panda)
         gripper: e.g. PandaGripper for IIWA/UR5e/Kinova3/Jaco
-        episodes: episodes of each task (default: the suite's protocol: robosuite 20, LIBERO 50)
+        episodes: episodes of each task (default: the suite's protocol: robosuite 20, LIBERO 50,
+            Meta-World 10)
         variant: zero-shot scene variants (camera, camera-strong, lighting, color, all, sawyer,
             ur5e); each task is evaluated in each
-        start_seed: first evaluation seed (robosuite; default 1000000)
+        start_seed: first evaluation seed (robosuite, Meta-World; default 1000000)
         suite: a task set of a registered suite instead of --task, e.g. a LIBERO suite
             (libero_spatial, libero_object, libero_goal, libero_10, libero_90), evaluated as
             OpenVLA-OFT and openpi do: trial i from the task's official initial state i, 10 wait
-            steps, the suite's step limit, LIBERO's success predicate
+            steps, the suite's step limit, LIBERO's success predicate; or Meta-World's
+            metaworld_mt10 / metaworld_mt50, evaluated as LeRobot does (500 steps, corner2)
         tasks: task ids of the set (default: every task of it)
         trials: --episodes, as LIBERO calls them (1..50; the official protocol runs 50)
-        max_steps: step limit of an episode (default: the task's; LIBERO: the suite's)
+        max_steps: step limit of an episode (default: the task's; LIBERO: the suite's;
+            Meta-World: 500)
         rendering: who draws LIBERO's images: auto (the fast renderer where OpenGL runs on the
             CPU, robosuite's on a GPU), fast, or official (LIBERO's own: for policies trained on
             LIBERO's released data)
