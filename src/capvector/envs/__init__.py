@@ -26,4 +26,10 @@ One package per suite (import the module you need; importing this package, ``bas
   - ``experts``: scripted pick-and-place experts read from the BDDL goal
   - ``annotations``: per-step text for LIBERO scenes
   - ``demos``: recording in LIBERO's released HDF5 layout
+
+- :mod:`~capvector.envs.metaworld`: Meta-World's 50 tasks (MT10, MT50) under LeRobot's protocol
+
+  - ``spec``: task sets, instructions, the protocol's constants
+  - ``env``: ``MetaWorldEnv`` (7-d actions to Meta-World's 4, proprio, corner2 upright)
+  - ``episode``, ``experts`` (Meta-World's scripted policies), ``demos`` (robomimic layout)
 """
