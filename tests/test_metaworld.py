@@ -95,7 +95,12 @@ def test_capvector_demos_records_the_suites_camera_and_the_demo_replays(
         states = demo["states"][:]
         assert not labels[:, 3:6].any()  # Meta-World controls no rotation
         assert (demo["dones"][:] == 1).any() and demo["rewards"][-1] == 1
+        first_image = demo["obs/corner2_image"][0]
+        first_pos = demo["obs/robot0_eef_pos"][0]
     env.reset(3, MAX_STEPS + 6)
+    # what an evaluation episode shows the policy at the demo's first state is what training read
+    np.testing.assert_array_equal(env.render()["corner2"], first_image)
+    np.testing.assert_array_equal(env.proprio()[:3], first_pos)
     for t, action in enumerate(executed):
         np.testing.assert_array_equal(env.flat_state(), states[t])
         env.step(action)
