@@ -28,7 +28,9 @@ def test_the_task_sets_are_meta_worlds() -> None:
     assert [s.task for s in specs[::3]] == list(MT10)
     assert [s.seed for s in specs[:3]] == [7, 8, 9] and specs[0].step_limit == MAX_STEPS
     # data.eval_tasks and capvector evaluate --suite find the suite by the task set's name
-    from capvector.data.episodes import eval_task
+    from capvector.data.episodes import EvalTask, eval_task
+
+    assert EvalTask("metaworld_mt10", 2).suite == "metaworld"  # as a config's entry is parsed
 
     entry = eval_task({"task": "metaworld_mt10", "episodes": 2, "start_seed": 7})
     assert entry.suite == "metaworld" and entry.specs() == metaworld_specs(

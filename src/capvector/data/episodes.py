@@ -19,9 +19,6 @@ from capvector.envs.base import Spec, check_options
 from capvector.envs.registry import SUITES, get_suite, suite_for_task_set
 from capvector.errors import CapVectorError
 
-DEFAULT_SUITE = "robosuite"
-"""The suite of an ``eval_tasks`` entry that names none (every config before the registry)."""
-
 
 @dataclass
 class EvalTask:
@@ -33,13 +30,21 @@ class EvalTask:
     """The task set: a robosuite task (``Lift``), a LIBERO suite (``libero_spatial``), ..."""
     episodes: int = 10
     """Episodes of each task of the set (LIBERO: trials per task, 1..50)."""
-    suite: str = DEFAULT_SUITE
-    """The registered suite (``capvector.envs.registry``) that runs ``task``."""
+    suite: str | None = None
+    """The registered suite (``capvector.envs.registry``) that runs ``task``; None: the one whose
+    task sets hold it (``suite_for_task_set``), set on construction. Entries a config parses into
+    this class directly (``{task: metaworld_mt10, episodes: 2}``) name no suite: a fixed default
+    (robosuite) would send Meta-World's and LIBERO's task sets to robosuite."""
     options: dict[str, Any] = field(default_factory=dict)
     """The suite's own ``specs`` options: robosuite's ``robot``, ``start_seed``, ``gripper``,
     ``variant``, ``max_steps``; LIBERO's ``tasks``, ``max_steps``, ``rendering``, ``from_demos``."""
 
+    def __post_init__(self) -> None:
+        if self.suite is None:
+            self.suite = suite_for_task_set(self.task).name
+
     def specs(self) -> list[Spec]:
+        assert self.suite is not None  # set in __post_init__
         suite = get_suite(self.suite)
         check_options(suite.specs, self.options, f"eval task {self.task} of suite {self.suite}")
         return suite.specs(self.task, self.episodes, **self.options)
