@@ -107,8 +107,16 @@ def launch_fit_script(out: Path, data: Path, *args: str) -> None:
     with SIGSEGV inside FSDP2's full-state-dict gather, and 13 reruns of that fit did not reproduce
     it. A native crash in the collective library, not in our code; a second crash, or any error a
     Python exception reports, fails. ``PYTHONFAULTHANDLER`` (inherited by the ranks Lightning
-    starts) prints where a crash was, and marks a crash of rank 1, which rank 0 sees as an error."""
+    starts) prints where a crash was, and marks a crash of rank 1, which rank 0 sees as an error.
+
+    A 1-process run (no ``--devices`` above 1) runs the script's ``main`` in this process instead:
+    Lightning launches nothing for it, and a process of its own would only add the ~10 s CPU of
+    importing torch, Lightning and capvector again. The script seeds every run itself, so the
+    references the 2-process runs are compared with are the same numbers either way."""
     command = [sys.executable, str(FIT_SCRIPT), "--data", str(data), "--out", str(out), *args]
+    if devices_of(args) == 1:
+        fit_in_this_process(command[2:])
+        return
     env = {**os.environ, "PYTHONFAULTHANDLER": "1"}
     for attempt in (1, 2):
         result = subprocess.run(command, capture_output=True, text=True, timeout=600, env=env)
@@ -122,6 +130,26 @@ def launch_fit_script(out: Path, data: Path, *args: str) -> None:
         )
         shutil.rmtree(out, ignore_errors=True)
     assert result.returncode == 0, result.stderr[-4000:]
+
+
+def devices_of(args: tuple[str, ...]) -> int:
+    """The ``--devices`` a fit script command line asks for (the script's default: 1)."""
+    flags = list(args)
+    return int(flags[flags.index("--devices") + 1]) if "--devices" in flags else 1
+
+
+def fit_in_this_process(argv: list[str]) -> None:
+    """tests/distributed_fit.py's ``main(argv)`` in this process; the environment variables
+    ``L.seed_everything`` sets (``PL_GLOBAL_SEED``, which later subprocesses would inherit) are
+    put back."""
+    from distributed_fit import main as fit_script
+
+    saved = dict(os.environ)
+    try:
+        fit_script(argv)
+    finally:
+        os.environ.clear()
+        os.environ.update(saved)
 
 
 def cpu_trainer(max_steps: int, root: Path | None = None, **overrides: object) -> L.Trainer:

@@ -41,7 +41,7 @@ class RecordGlobalLoss(L.Callback):
             self.path.write_text(json.dumps(self.losses))
 
 
-def parse_args() -> argparse.Namespace:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser()
     parser.add_argument("--data", required=True)
     parser.add_argument("--out", required=True)
@@ -64,7 +64,7 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument(
         "--validate-episodes", type=int, default=0, help="only run rollout validation"
     )
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     if args.vector is not None and len(args.vector) != len(args.backbone):
         parser.error("give one --vector per --backbone")
     one_run_only = args.pretrained, args.ckpt_path, args.export_initial, args.validate_episodes
@@ -75,8 +75,8 @@ def parse_args() -> argparse.Namespace:
     return args
 
 
-def main() -> None:
-    args = parse_args()
+def main(argv: list[str] | None = None) -> None:
+    args = parse_args(argv)
     torch.set_num_threads(1)
     vectors = args.vector or [None] * len(args.backbone)
     for backbone, vector in zip(args.backbone, vectors, strict=True):

@@ -1,4 +1,6 @@
-"""MergeCapabilityVector and OrthogonalRegularization in real fits: one process, DDP and FSDP2."""
+"""MergeCapabilityVector and OrthogonalRegularization in real fits in this process; their DDP and
+FSDP2 fits are in test_capability_distributed.py (a file of its own, so that the two halves run on
+both test workers at once)."""
 
 from __future__ import annotations
 
@@ -17,15 +19,14 @@ from capvector.data.datamodule import RobotDataModule
 from capvector.errors import CapVectorError
 from capvector.module import VLAModule
 from capvector.vectors import extract, merge
-from conftest import cpu_trainer, fit_losses, launch_fit_script, run_fit_script, write_demo_file
+from conftest import cpu_trainer, run_fit_script, write_demo_file
 
 run = run_fit_script
 
 
-@pytest.fixture(scope="module")
-def setup(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    """θ_init (the start of every run below), a vector c = θ_2steps − θ_init, and θ_init + 0.5·c."""
-    root = tmp_path_factory.mktemp("capability")
+def build_setup(root: Path) -> dict[str, Path]:
+    """θ_init (the start of every run below and in test_capability_distributed.py), a vector
+    c = θ_2steps − θ_init, and θ_init + 0.5·c, in ``root``."""
     data = write_demo_file(root / "demos.hdf5", lengths=(20, 20))
     run(root / "donor", data, "--steps", "2", "--export-initial", str(root / "initial"))
     extract(aux=root / "donor" / "export", sft=root / "initial", out=root / "vector")
@@ -38,39 +39,9 @@ def setup(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     }
 
 
-# Attention key biases (the DiT heads' ``to_k.bias``): softmax ignores a shift shared by all keys,
-# so the loss does not depend on them and their true gradient is 0. AdamW turns the rounding noise
-# left in it (~1e-10) into steps of lr·g/(|g| + ε), which one and two processes round differently:
-# they drift apart by ~1.5e-5 in 3 steps, while every other weight agrees to < 1e-6.
-LOSS_INVARIANT = ".to_k.bias"
-
-
-def assert_same_weights(a: Path, b: Path) -> None:
-    ours, theirs = load_file(a / "model.safetensors"), load_file(b / "model.safetensors")
-    assert ours.keys() == theirs.keys()
-    for key in theirs:
-        atol = 1e-4 if key.endswith(LOSS_INVARIANT) else 1e-5
-        torch.testing.assert_close(ours[key], theirs[key], rtol=1e-4, atol=atol, msg=key)
-
-
-@pytest.mark.distributed
-@pytest.mark.parametrize("devices,strategy", [("1", "auto"), ("2", "fsdp2"), ("2", "ddp")])
-def test_merge_callback_equals_the_offline_merge(
-    devices: str, strategy: str, setup: dict, tmp_path: Path
-) -> None:
-    vector = ["--vector", str(setup["vector"]), "--scale", "0.5"]
-    run(
-        tmp_path,
-        setup["data"],
-        "--steps",
-        "0",
-        "--devices",
-        devices,
-        "--strategy",
-        strategy,
-        *vector,
-    )
-    assert_same_weights(tmp_path / "export", setup["merged"])
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    return build_setup(tmp_path_factory.mktemp("capability"))
 
 
 def random_vector(preset: str, data: Path, root: Path) -> Path:
@@ -85,77 +56,6 @@ def random_vector(preset: str, data: Path, root: Path) -> Path:
     module.export(root / "aux")
     extract(aux=root / "aux", sft=root / "sft", out=root / "vector")
     return root / "vector"
-
-
-def lora_recipe(vectors: list[Path]) -> list[str]:
-    """LoRA (the fit script's r=4), the vectors merged at fit start at scale 0.5, and a strong
-    orthogonal regularization, so that every part of the recipe shows in the loss."""
-    return ["--vector", *map(str, vectors), "--scale", "0.5", "--orth-weight", "100"]
-
-
-FSDP2 = ["--devices", "2", "--strategy", "fsdp2"]
-
-
-@pytest.mark.distributed
-@pytest.mark.slow
-def test_lora_merge_and_orthogonality_under_fsdp2_match_one_process(
-    setup: dict, tmp_path: Path
-) -> None:
-    """2 processes under FSDP2 (LoRA + merge at fit start + orthogonal regularization) give the
-    loss curve and the export of 1 process on the same global batch, for OpenVLA-OFT and StarVLA
-    with each of its heads (L1 "oft", flow "gr00t" with 4 noisy copies per sample, flow
-    "layerwise"); Pi0.5 in the resume test below. The flow-matching heads agree because their
-    training noise is drawn per sample (``keys.NOISE_SEED``), not per rank. The presets fit 3
-    steps each, one after another in the same processes (the fit script's several ``--backbone``),
-    which start once: start-up, not the fits, is most of this test's time."""
-    presets = [
-        "openvla-oft-tiny",
-        "starvla-tiny-oft",
-        "starvla-tiny-gr00t",
-        "starvla-tiny-layerwise",
-    ]
-    vectors = [random_vector(p, setup["data"], tmp_path / "vectors" / p) for p in presets]
-    recipe = ["--backbone", *presets, *lora_recipe(vectors), "--steps", "3"]
-    launch_fit_script(tmp_path / "single", setup["data"], *recipe)
-    launch_fit_script(tmp_path / "fsdp2", setup["data"], *recipe, *FSDP2)
-    for preset in presets:
-        single, sharded = tmp_path / "single" / preset, tmp_path / "fsdp2" / preset
-        torch.testing.assert_close(
-            torch.tensor(fit_losses(sharded)),
-            torch.tensor(fit_losses(single)),
-            rtol=1e-5,
-            atol=1e-6,
-            msg=lambda m, preset=preset: f"{preset}: {m}",
-        )
-        assert_same_weights(sharded / "export", single / "export")
-
-
-@pytest.mark.distributed
-@pytest.mark.slow
-def test_a_lora_fit_under_fsdp2_resumes_without_merging_again(setup: dict, tmp_path: Path) -> None:
-    """Pi0.5 (a flow-matching family; OpenVLA-OFT resumes under FSDP2 in the bf16 test below) with
-    the recipe of the test above: stopped after 6 steps and resumed to 7 under FSDP2, the run
-    matches 7 uninterrupted steps of 1 process, so the vector was not merged twice."""
-    data = setup["data"]
-    vector = random_vector("pi05-tiny", data, tmp_path / "vector")
-    recipe = ["--backbone", "pi05-tiny", *lora_recipe([vector])]
-    # 26 samples, global batch 4: an epoch is 6 steps. Stopping at the epoch's end makes the first
-    # resumed step see the batch the uninterrupted run saw (Lightning restarts the data loader).
-    single = run(tmp_path / "single", data, "--steps", "7", *recipe)
-    sharded = run(tmp_path / "fsdp2", data, "--steps", "6", *recipe, *FSDP2)
-    torch.testing.assert_close(
-        torch.tensor(sharded), torch.tensor(single[:6]), rtol=1e-5, atol=1e-6
-    )
-    saved = torch.load(tmp_path / "fsdp2" / "last.ckpt", weights_only=False)
-    (record,) = saved["capvector"]["merged_vectors"]
-    assert (record["scale"], record["by"]) == (0.5, "MergeCapabilityVector")
-    assert any(k.startswith("objectives.orthogonality.anchors") for k in saved["state_dict"])
-    checkpoint = ["--ckpt-path", str(tmp_path / "fsdp2" / "last.ckpt")]
-    resumed = run(tmp_path / "resumed", data, "--steps", "7", *checkpoint, *recipe, *FSDP2)
-    torch.testing.assert_close(
-        torch.tensor(resumed), torch.tensor(single[6:]), rtol=1e-5, atol=1e-6
-    )
-    assert_same_weights(tmp_path / "resumed" / "export", tmp_path / "single" / "export")
 
 
 def fit(
@@ -263,22 +163,31 @@ def uninterrupted_projection(setup: dict, tmp_path_factory: pytest.TempPathFacto
     return projection_on_vector(weights, setup["initial"], setup["vector"])
 
 
+@pytest.fixture(scope="module")
+def stopped_checkpoint(setup: dict, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The checkpoint of the fit below stopped after 2 steps (λ = 0.7 merged at fit start): the
+    same for every spelling of the resume, so it is fitted once."""
+    root = tmp_path_factory.mktemp("stopped")
+    first = merge_fit(setup["initial"], str(setup["vector"]), setup["data"], 2, root)
+    assert len(first.merged_vectors) == 1
+    return root / "last.ckpt"
+
+
 @pytest.mark.parametrize("how", ["same path", "trailing slash", "relative", "symlink", "moved"])
 def test_a_resume_never_merges_again_however_the_vector_is_spelled(
     how: str,
     setup: dict,
     uninterrupted_projection: float,
+    stopped_checkpoint: Path,
     tmp_path: Path,
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """Fit 2 steps (λ = 0.7 merged at fit start), stop, resume 1 more step with the vector folder
     spelled another way: the weights hold c as many times as the fit run without a stop (about
     0.7: SFT steps move along c a little too, c being 2 steps of SFT), not 1.4."""
-    first = merge_fit(setup["initial"], str(setup["vector"]), setup["data"], 2, tmp_path / "a")
-    assert len(first.merged_vectors) == 1
     vector = spell(setup["vector"], how, tmp_path, monkeypatch)
     resumed = merge_fit(
-        setup["initial"], vector, setup["data"], 3, tmp_path / "b", ckpt=tmp_path / "a/last.ckpt"
+        setup["initial"], vector, setup["data"], 3, tmp_path / "b", ckpt=stopped_checkpoint
     )
     weights = {k: v.detach() for k, v in resumed.backbone.state_dict().items()}
     projection = projection_on_vector(weights, setup["initial"], setup["vector"])
@@ -287,16 +196,17 @@ def test_a_resume_never_merges_again_however_the_vector_is_spelled(
     assert [r.scale for r in resumed.merged_vectors] == [0.7]
 
 
-def test_a_resume_with_another_scale_or_vector_names_both(setup: dict, tmp_path: Path) -> None:
-    merge_fit(setup["initial"], str(setup["vector"]), setup["data"], 1, tmp_path / "a")
-    ckpt = tmp_path / "a" / "last.ckpt"
+def test_a_resume_with_another_scale_or_vector_names_both(
+    setup: dict, stopped_checkpoint: Path, tmp_path: Path
+) -> None:
+    ckpt = stopped_checkpoint  # λ = 0.7 of setup's vector merged at its fit start
     with pytest.raises(CapVectorError, match=r"merged .*x 0\.7.*asks for .*x 0\.5"):
         merge_fit(
-            setup["initial"], str(setup["vector"]), setup["data"], 2, tmp_path / "b", ckpt, 0.5
+            setup["initial"], str(setup["vector"]), setup["data"], 3, tmp_path / "b", ckpt, 0.5
         )
     other = random_vector("openvla-oft-tiny", setup["data"], tmp_path / "other")
     with pytest.raises(CapVectorError, match=r"records .*vector x 0\.7.*asks for .*other"):
-        merge_fit(setup["initial"], str(other), setup["data"], 2, tmp_path / "c", ckpt)
+        merge_fit(setup["initial"], str(other), setup["data"], 3, tmp_path / "c", ckpt)
 
 
 def test_the_record_travels_into_exports_and_merge_refuses_a_repeat(
@@ -319,47 +229,6 @@ def test_the_record_travels_into_exports_and_merge_refuses_a_repeat(
     module.export(tmp_path / "export")
     exported = json.loads((tmp_path / "export" / "config.json").read_text())["merged_vectors"]
     assert [e["by"] for e in exported] == ["MergeCapabilityVector"]
-
-
-@pytest.mark.distributed
-@pytest.mark.slow
-def test_bf16_frozen_weights_train_merge_resume_and_export_under_fsdp2(
-    setup: dict, tmp_path: Path
-) -> None:
-    """LoRA with the frozen base in bf16 (bf16-mixed autocast), the vector merged at fit start and
-    orthogonal regularization: 2 processes under FSDP2 follow the 1-process loss curve, the
-    parameters c lands in stay float32 (the merge keeps all of λc), an FSDP2 run resumes onto the
-    same curve, and exports say their frozen dtype."""
-    data = setup["data"]
-    recipe = [
-        "--frozen-dtype", "bfloat16", "--precision", "bf16-mixed", "--vector", str(setup["vector"]),
-        "--scale", "0.5", "--orth-weight", "100", "--pretrained", str(setup["initial"]),
-    ]  # fmt: skip
-    # From θ_init's export, as the downstream recipe starts: the weights c lands in are read again
-    # in float32 (a random build in bf16 would start them rounded, on another loss curve).
-    # bf16 autocast rounds sharded and unsharded sums differently: the curves agree to ~1.5 %
-    # (the loss swings between 0.5 and 3 at orth weight 100, and step 6 is where rounding has
-    # grown most; merging twice on resume would move them by far more). An epoch is 6 steps at global batch
-    # 4: stopping there makes the resumed step see the batch the uninterrupted run saw (Lightning
-    # restarts the data loader on resume).
-    # DDP is left out: each DDP rank holds the whole model as one process does, so bf16 frozen
-    # weights meet nothing there that the single run and test_merge_callback_equals_the_offline_merge
-    # (DDP) do not cover; FSDP2 shards them.
-    single = torch.tensor(run(tmp_path / "single", data, "--steps", "7", *recipe))
-    args = ["--steps", "6", "--devices", "2", "--strategy", "fsdp2"]
-    sharded = torch.tensor(run(tmp_path / "fsdp2", data, *args, *recipe))
-    torch.testing.assert_close(sharded, single[:6], rtol=2e-2, atol=1e-3)
-    resumed = run(
-        tmp_path / "resumed", data, "--steps", "7", "--devices", "2", "--strategy", "fsdp2",
-        "--ckpt-path", str(tmp_path / "fsdp2" / "last.ckpt"), *recipe,
-    )  # fmt: skip
-    torch.testing.assert_close(torch.tensor(resumed), single[6:], rtol=2e-2, atol=1e-3)
-
-    export = tmp_path / "single" / "export"
-    assert json.loads((export / "config.json").read_text())["frozen_dtype"] == "bfloat16"
-    weights = load_file(export / "model.safetensors")
-    vector_keys = load_file(setup["vector"] / "capability_vector.safetensors").keys()
-    assert all(weights[k].dtype == torch.float32 for k in vector_keys)
 
 
 def test_bf16_frozen_export_keeps_what_trained_in_float32(setup: dict, tmp_path: Path) -> None:
