@@ -241,7 +241,7 @@ def cache_snapshot(cache: Path, repo_id: str, folder: Path) -> Path:
     return snapshot
 
 
-OPT_IN_MARKERS = ("install", "fullsize", "mini")
+OPT_IN_MARKERS = ("install", "fullsize", "mini", "referee")
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
@@ -249,7 +249,8 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     run: the install tests build a fresh environment (minutes; `make test` adds them with
     ``-m "install or not install"``); the ``fullsize`` ones build a full-size preset (≈ 10 GB of
     RAM, minutes; `make test` leaves them out: ``-m fullsize`` runs them); the ``mini`` ones fit
-    ``openvla-oft-mini`` in subprocesses (minutes: ``-m mini``)."""
+    ``openvla-oft-mini`` in subprocesses (minutes: ``-m mini``); the ``referee`` ones compare
+    every LIBERO task with the robosuite 1.4 fixtures (~15 min; ``-m referee``)."""
     named = config.getoption("markexpr")
     opted_out = [m for m in OPT_IN_MARKERS if m not in named]
     kept = [item for item in items if not any(item.get_closest_marker(m) for m in opted_out)]
