@@ -407,16 +407,7 @@ def demo_replay(env: Any, episode: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-DEMO_DISAGREEMENTS = {
-    "libero_spatial/0/2",
-    "libero_spatial/1/0",
-    "libero_spatial/1/1",
-    "libero_spatial/1/2",
-    "libero_spatial/6/0",
-    "libero_spatial/6/1",
-    "libero_spatial/6/2",
-    "libero_spatial/8/1",
-}
+DEMO_DISAGREEMENTS: set[str] = set()
 """The fixture's demos whose outcome differs between the port and robosuite 1.4 (measured;
 docs/evaluation.md, "Against robosuite 1.4")."""
 

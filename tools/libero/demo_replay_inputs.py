@@ -5,8 +5,10 @@ LIBERO on robosuite 1.4 (``tools/libero/make_demo_fixture.py``, run in that stac
 
 Per demo: the placement it started from (the state LIBERO's placement initializer gave under the
 demo's seed, *before* the protocol's 10 wait steps, so the replay includes the settling), the
-fixtures' poses there (no state holds them), and the actions: 10 wait steps, then the demo's,
-stored as float32 (the exact values both stacks replay). Writes ``OUT_DIR/inputs.npz``
+fixtures' poses there (no state holds them), and the actions: 10 wait steps, the demo's, then
+:data:`HOLD_STEPS` wait steps (a demo ends at the step the port's predicate first holds; a bowl
+released a little higher in another simulator needs a step or two more to land, as an episode of
+the protocol would give it), stored as float32 (the exact values both stacks replay). Writes ``OUT_DIR/inputs.npz``
 (``<suite>/<task>/<demo>/{start, actions, fixtures}``) and ``OUT_DIR/episodes.json`` (key, seed,
 object and fixture names, the demo's length; for each task's first demo, how far the port's own
 wait steps from the placement land from the demo's first state), atomically.
@@ -24,6 +26,9 @@ import numpy as np
 from capvector.envs.libero import env as libero
 from capvector.envs.libero.experts import task_env
 from capvector.io.outputs import atomic_write_file
+
+HOLD_STEPS = 10
+"""Wait steps after a demo's last action (gripper open, no motion)."""
 
 
 def main() -> None:
@@ -55,7 +60,8 @@ def main() -> None:
                     gap = float(np.abs(settled[1:] - first[1:]).max())
                 key = f"{suite}/{task_id}/{i}"
                 arrays[f"{key}/start"] = start
-                arrays[f"{key}/actions"] = np.concatenate([wait, actions]).astype(np.float32)
+                hold = np.tile(libero.WAIT_ACTION, (HOLD_STEPS, 1))
+                arrays[f"{key}/actions"] = np.concatenate([wait, actions, hold]).astype(np.float32)
                 arrays[f"{key}/fixtures"] = np.stack([fixtures[n] for n in sorted(fixtures)])
                 episodes.append(
                     {
@@ -64,6 +70,7 @@ def main() -> None:
                         "task_id": task_id,
                         "seed": seed,
                         "demo_steps": len(actions),
+                        "hold_steps": HOLD_STEPS,
                         "objects": objects,
                         "fixtures": sorted(fixtures),
                         "settled_vs_demo_max_abs": gap,
