@@ -231,10 +231,12 @@ def test_the_record_travels_into_exports_and_merge_refuses_a_repeat(
     assert [e["by"] for e in exported] == ["MergeCapabilityVector"]
 
 
-def test_bf16_frozen_export_keeps_what_trained_in_float32(setup: dict, tmp_path: Path) -> None:
-    """Without a vector, LoRA with frozen bf16 weights: frozen tensors are exported in bf16, the
-    LoRA-merged and trained ones in float32, and the export loads back."""
+def test_bf16_frozen_export_is_in_the_base_dtype_unless_asked(setup: dict, tmp_path: Path) -> None:
+    """LoRA with frozen bf16 weights: the export is bf16 throughout (the base's dtype, as
+    OpenVLA-OFT's merge script writes), ``dtype="float32"`` writes every tensor in float32 with
+    the LoRA-merged and trained ones unrounded; both load back."""
     from capvector.backbones import from_pretrained
+    from capvector.io.lora_layers import constant_scaling, merge_lora
     from capvector.training.lora import LoraSettings
 
     dm = RobotDataModule(train_files=[str(setup["data"])], batch_size=4)
@@ -244,16 +246,34 @@ def test_bf16_frozen_export_keeps_what_trained_in_float32(setup: dict, tmp_path:
     )  # fmt: skip
     trainer = cpu_trainer(2, precision="bf16-mixed")
     trainer.fit(module, dm)
-    module.export(tmp_path / "export")
-    weights = load_file(tmp_path / "export" / "model.safetensors")
-    lora_targets = {n.removesuffix(".base_layer.weight") + ".weight" for n, _ in module.backbone.named_parameters() if n.endswith(".base_layer.weight")}  # fmt: skip
-    assert lora_targets and all(weights[k].dtype == torch.float32 for k in lora_targets)
-    frozen = [k for k, t in weights.items() if t.dtype == torch.bfloat16]
-    assert frozen and not set(frozen) & lora_targets
-    assert (
-        json.loads((tmp_path / "export" / "config.json").read_text())["frozen_dtype"] == "bfloat16"
+    module.export(tmp_path / "base")
+    module.export(tmp_path / "full", dtype="float32")
+    base = load_file(tmp_path / "base" / "model.safetensors")
+    full = load_file(tmp_path / "full" / "model.safetensors")
+    assert {t.dtype for t in base.values() if t.is_floating_point()} == {torch.bfloat16}
+    assert {t.dtype for t in full.values() if t.is_floating_point()} == {torch.float32}
+    for folder, dtype in (("base", "bfloat16"), ("full", "float32")):
+        config = json.loads((tmp_path / folder / "config.json").read_text())
+        assert (config["frozen_dtype"], config["torch_dtype"]) == ("bfloat16", dtype)
+        assert from_pretrained(tmp_path / folder) is not None
+    # The float32 export holds the merge of the trained float32 weights exactly; the bf16 export
+    # is that rounded once (round-to-nearest: within half a bf16 step of it).
+    trained = merge_lora(
+        module.backbone.state_dict(), constant_scaling(module.lora_settings.scaling)
     )
-    assert from_pretrained(tmp_path / "export") is not None
+    lora_targets = {n.removesuffix(".base_layer.weight") + ".weight" for n, _ in module.backbone.named_parameters() if n.endswith(".base_layer.weight")}  # fmt: skip
+    assert lora_targets
+    for key in lora_targets:
+        assert trained[key].dtype == torch.float32
+        torch.testing.assert_close(full[key], trained[key], rtol=0, atol=0)
+        assert torch.equal(base[key], trained[key].bfloat16())
+
+
+def test_export_dtype_is_checked_before_the_fit() -> None:
+    from capvector.callbacks import ExportOnFitEnd
+
+    with pytest.raises(CapVectorError, match="unknown floating dtype 'bf16'; use float32"):
+        ExportOnFitEnd(dtype="bf16")
 
 
 def test_frozen_bf16_needs_autocast(setup: dict, tmp_path: Path) -> None:

@@ -45,7 +45,7 @@ from capvector.io.names import (
     SUCCESS_BY_TASK,
     CheckpointMetadata,
 )
-from capvector.io.weights import dtype_name
+from capvector.io.weights import dtype_name, parse_dtype
 from capvector.objectives.base import Objective
 from capvector.policy import VLAPolicy
 from capvector.training.distributed import full_state_dict, is_rank_zero, parallelize
@@ -460,23 +460,23 @@ class VLAModule(L.LightningModule):
         if deltas:
             self.backbone.set_base_delta({k: (v["B"], v["A"]) for k, v in deltas.items()})
 
-    def export(self, folder: str | Path, overwrite: bool = False) -> Path:
+    def export(self, folder: str | Path, overwrite: bool = False, dtype: str | None = None) -> Path:
         """An export folder: ``model.safetensors`` (LoRA merged) + config + statistics + tokenizer.
+
+        Every floating tensor is written in ``dtype``, by default the base's: ``frozen_dtype``, as
+        OpenVLA-OFT's merge script writes its LoRA fit (vla-scripts/merge_lora_weights_and_save.py
+        loads the base with ``torch_dtype=torch.bfloat16``, merges, saves; its L1 action head is
+        bf16 too, finetune.py ``init_module(..., to_bf16=True)``). A bf16-frozen ``pi05-3b`` LoRA
+        fit so writes 6.7 GB, not 11 GB of mixed float32 and bf16. ``float32`` keeps what trained
+        (LoRA-merged weights, heads) unrounded: a bf16 weight keeps about 3 significant digits,
+        so an update smaller than 1/256 of a weight, as a short LoRA fit's, rounds away in bf16.
 
         Collective under FSDP2: every rank calls it, rank 0 gathers the full weights and writes.
         """
+        out_dtype = self.frozen_dtype if dtype is None else parse_dtype(dtype)
         state = full_state_dict(self.backbone)
         if not is_rank_zero():
             return Path(folder)
-        bad = [
-            name for name, t in state.items() if t.is_floating_point() and not t.isfinite().all()
-        ]
-        if bad:  # a policy that answers NaN must not leave here
-            raise CapVectorError(
-                f"not exporting to {folder}: {len(bad)} of {len(state)} tensors hold NaN or inf, "
-                f"e.g. {bad[0]}; train from a finite checkpoint (a fit stops at its first "
-                "non-finite loss)"
-            )
         lora_settings = self.lora_settings
         base_delta = self.backbone.base_delta
         if base_delta is not None:
@@ -487,6 +487,20 @@ class VLAModule(L.LightningModule):
         elif lora_settings is not None:
             state = merge_lora(state, constant_scaling(lora_settings.scaling))
         has_delta = any(".lora_" in k for k in state) and base_delta is not None
+        for name, tensor in state.items():  # one at a time: a float32 copy freed per tensor
+            # Low-rank factors (the base-delta form) have no base dtype: float32 unless asked.
+            factor = dtype is None and ".lora_" in name
+            if tensor.is_floating_point() and not factor:
+                state[name] = tensor.to(out_dtype)
+        bad = [
+            name for name, t in state.items() if t.is_floating_point() and not t.isfinite().all()
+        ]
+        if bad:  # a policy that answers NaN must not leave here (float16 can overflow too)
+            raise CapVectorError(
+                f"not exporting to {folder}: {len(bad)} of {len(state)} tensors hold NaN or inf "
+                f"in {dtype_name(out_dtype)}, e.g. {bad[0]}; train from a finite checkpoint (a "
+                "fit stops at its first non-finite loss), or export in float32 (--dtype float32)"
+            )
         extra = {
             DATA_SPEC_FILE: dataclasses.asdict(self.data_spec),
             STATISTICS_FILE: self.data_spec.statistics,
@@ -498,9 +512,10 @@ class VLAModule(L.LightningModule):
             config_extra={
                 "objectives": sorted(self.objectives),
                 MERGED_VECTORS: record_dicts(self.merged_vectors),
-                # Trained and merged-into weights are float32, the frozen rest this dtype.
                 "frozen_dtype": dtype_name(self.frozen_dtype),
                 **({BASE_DELTA: {"form": "lora", "scaling": 1.0}} if has_delta else {}),
+                # Of every floating tensor written; the key transformers' config.json uses.
+                "torch_dtype": dtype_name(out_dtype),
             },
             overwrite=overwrite,
             card_facts={

@@ -25,18 +25,23 @@ def export_main(argv: list[str]) -> int:
     return run_tool(export_cli, argv, "export")
 
 
-def export_cli(ckpt: str, out: str, overwrite: bool = False) -> None:
+def export_cli(ckpt: str, out: str, overwrite: bool = False, dtype: str | None = None) -> None:
     """Export a Lightning checkpoint to a folder that `extract`, `merge` and `evaluate` read.
 
     Args:
         ckpt: Lightning checkpoint (.ckpt)
         out: output folder (written atomically)
         overwrite: replace an existing --out
+        dtype: of every floating tensor written: float32, bfloat16 or float16 (default: the
+            base's, the fit's model.frozen_dtype; float32 keeps a short fit's update unrounded)
     """
+    from capvector.io.weights import parse_dtype
     from capvector.module import load_module
 
+    if dtype is not None:
+        parse_dtype(dtype)  # before loading the checkpoint
     check_output(out, overwrite, [ckpt], folder=True)  # before loading the checkpoint
-    folder = load_module(ckpt).export(out, overwrite=overwrite)
+    folder = load_module(ckpt).export(out, overwrite=overwrite, dtype=dtype)
     print(f"exported {ckpt} to {folder}")
 
 
