@@ -18,7 +18,8 @@ settings (``estimate_memory(..., device="cpu")``, math attention as the CPU runs
 Results go to ``--out`` (JSON, rewritten atomically after each preset); a preset already there is
 skipped, so an interrupted run resumes preset by preset.
 
-    python benchmarks/bench_full_size.py --presets pi05-3b [--variants sft] [--out FILE]
+    python benchmarks/bench_full_size.py --presets pi05-3b [--variants sft aux ...] [--out FILE]
+        [--vector DIR] [--export DIR] [--threads N]
 """
 
 from __future__ import annotations
@@ -40,9 +41,11 @@ FULL_SIZE = [
     "starvla-qwen2.5-vl-3b-oft", "starvla-qwen2.5-vl-3b-gr00t", "starvla-qwen2.5-vl-3b-layerwise",
     "starvla-qwen3-vl-4b-oft", "starvla-qwen3-vl-4b-gr00t", "starvla-qwen3-vl-4b-layerwise",
 ]  # fmt: skip
-VARIANTS = ("sft", "sft+ckpt")
-"""Plain SFT, and plain SFT with activation checkpointing. (Aux-SFT and CapVector with the merge
-callback are the issue's next rows; not run yet.)"""
+VARIANTS = ("sft", "sft+ckpt", "aux", "aux+ckpt", "capvector", "capvector+ckpt")
+"""Plain SFT; aux-SFT with both objectives (``configs/recipes/aux_sft.yaml``'s spatial alignment
+and reasoning co-training); CapVector (``MergeCapabilityVector`` at fit start and
+``OrthogonalRegularization`` in LoRA mode, from ``--vector``); each with (``+ckpt``) and without
+activation checkpointing."""
 GIB = 1024**3
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -51,8 +54,34 @@ def high_water() -> int:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 
 
-def run_one(preset: str, variant: str) -> dict[str, Any]:
-    """Two steps of ``preset`` in this process; the row for the JSON."""
+def callbacks_of(variant: str, vector: str | None) -> list[Any]:
+    """The recipe's callbacks of ``variant`` beyond plain SFT's ``StepCost``."""
+    from capvector.callbacks import (
+        AuxiliaryObjective,
+        MergeCapabilityVector,
+        OrthogonalRegularization,
+    )
+    from capvector.objectives import GeometricTeacher, ReasoningCoTraining, SpatialAlignment
+
+    kind = variant.removesuffix("+ckpt")
+    if kind == "aux":  # configs/recipes/aux_sft.yaml's two objectives, its weights
+        teacher = GeometricTeacher(feature_dim=64, position_embedding=True)
+        return [
+            AuxiliaryObjective(SpatialAlignment(teacher=teacher, weight=0.5)),
+            AuxiliaryObjective(ReasoningCoTraining(weight=0.1)),
+        ]
+    if kind == "capvector":
+        if vector is None:
+            raise SystemExit("the capvector variants need --vector DIR (a vector of this preset)")
+        return [MergeCapabilityVector(vector), OrthogonalRegularization(vector, mode="lora")]
+    return []
+
+
+def run_one(
+    preset: str, variant: str, vector: str | None = None, export: str | None = None
+) -> dict[str, Any]:
+    """Two steps of ``preset`` in this process; the row for the JSON. With ``export``, the model is
+    exported there afterwards (in the base's dtype, as ``ExportOnFitEnd`` writes it)."""
     import lightning as L
     import torch
 
@@ -93,7 +122,11 @@ def run_one(preset: str, variant: str) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as tmp:
         demos = write_demo_file(Path(tmp) / "demos.hdf5", lengths=(12,), image_size=224)
         torch.manual_seed(0)
-        dm = RobotDataModule(train_files=[str(demos)], batch_size=1, augment=False)
+        aux = variant.startswith("aux")
+        dm = RobotDataModule(
+            train_files=[str(demos)], batch_size=1, augment=False, load_depth=aux,
+            load_annotations=aux,
+        )  # fmt: skip
         baseline = high_water()
         start = time.perf_counter()
         module = VLAModule(
@@ -107,11 +140,22 @@ def run_one(preset: str, variant: str) -> dict[str, Any]:
         trainer = L.Trainer(
             max_steps=2, accelerator="cpu", precision="bf16-mixed", logger=False,
             enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
-            enable_checkpointing=False, callbacks=[StepCost(), record], default_root_dir=tmp,
+            enable_checkpointing=False, default_root_dir=tmp,
+            callbacks=[StepCost(), *callbacks_of(variant, vector), record],
             gradient_clip_val=1.0,
         )  # fmt: skip
         trainer.fit(module, dm)
     peak = high_water() - baseline
+    exported: dict[str, Any] = {}
+    if export is not None:
+        start = time.perf_counter()
+        module.export(export, overwrite=True)
+        exported = {
+            "export": export,
+            "export_seconds": time.perf_counter() - start,
+            "export_bytes": sum(f.stat().st_size for f in Path(export).iterdir()),
+            "export_peak_rss_above_baseline_gib": (high_water() - baseline) / GIB,
+        }
     # After the fit, so its meta trace (small, but minutes at full size) delays nothing measured.
     planned = estimate_memory(preset, settings, device="cpu")
     params = dict(module.named_parameters())
@@ -148,6 +192,9 @@ def run_one(preset: str, variant: str) -> dict[str, Any]:
             / GIB,
             "working": (planned.working_checkpointed if checkpointing else planned.working) / GIB,
         },  # fmt: skip
+        "objectives": sorted(module.objectives),
+        "vector": vector,
+        **exported,
         "torch": torch.__version__,
         "threads": torch.get_num_threads(),
     }
@@ -158,10 +205,14 @@ def main() -> None:
     parser.add_argument("--presets", nargs="+", default=FULL_SIZE)
     parser.add_argument("--variants", nargs="+", default=["sft"], choices=VARIANTS)
     parser.add_argument("--out", type=Path, default=ROOT / "docs/results/full_size.json")
+    parser.add_argument("--vector", help="vector folder of the preset (capvector variants)")
+    parser.add_argument("--export", type=Path, help="export each run to EXPORT/PRESET-VARIANT")
+    parser.add_argument("--threads", type=int, default=2, help="OMP_NUM_THREADS of each run")
     parser.add_argument("--run", nargs=2, metavar=("PRESET", "VARIANT"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.run:
-        print(json.dumps(run_one(*args.run)))
+        export = None if args.export is None else str(args.export / "-".join(args.run))
+        print(json.dumps(run_one(*args.run, vector=args.vector, export=export)))
         return
     rows: list[dict[str, Any]] = json.loads(args.out.read_text()) if args.out.is_file() else []
     done = {(r["preset"], r["variant"]) for r in rows}
@@ -170,17 +221,21 @@ def main() -> None:
             if (preset, variant) in done:
                 print(f"{preset} {variant}: already in {args.out}, skipped")
                 continue
+            extra = [*(["--vector", args.vector] if args.vector else [])]
+            extra += ["--export", str(args.export)] if args.export else []
             out = subprocess.run(
-                [sys.executable, __file__, "--run", preset, variant],
-                capture_output=True, text=True, env={**os.environ, "OMP_NUM_THREADS": "2"},
+                [sys.executable, __file__, "--run", preset, variant, *extra],
+                capture_output=True, text=True,
+                env={**os.environ, "OMP_NUM_THREADS": str(args.threads)},
             )  # fmt: skip
             if out.returncode != 0:
                 print(f"{preset} {variant}: failed (exit {out.returncode})\n{out.stderr[-3000:]}")
                 continue
             row = json.loads(out.stdout.strip().splitlines()[-1])
-            row["command"] = (
-                f"python benchmarks/bench_full_size.py --presets {preset} --variants {variant}"
-            )
+            row["command"] = " ".join(
+                ["python benchmarks/bench_full_size.py --presets", preset, "--variants", variant,
+                 *extra, "--threads", str(args.threads)]
+            )  # fmt: skip
             rows.append(row)
             tmp = args.out.with_suffix(".json.tmp")
             tmp.write_text(json.dumps(rows, indent=2) + "\n")

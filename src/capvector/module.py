@@ -485,7 +485,7 @@ class VLAModule(L.LightningModule):
             scaling = constant_scaling(lora_settings.scaling if lora_settings else 1.0)
             state = lora_form_state(state, scaling, base_delta)
         elif lora_settings is not None:
-            state = merge_lora(state, constant_scaling(lora_settings.scaling))
+            state = merge_lora(state, constant_scaling(lora_settings.scaling), dtype=out_dtype)
         has_delta = any(".lora_" in k for k in state) and base_delta is not None
         for name, tensor in state.items():  # one at a time: a float32 copy freed per tensor
             # Low-rank factors (the base-delta form) have no base dtype: float32 unless asked.
