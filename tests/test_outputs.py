@@ -353,3 +353,26 @@ def test_overwrite_replaces_only_what_capvector_wrote(
         assert main(merge_args(project, out, "--overwrite")) == 0
         assert (work / out / MARKER).is_file() and (work / out / "model.safetensors").is_file()
     assert sorted(p.name for p in work.iterdir()) == ["empty", "merged", "notes.txt", "some_demos.hdf5", "theirs"]  # fmt: skip
+
+
+def test_write_safetensors_is_what_safetensors_reads(tmp_path: Path) -> None:
+    """The streamed export writer against safetensors' own reader: every dtype an export holds,
+    a 0-d and an empty tensor, a non-contiguous view."""
+    from safetensors.torch import load_file
+
+    from capvector.io.weights import write_safetensors
+
+    tensors = {
+        "w": torch.randn(5, 3, dtype=torch.bfloat16),
+        "b": torch.randn(7),
+        "t": torch.randn(4, 6).T,
+        "i": torch.arange(4),
+        "m": torch.tensor([True, False]),
+        "s": torch.tensor(2.5, dtype=torch.float16),
+        "e": torch.zeros(0, 3),
+    }
+    write_safetensors(tmp_path / "model.safetensors", tensors)
+    read = load_file(tmp_path / "model.safetensors")
+    assert read.keys() == tensors.keys()
+    for key, tensor in tensors.items():
+        assert read[key].dtype == tensor.dtype and torch.equal(read[key], tensor), key

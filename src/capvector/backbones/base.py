@@ -44,6 +44,7 @@ from capvector.io.names import (
     EXPORT_WEIGHTS,
 )
 from capvector.io.outputs import Inputs, atomic_directory
+from capvector.io.weights import write_safetensors
 from capvector.registry import Registry
 
 EMBEDDING_PARAMETERS = "embedding_parameters"
@@ -322,8 +323,6 @@ class VLABackbone(nn.Module, ABC):
         steps, objectives, the command) and ``base_model`` go into the model card. ``inputs`` are
         the paths the weights came from: ``folder`` must not be, hold or lie inside one of them.
         """
-        from safetensors.torch import save_file
-
         from capvector.data.statistics import check_finite_statistics
         from capvector.io.names import STATISTICS_FILE
 
@@ -333,7 +332,7 @@ class VLABackbone(nn.Module, ABC):
         tensors = dict(state_dict if state_dict is not None else self.state_dict())
         tensors = {k: v.detach().to("cpu").contiguous() for k, v in tensors.items()}
         with atomic_directory(folder, overwrite, inputs) as tmp:
-            save_file(tensors, str(tmp / EXPORT_WEIGHTS), metadata={"format": "pt"})
+            write_safetensors(tmp / EXPORT_WEIGHTS, tensors)
             config = {**self.export_config(), **(config_extra or {})}
             (tmp / EXPORT_CONFIG).write_text(json.dumps(config, indent=2))
             for name, content in (extra_json or {}).items():

@@ -672,6 +672,22 @@ class SafetensorsWriter:
             self._file = None
 
 
+def write_safetensors(path: Path, tensors: Mapping[str, Tensor]) -> None:
+    """One safetensors file of ``tensors``, written tensor by tensor (``SafetensorsWriter``):
+    ``safetensors.torch.save_file`` first copies every tensor into one bytes object, which doubles
+    a full-size export's memory (6.7 GB more for ``pi05-3b`` in bf16)."""
+    infos = [(k, TensorInfo(t.dtype, tuple(t.shape))) for k, t in tensors.items()]
+    layout = ShardLayout([(path.name, infos)], None)
+    writer = SafetensorsWriter(path.parent, layout)
+    try:
+        for key, tensor in tensors.items():
+            writer.write(key, tensor)
+        writer.finish()
+    except BaseException:
+        writer.abort()
+        raise
+
+
 def write_json(path: Path, content: Any) -> None:
     with open(path, "w") as f:
         json.dump(content, f, indent=2)
