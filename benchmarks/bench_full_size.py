@@ -25,6 +25,7 @@ skipped, so an interrupted run resumes preset by preset.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -78,10 +79,16 @@ def callbacks_of(variant: str, vector: str | None) -> list[Any]:
 
 
 def run_one(
-    preset: str, variant: str, vector: str | None = None, export: str | None = None
+    preset: str,
+    variant: str,
+    vector: str | None = None,
+    export: str | None = None,
+    lr: float | None = None,
 ) -> dict[str, Any]:
     """Two steps of ``preset`` in this process; the row for the JSON. With ``export``, the model is
-    exported there afterwards (in the base's dtype, as ``ExportOnFitEnd`` writes it)."""
+    exported there afterwards (in the base's dtype, as ``ExportOnFitEnd`` writes it). ``lr``
+    replaces the family's learning rate: two steps at Pi0.5's 2.5e-5 move LoRA-merged weights by
+    less than a bf16 step, so two bf16 exports would be identical and no vector could be taken."""
     import lightning as L
     import torch
 
@@ -135,6 +142,8 @@ def run_one(
             activation_checkpointing=checkpointing,
         )  # fmt: skip
         build_seconds = time.perf_counter() - start
+        if lr is not None:
+            module.optimizer_settings = dataclasses.replace(module.optimizer_settings, lr=lr)
         built_peak = high_water() - baseline
         record = Record()
         trainer = L.Trainer(
@@ -193,6 +202,7 @@ def run_one(
             "working": (planned.working_checkpointed if checkpointing else planned.working) / GIB,
         },  # fmt: skip
         "objectives": sorted(module.objectives),
+        "lr": module.optimizer_settings.lr,
         "vector": vector,
         **exported,
         "torch": torch.__version__,
@@ -208,11 +218,12 @@ def main() -> None:
     parser.add_argument("--vector", help="vector folder of the preset (capvector variants)")
     parser.add_argument("--export", type=Path, help="export each run to EXPORT/PRESET-VARIANT")
     parser.add_argument("--threads", type=int, default=2, help="OMP_NUM_THREADS of each run")
+    parser.add_argument("--lr", type=float, help="learning rate (default: the family's)")
     parser.add_argument("--run", nargs=2, metavar=("PRESET", "VARIANT"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.run:
         export = None if args.export is None else str(args.export / "-".join(args.run))
-        print(json.dumps(run_one(*args.run, vector=args.vector, export=export)))
+        print(json.dumps(run_one(*args.run, vector=args.vector, export=export, lr=args.lr)))
         return
     rows: list[dict[str, Any]] = json.loads(args.out.read_text()) if args.out.is_file() else []
     done = {(r["preset"], r["variant"]) for r in rows}
@@ -223,6 +234,7 @@ def main() -> None:
                 continue
             extra = [*(["--vector", args.vector] if args.vector else [])]
             extra += ["--export", str(args.export)] if args.export else []
+            extra += ["--lr", str(args.lr)] if args.lr is not None else []
             out = subprocess.run(
                 [sys.executable, __file__, "--run", preset, variant, *extra],
                 capture_output=True, text=True,

@@ -6,8 +6,9 @@ Takes two exports of one full-size preset (θ_aux and θ_sft, e.g. ``bench_full_
 (``os.wait4``'s ``ru_maxrss``); the bytes it wrote and its seconds are recorded:
 
 - ``extract`` full form (every capability parameter, in the exports' dtype);
-- ``extract`` LoRA form (``--rank``; ``--lowrank-include`` limits it, as a truncated SVD of every
-  2-D weight of a 3 B model takes tens of minutes on two shared cores);
+- ``extract`` LoRA form (``--rank``) of the language model, where the auxiliary objectives act
+  (``--lowrank-include``; a truncated SVD of every 2-D weight of a 3 B model takes tens of minutes
+  on two shared cores), its token embedding kept in full (an SVD of 257k × 2048 alone needs 6 GB);
 - ``inspect`` of both;
 - ``merge`` of the full vector into the base (``λ = 1``).
 
@@ -142,7 +143,7 @@ def main() -> None:
     parser.add_argument("--base", type=Path, required=True)
     parser.add_argument("--work", type=Path, required=True, help="where the outputs go")
     parser.add_argument("--rank", type=int, default=32)
-    parser.add_argument("--lowrank-include", nargs="+", default=["action_expert.*"])
+    parser.add_argument("--lowrank-include", nargs="+", default=["language_model.*"])
     parser.add_argument("--sample", type=int, default=12, help="tensors the referee checks")
     parser.add_argument("--out", type=Path, default=ROOT / "docs/results/full_size_vectors.json")
     parser.add_argument("--keep", action="store_true", help="keep the outputs under --work")
@@ -185,9 +186,11 @@ def main() -> None:
         ),  # fmt: skip
     ]
     name, largest = largest_tensor_bytes(args.base)
-    vector_keys = sorted(json.loads((full / "capability_vector.json").read_text())["tensors"])
-    every = max(1, len(vector_keys) // args.sample)
-    sample = vector_keys[::every][: args.sample]
+    # Spread over the tensors c changes (by name), and one it leaves at zero if there is one.
+    norms = json.loads((full / "capability_vector.json").read_text())["tensors"]
+    changed = sorted(k for k, t in norms.items() if t["norm"] > 0)
+    sample = changed[:: max(1, len(changed) // args.sample)][: args.sample]
+    sample += sorted(k for k, t in norms.items() if t["norm"] == 0)[:1]
     result = {
         "aux": str(args.aux), "sft": str(args.sft), "base": str(args.base),
         "steps": steps,
