@@ -95,19 +95,13 @@ def run_one(
     from capvector.callbacks import StepCost
     from capvector.data.datamodule import RobotDataModule
     from capvector.module import VLAModule
-    from capvector.profiling.memory import estimate_memory
     from capvector.profiling.meta import import_build_dependencies
-    from capvector.profiling.settings import TrainingSettings
     from capvector.training.lora import LoraSettings
 
     sys.path.insert(0, str(ROOT / "tests"))
     from conftest import write_demo_file
 
     checkpointing = variant.endswith("+ckpt")
-    settings = TrainingSettings(
-        batch=1, precision="bf16-mixed", strategy="ddp", lora_rank=32, frozen_dtype="bfloat16",
-        attention="math", activation_checkpointing=checkpointing,
-    )  # fmt: skip
     import_build_dependencies()
 
     class Record(L.Callback):
@@ -165,8 +159,6 @@ def run_one(
             "export_bytes": sum(f.stat().st_size for f in Path(export).iterdir()),
             "export_peak_rss_above_baseline_gib": (high_water() - baseline) / GIB,
         }
-    # After the fit, so its meta trace (small, but minutes at full size) delays nothing measured.
-    planned = estimate_memory(preset, settings, device="cpu")
     params = dict(module.named_parameters())
     trainable = {n for n, p in params.items() if p.requires_grad}
     unexpected = sorted(
@@ -190,23 +182,36 @@ def run_one(
         "step_seconds": record.seconds,
         "peak_rss_above_baseline_gib": peak / GIB,
         "build_peak_rss_above_baseline_gib": built_peak / GIB,
-        "planner_cpu_gib": planned.total / GIB,
-        "planner_cpu_terms_gib": {
-            "parameters": planned.parameters / GIB,
-            "gradients": planned.gradients / GIB,
-            "optimizer": planned.optimizer / GIB,
-            "activations": (
-                planned.activations_checkpointed if checkpointing else planned.activations
-            )
-            / GIB,
-            "working": (planned.working_checkpointed if checkpointing else planned.working) / GIB,
-        },  # fmt: skip
         "objectives": sorted(module.objectives),
         "lr": module.optimizer_settings.lr,
         "vector": vector,
         **exported,
         "torch": torch.__version__,
         "threads": torch.get_num_threads(),
+    }
+
+
+def plan(preset: str, variant: str) -> dict[str, Any]:
+    """The planner's CPU estimate for ``run_one``'s settings. In a process of its own, after the
+    run's: its meta trace takes minutes at full size, and the run's memory is gone by then."""
+    from capvector.profiling.memory import estimate_memory
+    from capvector.profiling.settings import TrainingSettings
+
+    checkpointing = variant.endswith("+ckpt")
+    settings = TrainingSettings(
+        batch=1, precision="bf16-mixed", strategy="ddp", lora_rank=32, frozen_dtype="bfloat16",
+        attention="math", activation_checkpointing=checkpointing,
+    )  # fmt: skip
+    planned = estimate_memory(preset, settings, device="cpu")
+    activations = planned.activations_checkpointed if checkpointing else planned.activations
+    working = planned.working_checkpointed if checkpointing else planned.working
+    terms = {
+        "parameters": planned.parameters, "gradients": planned.gradients,
+        "optimizer": planned.optimizer, "activations": activations, "working": working,
+    }  # fmt: skip
+    return {
+        "planner_cpu_gib": planned.total / GIB,
+        "planner_cpu_terms_gib": {k: v / GIB for k, v in terms.items()},
     }
 
 
@@ -220,7 +225,11 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="OMP_NUM_THREADS of each run")
     parser.add_argument("--lr", type=float, help="learning rate (default: the family's)")
     parser.add_argument("--run", nargs=2, metavar=("PRESET", "VARIANT"), help=argparse.SUPPRESS)
+    parser.add_argument("--plan", nargs=2, metavar=("PRESET", "VARIANT"), help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.plan:
+        print(json.dumps(plan(*args.plan)))
+        return
     if args.run:
         export = None if args.export is None else str(args.export / "-".join(args.run))
         print(json.dumps(run_one(*args.run, vector=args.vector, export=export, lr=args.lr)))
@@ -244,6 +253,11 @@ def main() -> None:
                 print(f"{preset} {variant}: failed (exit {out.returncode})\n{out.stderr[-3000:]}")
                 continue
             row = json.loads(out.stdout.strip().splitlines()[-1])
+            planned = subprocess.run(
+                [sys.executable, __file__, "--plan", preset, variant], capture_output=True,
+                text=True, check=True, env={**os.environ, "OMP_NUM_THREADS": str(args.threads)},
+            )  # fmt: skip
+            row.update(json.loads(planned.stdout.strip().splitlines()[-1]))
             row["command"] = " ".join(
                 ["python benchmarks/bench_full_size.py --presets", preset, "--variants", variant,
                  *extra, "--threads", str(args.threads)]
