@@ -78,6 +78,10 @@ CASES: dict[str, tuple[Callable[[Path, Path], list[str]], str]] = {
         lambda i, o: ["export", "--ckpt", str(i / "missing.ckpt"), "--out", str(i / "oft_sft")],
         r"exists; choose another --out or pass --overwrite",
     ),
+    "export: a dtype that is not one, before reading the checkpoint": (
+        lambda i, o: ["export", "--ckpt", str(i / "missing.ckpt"), "--out", str(o / "e"), "--dtype", "bf16"],
+        r"unknown floating dtype 'bf16'; use float32, bfloat16 or float16",
+    ),
     "demos: output inside a file, before simulating": (
         lambda i, o: ["demos", "--task", "Lift", "--episodes", "50", "--out", str(i / "a_file" / "d.hdf5")],
         r"cannot write demo file .*is a file",
