@@ -255,9 +255,12 @@ def main() -> None:
             row = json.loads(out.stdout.strip().splitlines()[-1])
             planned = subprocess.run(
                 [sys.executable, __file__, "--plan", preset, variant], capture_output=True,
-                text=True, check=True, env={**os.environ, "OMP_NUM_THREADS": str(args.threads)},
+                text=True, env={**os.environ, "OMP_NUM_THREADS": str(args.threads)},
             )  # fmt: skip
-            row.update(json.loads(planned.stdout.strip().splitlines()[-1]))
+            if planned.returncode == 0:
+                row.update(json.loads(planned.stdout.strip().splitlines()[-1]))
+            else:  # the measured row is kept; what the planner said instead of its figure
+                row["planner_error"] = planned.stderr.strip().splitlines()[-1]
             row["command"] = " ".join(
                 ["python benchmarks/bench_full_size.py --presets", preset, "--variants", variant,
                  *extra, "--threads", str(args.threads)]
