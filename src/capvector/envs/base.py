@@ -204,6 +204,9 @@ class Suite(ABC):
       its env taken from the pool.
     - :meth:`check`: refuse bad specs before any episode runs (a missing file, ...).
     - :meth:`instruction`: the task's instruction, for result tables (optional).
+    - :meth:`record_demos`: scripted-expert demos of a task set, through the one attempt loop and
+      HDF5 writer of :mod:`capvector.envs.recording` (optional).
+    - ``task_sets``: the names the registry finds the suite by (``capvector evaluate --suite``).
     - ``release_envs``: close the envs after an evaluation (envs that hold gigabytes).
     """
 
@@ -226,6 +229,12 @@ class Suite(ABC):
     """Camera names its envs render (the policy's data spec picks among them)."""
     example: ClassVar[dict[str, Any]]
     """``specs`` arguments of a small task set: what ``tests/test_env_contract.py`` runs."""
+    demo_proprio_keys: ClassVar[tuple[str, ...]] = ()
+    """The ``obs`` keys of its demo files whose concatenation is the observation's proprio: what
+    ``data.proprio_keys`` names to train on them."""
+    demo_example: ClassVar[dict[str, Any] | None] = None
+    """:meth:`record_demos` arguments (``task_set`` and options) of one cheap demo, which
+    ``tests/test_env_contract.py`` records and reads back; None: the suite records no demos."""
 
     @abstractmethod
     def specs(self, task_set: str, episodes: int, **options: Any) -> list[Spec]:
@@ -252,9 +261,12 @@ class Suite(ABC):
         self, task_set: str, episodes: int, out: str | os.PathLike[str], **options: Any
     ) -> list[DemoSummary]:
         """Record ``episodes`` successful scripted-expert demos of each task of ``task_set`` into
-        ``out`` (written atomically), in the HDF5 layout :mod:`capvector.data.hdf5` reads;
-        ``options`` are the suite's own (cameras, image_size, seed, ...). A suite without experts
-        keeps this default, which refuses."""
+        ``out`` (a file, or a folder of one file per task), written atomically by
+        :func:`capvector.envs.recording.record_file` in the HDF5 layout
+        :class:`capvector.data.hdf5.HDF5RobotDataset` reads. ``options`` are the suite's own;
+        ``capvector demos`` passes ``cameras``, ``image_size``, ``depth``, ``seed``,
+        ``max_attempts`` and ``progress`` always, others only when given. A suite without
+        experts keeps this default, which refuses."""
         raise CapVectorError(f"the {self.name} suite records no demos (it has no scripted expert)")
 
     def instruction(self, spec: Spec) -> str | None:

@@ -23,6 +23,8 @@ class LiberoSuite(Suite):
     release_envs = True  # a stepped LIBERO env holds ~1 GB
     cameras = ("agentview", "robot0_eye_in_hand")  # LIBERO_CAMERAS
     example = {"task_set": "libero_spatial", "episodes": 2, "tasks": [0]}
+    demo_proprio_keys = ("ee_states", "gripper_states")  # LIBERO's released layout
+    demo_example = {"task_set": "libero_spatial", "tasks": [0], "image_size": 32}
 
     def specs(
         self,

@@ -10,7 +10,6 @@ from typing import Any
 
 from capvector.envs.base import (
     DEFAULT_ROBOT,
-    EVAL_SEED_START,
     DemoSummary,
     EnvPool,
     Episode,
@@ -28,31 +27,13 @@ class RobosuiteSuite(Suite):
     task_sets = tuple(TASKS)  # a task set is one task
     cameras = ("agentview", "robot0_eye_in_hand")
     example = {"task_set": "Lift", "episodes": 2}
+    # capvector.envs.robosuite.env.PROPRIO_KEYS (that module imports the simulator)
+    demo_proprio_keys = ("robot0_eef_pos", "robot0_eef_axis_angle", "robot0_gripper_qpos")
+    demo_example = {"task_set": "Lift", "image_size": 32, "noise": 0.0, "extra_steps": 1}
 
-    def specs(
-        self,
-        task_set: str,
-        episodes: int,
-        *,
-        robot: str = DEFAULT_ROBOT,
-        start_seed: int = EVAL_SEED_START,
-        max_steps: int | None = None,
-        gripper: str | None = None,
-        variant: str | None = None,
-    ) -> list[Spec]:
-        """``episodes`` seeds of the task ``task_set`` from ``start_seed``
-        (:func:`~capvector.envs.robosuite.spec.eval_specs`)."""
-        return list(
-            eval_specs(
-                task_set,
-                episodes,
-                robot=robot,
-                start_seed=start_seed,
-                max_steps=max_steps,
-                gripper=gripper,
-                variant=variant,
-            )  # fmt: skip
-        )
+    # ``episodes`` seeds of the task ``task_set`` from ``start_seed``; options ``robot``,
+    # ``start_seed``, ``max_steps``, ``gripper``, ``variant``: the spec module's function itself
+    specs = staticmethod(eval_specs)  # type: ignore[assignment]
 
     def start(self, spec: Spec, envs: EnvPool, **settings: Any) -> Episode:
         from capvector.envs.robosuite.episode import Episode as RobosuiteEpisode  # the simulator
