@@ -21,7 +21,7 @@ import torch
 
 from capvector.data.hdf5 import HDF5RobotDataset
 from capvector.envs import recording
-from capvector.envs.base import EpisodeResult
+from capvector.envs.base import DemoSettings, EpisodeResult
 from capvector.envs.recording import write_demo
 from capvector.envs.registry import get_suite, registered_suites
 from capvector.eval.rollout import EnvCache
@@ -133,8 +133,9 @@ def test_a_recorded_demo_reads_back_as_the_policy_saw_it(
 
     monkeypatch.setattr(recording, "write_demo", write_and_keep)
     options = dict(suite.demo_example)
+    settings = DemoSettings(image_size=SIZE, progress=False)
     summaries = suite.record_demos(
-        options.pop("task_set"), 1, tmp_path / "demos", progress=False, **options
+        options.pop("task_set"), 1, tmp_path / "demos", settings, **options
     )
     assert [s.demos for s in summaries] == [1] and len(written) == 1
     (demo,) = written

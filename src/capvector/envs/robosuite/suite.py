@@ -5,11 +5,13 @@ the task's own."""
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import Any
 
 from capvector.envs.base import (
     DEFAULT_ROBOT,
+    DEMO_SETTINGS,
+    DemoSettings,
     DemoSummary,
     EnvPool,
     Episode,
@@ -29,7 +31,7 @@ class RobosuiteSuite(Suite):
     example = {"task_set": "Lift", "episodes": 2}
     # capvector.envs.robosuite.env.PROPRIO_KEYS (that module imports the simulator)
     demo_proprio_keys = ("robot0_eef_pos", "robot0_eef_axis_angle", "robot0_gripper_qpos")
-    demo_example = {"task_set": "Lift", "image_size": 32, "noise": 0.0, "extra_steps": 1}
+    demo_example = {"task_set": "Lift", "noise": 0.0, "extra_steps": 1}
 
     # ``episodes`` seeds of the task ``task_set`` from ``start_seed``; options ``robot``,
     # ``start_seed``, ``max_steps``, ``gripper``, ``variant``: the spec module's function itself
@@ -46,13 +48,9 @@ class RobosuiteSuite(Suite):
         task_set: str,
         episodes: int,
         out: str | os.PathLike[str],
+        settings: DemoSettings = DEMO_SETTINGS,
+        /,
         *,
-        cameras: Sequence[str] = ("agentview", "robot0_eye_in_hand"),
-        image_size: int | None = None,
-        depth: bool = False,
-        seed: int = 0,
-        max_attempts: int | None = None,
-        progress: bool = True,
         robot: str = DEFAULT_ROBOT,
         gripper: str | None = None,
         noise: float | None = None,
@@ -64,10 +62,11 @@ class RobosuiteSuite(Suite):
         0.1, 6 steps after success)."""
         from capvector.envs.robosuite import demos  # the simulator
 
-        given = {"noise": noise, "extra_steps": extra_steps, "image_size": image_size}
+        given = {"noise": noise, "extra_steps": extra_steps, "image_size": settings.image_size}
         summary = demos.record_demos(
-            task_set, episodes, out, robot=robot, gripper=gripper, cameras=cameras, depth=depth,
-            seed=seed, max_attempts=max_attempts, camera_fovy=fovy, progress=progress,
+            task_set, episodes, out, robot=robot, gripper=gripper, cameras=settings.cameras,
+            depth=settings.depth, seed=settings.seed, max_attempts=settings.max_attempts,
+            camera_fovy=fovy, progress=settings.progress,
             **{k: v for k, v in given.items() if v is not None},
         )  # fmt: skip
         return [summary]
