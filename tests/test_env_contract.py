@@ -1,7 +1,8 @@
 """The suite contract (``capvector.envs.base.Suite``), checked on every registered suite, as
 ``test_backbone_contract.py`` checks every preset: specs are data that import no simulator, an
 episode's reset is a function of its spec, the observation has the policy's schema, the step limit
-ends an episode, and the result names the episode it ran. A new suite is covered by registering
+ends an episode, the result names the episode it ran, and a demo its expert records reads back
+through the data reader as the policy saw it. A new suite is covered by registering
 it (docs/adding-a-benchmark.md)."""
 
 from __future__ import annotations
@@ -12,11 +13,16 @@ import pickle
 import subprocess
 import sys
 from dataclasses import FrozenInstanceError, fields, replace
+from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
-from capvector.envs.base import EpisodeResult
+from capvector.data.hdf5 import HDF5RobotDataset
+from capvector.envs import recording
+from capvector.envs.base import DemoSettings, EpisodeResult
+from capvector.envs.recording import write_demo
 from capvector.envs.registry import get_suite, registered_suites
 from capvector.eval.rollout import EnvCache
 
@@ -107,3 +113,45 @@ def test_an_episode_meets_the_contract(name: str, envs: EnvCache) -> None:
     episode.observe()
     bad = episode.execute(np.full((1, 7), np.nan))
     assert bad is not None and not bad.success and "non-finite" in bad.reason
+
+
+@pytest.mark.parametrize("name", SUITES)
+def test_a_recorded_demo_reads_back_as_the_policy_saw_it(
+    name: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """One demo by the suite's scripted expert, through the one writer and the data reader: the
+    same actions, and the images and proprio the suite's live observation showed (each suite
+    stores frames in its own layout and orientation; the reader must undo exactly that)."""
+    suite = get_suite(name)
+    if suite.demo_example is None:
+        pytest.skip(f"{name} records no demos")
+    written: list[recording.Demo] = []
+
+    def write_and_keep(group, demo: recording.Demo) -> None:  # the real writer, watched
+        written.append(demo)
+        write_demo(group, demo)
+
+    monkeypatch.setattr(recording, "write_demo", write_and_keep)
+    options = dict(suite.demo_example)
+    settings = DemoSettings(image_size=SIZE, progress=False)
+    summaries = suite.record_demos(
+        options.pop("task_set"), 1, tmp_path / "demos", settings, **options
+    )
+    assert [s.demos for s in summaries] == [1] and len(written) == 1
+    (demo,) = written
+    assert summaries[0].lengths == [demo.length] and summaries[0].seeds == [demo.seed]
+
+    data = HDF5RobotDataset(
+        [summaries[0].path], suite.cameras, suite.demo_proprio_keys, chunk_size=1, cache_mb=0
+    )
+    assert len(data) == demo.num_samples
+    # the reader hands out normalised actions and proprio (by statistics of the file it read)
+    actions = data.normalizer.normalize("action", np.asarray(demo.steps["actions"], np.float32))
+    proprio = data.normalizer.normalize("proprio", demo.proprio)
+    for t in range(demo.num_samples):
+        sample = data[t]
+        np.testing.assert_allclose(sample["actions"][0].numpy(), actions[t], atol=1e-6)
+        np.testing.assert_allclose(sample["proprio"].numpy(), proprio[t], atol=1e-5)
+        pixels = (sample["images"] * 255).round().to(torch.uint8).permute(0, 2, 3, 1).numpy()
+        for view, camera in zip(pixels, suite.cameras, strict=True):
+            np.testing.assert_array_equal(view, demo.images[camera][t], err_msg=f"{camera} {t}")

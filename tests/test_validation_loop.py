@@ -12,8 +12,9 @@ import pytest
 
 from capvector.cli import main
 from capvector.data.datamodule import RobotDataModule
-from capvector.data.episodes import EpisodeDataset, EpisodeSampler, EvalTask
+from capvector.data.episodes import EpisodeDataset, EpisodeSampler, EvalTask, eval_task
 from capvector.data.hdf5 import DatasetError
+from capvector.errors import CapVectorError
 from capvector.eval.results import wilson_interval
 
 REPO = Path(__file__).resolve().parents[1]
@@ -29,6 +30,30 @@ def test_episode_sampler_evens_out_ranks_without_counting_twice() -> None:
     assert counted == sorted((s.task, s.seed) for s in dataset.specs)  # each episode exactly once
     assert sum(not item.counted for item in items) == 1
     assert all(s.seed >= 1_000_000 for s in dataset.specs)  # disjoint from demo seeds
+
+
+def test_eval_tasks_entries_old_and_new_find_their_suite_by_name() -> None:
+    """One entry type for every suite (``EvalTask``: task set, episodes, suite, options); the flat
+    entries configs and checkpoints hold from before the registry give the same episodes."""
+    robosuite = EvalTask("Lift", 3, "robosuite", {"robot": "Sawyer", "start_seed": 5})
+    saved = {"task": "Lift", "episodes": 3, "robot": "Sawyer", "start_seed": 5, "max_steps": None,
+             "gripper": None, "variant": None}  # fmt: skip  # an old checkpoint's hparams
+    flat = {"task": "Lift", "episodes": 3, "robot": "Sawyer", "start_seed": 5}
+    libero = EvalTask("libero_spatial", 2, "libero", {"tasks": [1, 4]})
+    old_libero = {"suite": "libero_spatial", "tasks": [1, 4], "trials": 2}
+    for new, *olds in [(robosuite, saved, flat), (libero, old_libero)]:
+        for old in olds:
+            entry = eval_task(old)
+            assert entry.suite == new.suite and entry.task == new.task, old
+            assert entry.specs() == new.specs(), old
+    assert [s.task for s in libero.specs()] == ["libero_spatial/1"] * 2 + ["libero_spatial/4"] * 2
+    # an option the suite does not take is one line naming it and the ones it does
+    with pytest.raises(CapVectorError, match=r"tasks does not apply to eval task Lift .*robot"):
+        eval_task({"task": "Lift", "tasks": [0]}).specs()
+    with pytest.raises(
+        CapVectorError, match=r"unknown task or task set 'Lfit' \(did you mean Lift"
+    ):
+        eval_task({"task": "Lfit"})
 
 
 def test_a_data_module_of_rollouts_alone_validates_without_training_data(demo_file: Path) -> None:

@@ -27,6 +27,7 @@ from capvector.data.resumable import ResumableLoader, ResumableSampler
 from capvector.data.spec import DataSpec
 from capvector.data.statistics import BOUNDS_Q99, check_normalization
 from capvector.data.transforms import ImageTransform
+from capvector.envs.base import DemoSettings
 from capvector.envs.registry import suite_for_task_set
 from capvector.errors import require_extra
 
@@ -77,7 +78,7 @@ class RobotDataModule(L.LightningDataModule):
         self,
         train_files: list[str] | None = None,
         val_files: list[str] | None = None,
-        eval_tasks: list[EvalTask | dict[str, Any]] | None = None,
+        eval_tasks: list[dict[str, Any]] | list[EvalTask] | None = None,
         cameras: Sequence[str] = DEFAULT_CAMERAS,
         proprio_keys: Sequence[str] = DEFAULT_PROPRIO,
         chunk_size: int = 8,
@@ -212,11 +213,10 @@ class RobotDataModule(L.LightningDataModule):
             if Path(file).is_file():
                 continue
             try:
-                suite.record_demos(
-                    gen.task, gen.episodes, file, cameras=list(hp.cameras),
-                    image_size=gen.image_size, depth=hp.load_depth, seed=gen.seed + 10_000 * i,
-                    **own,
-                )  # fmt: skip
+                settings = DemoSettings(
+                    tuple(hp.cameras), gen.image_size, hp.load_depth, gen.seed + 10_000 * i
+                )
+                suite.record_demos(gen.task, gen.episodes, file, settings, **own)
             except (RuntimeError, ValueError, KeyError) as exc:  # as `capvector demos` reports them
                 raise DatasetError(f"data.generate could not record {file}: {exc}") from exc
 

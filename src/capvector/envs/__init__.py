@@ -7,7 +7,9 @@ array (:mod:`~capvector.envs.base`); evaluation runs policies here through
 One package per suite (import the module you need; importing this package, ``base``,
 ``robosuite.tasks`` and ``robosuite.variants`` imports neither robosuite nor MuJoCo):
 
-- :mod:`~capvector.envs.base`: the policy interface (``Observation``, ``EpisodeResult``)
+- :mod:`~capvector.envs.base`: the ``Suite`` contract and the policy interface (``Observation``,
+  ``EpisodeResult``); :mod:`~capvector.envs.registry`: the suites by name
+- :mod:`~capvector.envs.recording`: recording demos for every suite (the attempt loop, the writer)
 - :mod:`~capvector.envs.robosuite`: robosuite 1.5 tasks (Lift, Stack, PickPlaceCan, ...)
 
   - ``tasks``: the task table (instructions, objects, step limits)
@@ -16,7 +18,7 @@ One package per suite (import the module you need; importing this package, ``bas
   - ``fast_control``: the controller substeps of ``SimEnv``'s fast step (LIBERO's envs use it too)
   - ``experts``: scripted experts (Lift, Stack, PickPlaceCan)
   - ``annotations``: per-step text about what the expert does and where things are
-  - ``demos``: recording to robomimic/LIBERO-layout HDF5
+  - ``demos``: its demos' datasets (robomimic layout), recorded through ``recording``
 
 - :mod:`~capvector.envs.libero`: LIBERO's task suites, built on robosuite
 
@@ -25,7 +27,7 @@ One package per suite (import the module you need; importing this package, ``bas
   - ``render``: LIBERO's scenes rendered ~13x cheaper on a CPU, same physics
   - ``experts``: scripted pick-and-place experts read from the BDDL goal
   - ``annotations``: per-step text for LIBERO scenes
-  - ``demos``: recording in LIBERO's released HDF5 layout
+  - ``demos``: its demos in LIBERO's released HDF5 layout, recorded through ``recording``
 
 - :mod:`~capvector.envs.metaworld`: Meta-World's 50 tasks (MT10, MT50) under LeRobot's protocol
 

@@ -78,6 +78,28 @@ class DemoSummary:
         return self.demos / max(self.attempts, 1)
 
 
+@dataclass(frozen=True)
+class DemoSettings:
+    """What every suite's :meth:`Suite.record_demos` takes (its own options come beside it)."""
+
+    cameras: tuple[str, ...] = ("agentview", "robot0_eye_in_hand")
+    """Cameras to render; none records low-dim demos only."""
+    image_size: int | None = None
+    """Image height and width; None: the suite's own (robosuite 64, LIBERO 128 as released)."""
+    depth: bool = False
+    """Also store each camera's depth in metres and its intrinsics."""
+    seed: int = 0
+    """Seed of the first attempt; attempts use ``seed``, ``seed + 1``, ..."""
+    max_attempts: int | None = None
+    """Attempts per file before giving up; None: ``max(2 x episodes, episodes + 20)``."""
+    progress: bool = True
+    """Show a progress bar."""
+
+
+DEMO_SETTINGS = DemoSettings()
+"""The defaults ``Suite.record_demos`` takes."""
+
+
 @dataclass
 class EpisodeResult:
     success: bool
@@ -204,6 +226,9 @@ class Suite(ABC):
       its env taken from the pool.
     - :meth:`check`: refuse bad specs before any episode runs (a missing file, ...).
     - :meth:`instruction`: the task's instruction, for result tables (optional).
+    - :meth:`record_demos`: scripted-expert demos of a task set, through the one attempt loop and
+      HDF5 writer of :mod:`capvector.envs.recording` (optional).
+    - ``task_sets``: the names the registry finds the suite by (``capvector evaluate --suite``).
     - ``release_envs``: close the envs after an evaluation (envs that hold gigabytes).
     """
 
@@ -226,6 +251,12 @@ class Suite(ABC):
     """Camera names its envs render (the policy's data spec picks among them)."""
     example: ClassVar[dict[str, Any]]
     """``specs`` arguments of a small task set: what ``tests/test_env_contract.py`` runs."""
+    demo_proprio_keys: ClassVar[tuple[str, ...]] = ()
+    """The ``obs`` keys of its demo files whose concatenation is the observation's proprio: what
+    ``data.proprio_keys`` names to train on them."""
+    demo_example: ClassVar[dict[str, Any] | None] = None
+    """:meth:`record_demos` arguments (``task_set`` and the suite's options) of one cheap demo,
+    which ``tests/test_env_contract.py`` records and reads back; None: it records no demos."""
 
     @abstractmethod
     def specs(self, task_set: str, episodes: int, **options: Any) -> list[Spec]:
@@ -249,12 +280,21 @@ class Suite(ABC):
         ``execute_steps`` executes only the first k actions of each chunk."""
 
     def record_demos(
-        self, task_set: str, episodes: int, out: str | os.PathLike[str], **options: Any
+        self,
+        task_set: str,
+        episodes: int,
+        out: str | os.PathLike[str],
+        settings: DemoSettings = DEMO_SETTINGS,
+        /,
+        **options: Any,
     ) -> list[DemoSummary]:
         """Record ``episodes`` successful scripted-expert demos of each task of ``task_set`` into
-        ``out`` (written atomically), in the HDF5 layout :mod:`capvector.data.hdf5` reads;
-        ``options`` are the suite's own (cameras, image_size, seed, ...). A suite without experts
-        keeps this default, which refuses."""
+        ``out`` (a file, or a folder of one file per task), written atomically by
+        :func:`capvector.envs.recording.record_file` in the HDF5 layout
+        :class:`capvector.data.hdf5.HDF5RobotDataset` reads. ``settings`` are every suite's;
+        ``options`` the suite's own, keyword-only (``capvector demos`` passes those given and
+        refuses the rest by flag: :func:`check_options`). A suite without experts keeps this
+        default, which refuses."""
         raise CapVectorError(f"the {self.name} suite records no demos (it has no scripted expert)")
 
     def instruction(self, spec: Spec) -> str | None:

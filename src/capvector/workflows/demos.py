@@ -6,11 +6,10 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Sequence
-from typing import Any
 
 import numpy as np
 
-from capvector.envs.base import check_options
+from capvector.envs.base import DemoSettings, check_options
 from capvector.envs.registry import suite_for_task_set
 from capvector.errors import CapVectorError
 from capvector.tool_cli import run_tool
@@ -92,16 +91,15 @@ def demos_cli(
     task_set = task if task is not None else suite
     assert task_set is not None
     found = suite_for_task_set(task_set)
-    # the common options always; a suite's own ones (robot, noise, tasks, workers, ...) when given
-    options: dict[str, Any] = dict(
-        cameras=_cameras(cameras, found.cameras), image_size=image_size, depth=depth, seed=seed,
-        max_attempts=max_attempts, progress=progress,
-    )  # fmt: skip
-    own = dict(robot=robot, gripper=gripper, noise=noise, extra_steps=extra_steps,
-               fovy=_parse_fovy(fovy) or None, tasks=tuple(tasks) or None, workers=workers)  # fmt: skip
-    options.update({k: v for k, v in own.items() if v is not None})
+    settings = DemoSettings(
+        _cameras(cameras, found.cameras), image_size, depth, seed, max_attempts, progress
+    )
+    # the suite's own options when given (robot, noise, tasks, workers, ...)
+    given = dict(robot=robot, gripper=gripper, noise=noise, extra_steps=extra_steps,
+                 fovy=_parse_fovy(fovy) or None, tasks=tuple(tasks) or None, workers=workers)  # fmt: skip
+    options = {k: v for k, v in given.items() if v is not None}
     check_options(found.record_demos, options, f"{found.name} demos", _flag)
-    for summary in found.record_demos(task_set, episodes, out, **options):
+    for summary in found.record_demos(task_set, episodes, out, settings, **options):
         lengths = np.asarray(summary.lengths)
         print(
             f"wrote {summary.demos} {summary.task} demos ({summary.samples} samples) to "

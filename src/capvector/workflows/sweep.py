@@ -56,7 +56,6 @@ def fit_settings(
     rollout task starts at ``VALIDATION_SEED_START`` or above, never on evaluation seeds.
     ``device``/``precision`` set the trainer's (``trainer_placement``). Returns the CLI
     (``parser``, ``config``) without building anything."""
-    from jsonargparse import Namespace
 
     from capvector.backbones.base import load_export_config
     from capvector.workflows.fit import run_lightning_cli
@@ -86,7 +85,7 @@ def fit_settings(
             )
         start = t.options.get("start_seed") or EVAL_SEED_START
         t.options["start_seed"] = max(start, VALIDATION_SEED_START)
-    config["data.eval_tasks"] = [Namespace(**dataclasses.asdict(t)) for t in tasks]
+    config["data.eval_tasks"] = [dataclasses.asdict(t) for t in tasks]
     EpisodeDataset(tasks)  # an unknown task fails here
     load_export_config(base)  # an export folder, before any work
     config["model.pretrained"] = base

@@ -48,7 +48,6 @@ import os
 import queue
 import signal
 import sys
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -59,21 +58,22 @@ import numpy as np
 from robosuite.utils import transform_utils as T
 from tqdm import tqdm
 
-from capvector.envs.base import DemoSummary
+from capvector.envs.base import DemoSummary, Observation
 from capvector.envs.libero.annotations import LiberoAnnotator
 from capvector.envs.libero.env import (
     LIBERO_NUM_TASKS,
     initial_states,
+    libero_observation,
     libero_task,
     make_libero_env,
     max_steps,
     seeded_reset,
 )
 from capvector.envs.libero.experts import LiberoPlaceExpert, place_goal, run_trial, task_env
+from capvector.envs.recording import SKIP, Demo, record_file
 from capvector.envs.robosuite.env import camera_intrinsics
 from capvector.errors import CapVectorError
-from capvector.io.frames import check_room_for_demo, write_frames
-from capvector.io.outputs import atomic_write_file, check_output
+from capvector.io.outputs import check_output
 
 LIBERO_IMAGE_SIZE = 128
 """The released datasets' image size (``create_dataset.py``: ``camera_heights=128``)."""
@@ -179,11 +179,13 @@ def demo_start(folder: str | Path, suite: str, task_id: int, index: int) -> tupl
 
 
 def record_episode(
-    env: Any, limit: int, cameras: dict[str, str], *, depth: bool = False
-) -> dict[str, np.ndarray] | None:
-    """One demo from the env's current (just placed) state, or None if the expert did not
-    succeed in ``limit`` steps. ``depth``: the env renders depth (``camera_depths=True``)."""
+    env: Any, limit: int, cameras: dict[str, str], seed: int, *, depth: bool = False
+) -> Demo | None:
+    """One demo from the env's current (just placed, from ``seed``) state, or None if the expert
+    did not succeed in ``limit`` steps. ``depth``: the env renders depth (``camera_depths=True``).
+    Its policy view is what a LIBERO trial shows the policy (:func:`libero_observation`)."""
     rows: dict[str, list[np.ndarray]] = {}
+    seen: list[Observation] = []
     inner = task_env(env)
     goal = place_goal(env)
     annotator = LiberoAnnotator(inner, goal.obj, goal.relation, goal.target)
@@ -204,7 +206,6 @@ def record_episode(
             "obs/ee_ori": ee_states[3:],
             "obs/gripper_states": np.asarray(obs["robot0_gripper_qpos"]),
             "obs/joint_states": np.asarray(obs["robot0_joint_pos"]),
-            "annotations": annotator(step.phase, obs),
             **{f"obs/{key}": np.asarray(obs[f"{cam}_image"]) for cam, key in cameras.items()},
         }
         if depth:
@@ -212,49 +213,40 @@ def record_episode(
                 values[f"obs/{depth_key_for_rgb(key)}"] = _metric_depth(env, obs, cam)
         for key, value in values.items():
             rows.setdefault(key, []).append(np.array(value))
+        notes.append(annotator(step.phase, obs))
+        seen.append(libero_observation(obs, "", list(cameras)))
 
+    notes: list[str] = []
     result = run_trial(env, None, limit, on_step=record)
     if not result.success:
         return None
-    episode = {key: np.stack(values) for key, values in rows.items()}
-    length = len(episode["actions"])
+    steps: dict[str, np.ndarray | list[str]] = {k: np.stack(v) for k, v in rows.items()}
+    steps["annotations"] = notes
+    length = len(notes)
     last = np.zeros(length, np.uint8)
     last[-1] = 1
-    episode["rewards"], episode["dones"] = last, last.copy()
-    return episode
+    steps["rewards"], steps["dones"] = last, last.copy()
+    attrs = {"model_file": inner.sim.model.get_xml(), "init_state": rows["states"][0]}
+    images = {cam: np.stack([o["images"][cam] for o in seen]) for cam in cameras}
+    proprio = np.stack([o["proprio"] for o in seen])
+    return Demo(seed, steps, attrs, length, images, proprio)
 
 
-def _write_demo(
-    group: h5py.Group, episode: dict[str, np.ndarray], seed: int, model_xml: str
-) -> None:
-    for key, value in episode.items():
-        if key.endswith(("_rgb", "_depth")):
-            write_frames(group, key, value)
-        elif key == "annotations":
-            group.create_dataset(key, data=value.tolist(), dtype=h5py.string_dtype("utf-8"))
-        else:
-            group.create_dataset(key, data=value)
-    group.attrs["num_samples"] = len(episode["actions"])
-    group.attrs["model_file"] = model_xml
-    group.attrs["init_state"] = episode["states"][0]
-    group.attrs["seed"] = seed
-
-
-def _write_data_attrs(
-    data: h5py.Group,
+def _data_attrs(
     env: Any,
     suite: str,
     task_id: int,
-    summary: TaskDemos,
+    summary: DemoSummary,
     image_size: int,
     depth_cameras: Sequence[str] = (),
-) -> None:
+) -> dict[str, Any]:
     task = libero_task(suite, task_id)
     inner = task_env(env)
     model = inner.sim.model
+    attrs: dict[str, Any] = {}
     for camera in depth_cameras:  # the attribute names capvector.envs.robosuite.demos writes
         fovy = float(model.cam_fovy[model.camera_name2id(camera)])
-        data.attrs[f"{camera}_intrinsics"] = stored_intrinsics(fovy, image_size)
+        attrs[f"{camera}_intrinsics"] = stored_intrinsics(fovy, image_size)
     problem = inner.parsed_problem
     problem_info = {
         "problem_name": problem["problem_name"],
@@ -262,11 +254,6 @@ def _write_data_attrs(
         "language_instruction": task.instruction,
     }
     env_name = type(inner).__name__
-    data.attrs["env_name"] = env_name
-    data.attrs["problem_info"] = json.dumps(problem_info)
-    data.attrs["macros_image_convention"] = "opengl"
-    data.attrs["bddl_file_name"] = str(task.bddl_file)
-    data.attrs["bddl_file_content"] = task.bddl_file.read_text()
     env_kwargs = {
         "bddl_file_name": str(task.bddl_file),
         "camera_names": ["robot0_eye_in_hand", "agentview"],
@@ -274,21 +261,27 @@ def _write_data_attrs(
         "camera_widths": image_size,
         "control_freq": inner.control_freq,
     }
-    data.attrs["env_args"] = json.dumps(
-        {
-            "type": 1,
-            "env_name": env_name,
-            "problem_name": problem["problem_name"],
-            "bddl_file": str(task.bddl_file),
-            "env_kwargs": env_kwargs,
-        }
-    )
-    data.attrs["num_demos"] = summary.demos
-    data.attrs["total"] = sum(summary.lengths)
-    data.attrs["expert"] = LiberoPlaceExpert.__name__
-    data.attrs["suite"] = suite
-    data.attrs["task_id"] = task_id
-    data.attrs["seeds"] = json.dumps(summary.seeds)
+    env_args = {
+        "type": 1,
+        "env_name": env_name,
+        "problem_name": problem["problem_name"],
+        "bddl_file": str(task.bddl_file),
+        "env_kwargs": env_kwargs,
+    }
+    return attrs | {
+        "env_name": env_name,
+        "problem_info": json.dumps(problem_info),
+        "macros_image_convention": "opengl",
+        "bddl_file_name": str(task.bddl_file),
+        "bddl_file_content": task.bddl_file.read_text(),
+        "env_args": json.dumps(env_args),
+        "num_demos": summary.demos,
+        "total": sum(summary.lengths),
+        "expert": LiberoPlaceExpert.__name__,
+        "suite": suite,
+        "task_id": task_id,
+        "seeds": json.dumps(summary.seeds),
+    }
 
 
 def record_task(
@@ -314,7 +307,6 @@ def record_task(
     max_attempts = max_attempts or max(2 * episodes, episodes + 20)
     path = out_dir / demo_file_name(suite, task_id)
     summary = TaskDemos(path, f"{suite}/{task_id}", task_id=task_id)
-    start = time.perf_counter()
     env = make_libero_env(
         suite,
         task_id,
@@ -323,51 +315,26 @@ def record_task(
         render=bool(cameras),
         **({"camera_depths": True} if depth else {}),
     )
+    keys = {c: CAMERA_KEYS[c] for c in cameras}
     try:
         official = initial_states(suite, task_id)
         object_qpos = _object_qpos(env)
-        with atomic_write_file(path, what="demo file") as tmp, h5py.File(tmp, "w") as f:
-            data = f.create_group("data")
-            attempt_seed = seed
-            while summary.demos < episodes:
-                if summary.attempts >= max_attempts:
-                    raise CapVectorError(
-                        f"the LIBERO expert solved {suite} task {task_id} in only {summary.demos} "
-                        f"of {summary.attempts} attempts (seeds from {seed}), short of the "
-                        f"{episodes} demos asked for: raise --max-attempts"
-                    )
-                seeded_reset(env, attempt_seed)
-                if is_official_state(
-                    task_env(env).sim.get_state().flatten(), official, object_qpos
-                ):
-                    summary.skipped_seeds.append(attempt_seed)
-                    attempt_seed += 1
-                    continue
-                summary.attempts += 1
-                episode = record_episode(
-                    env, max_steps(suite), {c: CAMERA_KEYS[c] for c in cameras}, depth=depth
-                )
-                if episode is not None:
-                    model_xml = task_env(env).sim.model.get_xml()
-                    check_room_for_demo(path, list(episode.values()), model_xml)
-                    _write_demo(
-                        data.create_group(f"demo_{summary.demos}"), episode, attempt_seed, model_xml
-                    )
-                    summary.demos += 1
-                    summary.seeds.append(attempt_seed)
-                    summary.lengths.append(len(episode["actions"]))
-                    summary.samples += len(episode["actions"])
-                    if bar is not None:
-                        bar.update(1)
-                attempt_seed += 1
-                if bar is not None:
-                    bar.set_postfix(task=task_id, attempts=summary.attempts)
-            depth_cameras = list(cameras) if depth else []
-            _write_data_attrs(data, env, suite, task_id, summary, image_size, depth_cameras)
+
+        def attempt(attempt_seed: int) -> Demo | None | str:
+            seeded_reset(env, attempt_seed)
+            if is_official_state(task_env(env).sim.get_state().flatten(), official, object_qpos):
+                summary.skipped_seeds.append(attempt_seed)
+                return SKIP
+            return record_episode(env, max_steps(suite), keys, attempt_seed, depth=depth)
+
+        depth_cameras = list(cameras) if depth else []
+        return record_file(
+            path, summary, episodes, attempt, seed=seed, max_attempts=max_attempts,
+            give_up="the LIBERO expert: raise --max-attempts", bar=bar,
+            data_attrs=lambda s: _data_attrs(env, suite, task_id, s, image_size, depth_cameras),
+        )  # fmt: skip
     finally:
         env.close()
-    summary.seconds = time.perf_counter() - start
-    return summary
 
 
 def record_suite(

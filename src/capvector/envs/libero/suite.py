@@ -8,7 +8,15 @@ import os
 from collections.abc import Sequence
 from typing import Any
 
-from capvector.envs.base import DemoSummary, EnvPool, Episode, Spec, Suite
+from capvector.envs.base import (
+    DEMO_SETTINGS,
+    DemoSettings,
+    DemoSummary,
+    EnvPool,
+    Episode,
+    Spec,
+    Suite,
+)
 from capvector.envs.libero.env import LIBERO_NUM_TASKS, LIBERO_TRIALS, Rendering
 from capvector.envs.libero.spec import LiberoEpisodeSpec, libero_specs
 from capvector.envs.registry import SUITES
@@ -23,6 +31,8 @@ class LiberoSuite(Suite):
     release_envs = True  # a stepped LIBERO env holds ~1 GB
     cameras = ("agentview", "robot0_eye_in_hand")  # LIBERO_CAMERAS
     example = {"task_set": "libero_spatial", "episodes": 2, "tasks": [0]}
+    demo_proprio_keys = ("ee_states", "gripper_states")  # LIBERO's released layout
+    demo_example = {"task_set": "libero_spatial", "tasks": [0]}
 
     def specs(
         self,
@@ -62,13 +72,9 @@ class LiberoSuite(Suite):
         task_set: str,
         episodes: int,
         out: str | os.PathLike[str],
+        settings: DemoSettings = DEMO_SETTINGS,
+        /,
         *,
-        cameras: Sequence[str] = ("agentview", "robot0_eye_in_hand"),
-        image_size: int | None = None,
-        depth: bool = False,
-        seed: int = 0,
-        max_attempts: int | None = None,
-        progress: bool = True,
         tasks: Sequence[int] = (),
         workers: int = 0,
     ) -> list[DemoSummary]:
@@ -78,8 +84,9 @@ class LiberoSuite(Suite):
         side by side."""
         from capvector.envs.libero.demos import LIBERO_IMAGE_SIZE, record_suite  # LIBERO
 
+        size = settings.image_size
         return record_suite(
-            task_set, episodes, out, tasks=tasks, cameras=cameras, depth=depth, seed=seed,
-            image_size=LIBERO_IMAGE_SIZE if image_size is None else image_size,
-            max_attempts=max_attempts, progress=progress, workers=workers,
+            task_set, episodes, out, tasks=tasks, cameras=settings.cameras, depth=settings.depth,
+            seed=settings.seed, image_size=LIBERO_IMAGE_SIZE if size is None else size,
+            max_attempts=settings.max_attempts, progress=settings.progress, workers=workers,
         )  # fmt: skip

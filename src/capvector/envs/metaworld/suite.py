@@ -5,10 +5,18 @@ task (``reach-v3``), its episodes the seeds from ``EVAL_SEED_START`` on, its pro
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
 from typing import Any
 
-from capvector.envs.base import EVAL_SEED_START, DemoSummary, EnvPool, Episode, Spec, Suite
+from capvector.envs.base import (
+    DEMO_SETTINGS,
+    EVAL_SEED_START,
+    DemoSettings,
+    DemoSummary,
+    EnvPool,
+    Episode,
+    Spec,
+    Suite,
+)
 from capvector.envs.metaworld.spec import (
     CAMERAS,
     EVAL_EPISODES,
@@ -57,31 +65,29 @@ class MetaWorldSuite(Suite):
         task_set: str,
         episodes: int,
         out: str | os.PathLike[str],
+        settings: DemoSettings = DEMO_SETTINGS,
+        /,
         *,
-        cameras: Sequence[str] | None = None,
-        image_size: int | None = None,
-        depth: bool = False,
-        seed: int = 0,
-        max_attempts: int | None = None,
-        progress: bool = True,
         noise: float | None = None,
         extra_steps: int | None = None,
     ) -> list[DemoSummary]:
         """A folder ``out`` of one file per task of ``task_set`` (``<task>.hdf5``), ``episodes``
         successful expert demos each (:func:`~capvector.envs.metaworld.demos.record_task_set`);
-        ``cameras`` default to the protocol's ``corner2``, ``image_size`` to 64."""
+        cameras default to the protocol's ``corner2`` (the default settings' cameras are
+        robosuite's, which Meta-World has none of), the image size to 64."""
         from capvector.envs.metaworld import demos  # Meta-World and MuJoCo
 
-        if depth:
+        if settings.depth:
             raise CapVectorError("Meta-World demos record no depth; drop --depth")
-        own = {"noise": noise, "extra_steps": extra_steps, "max_attempts": max_attempts}
+        cameras = CAMERAS if settings.cameras == DEMO_SETTINGS.cameras else settings.cameras
+        own = {"noise": noise, "extra_steps": extra_steps, "max_attempts": settings.max_attempts}
         return demos.record_task_set(
             task_set,
             episodes,
             out,
-            cameras=tuple(cameras or CAMERAS),
-            image_size=image_size or demos.DEFAULT_IMAGE_SIZE,
-            seed=seed,
-            progress=progress,
+            cameras=tuple(cameras),
+            image_size=settings.image_size or demos.DEFAULT_IMAGE_SIZE,
+            seed=settings.seed,
+            progress=settings.progress,
             **{k: v for k, v in own.items() if v is not None},
         )

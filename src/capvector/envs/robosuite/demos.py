@@ -35,15 +35,14 @@ from __future__ import annotations
 import json
 import logging
 import os
-import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
-import h5py
 import numpy as np
 from tqdm import tqdm
 
 from capvector.envs.base import DemoSummary
+from capvector.envs.recording import Demo, record_file
 from capvector.envs.robosuite.annotations import Annotator
 from capvector.envs.robosuite.env import (
     DEFAULT_CAMERAS,
@@ -51,11 +50,11 @@ from capvector.envs.robosuite.env import (
     PROPRIO_KEYS,
     SimEnv,
     SimulationFault,
+    proprio_from,
 )
 from capvector.envs.robosuite.experts import ScriptedExpert, make_expert
 from capvector.errors import CapVectorError
-from capvector.io.frames import check_room_for_demo, write_frames
-from capvector.io.outputs import atomic_write_file, check_output
+from capvector.io.outputs import check_output
 
 log = logging.getLogger(__name__)
 
@@ -155,41 +154,45 @@ def record_episode(
     )
 
 
-def _write_demo(group: h5py.Group, ep: Episode, sim: SimEnv, model_xml: str) -> None:
-    group.attrs["num_samples"] = ep.num_samples
-    group.attrs["model_file"] = model_xml
-    group.attrs["seed"] = ep.seed
-    group.attrs["language_instruction"] = sim.instruction
-    group.attrs["first_success"] = ep.first_success
-    group.create_dataset("actions", data=ep.actions)
-    group.create_dataset("executed_actions", data=ep.executed_actions)
-    group.create_dataset("states", data=ep.states)
-    group.create_dataset("rewards", data=ep.rewards)
-    group.create_dataset("dones", data=ep.dones)
-    group.create_dataset(
-        "annotations", data=ep.annotations, dtype=h5py.string_dtype(encoding="utf-8")
+def to_demo(ep: Episode, sim: SimEnv, model_xml: str) -> Demo:
+    """``ep`` in the layout of the module docstring (images upright as stored: the policy's)."""
+    steps: dict[str, np.ndarray | list[str]] = {
+        "actions": ep.actions,
+        "executed_actions": ep.executed_actions,
+        "states": ep.states,
+        "rewards": ep.rewards,
+        "dones": ep.dones,
+        "annotations": ep.annotations,
+        **{f"obs/{key}": value for key, value in ep.obs.items()},
+    }
+    attrs = {
+        "model_file": model_xml,
+        "language_instruction": sim.instruction,
+        "first_success": ep.first_success,
+    }
+    images = {cam: ep.obs[f"{cam}_image"] for cam in sim.cameras if f"{cam}_image" in ep.obs}
+    # the policy's view of each step, by the function a rollout's observation uses
+    proprio = np.stack(
+        [proprio_from({k: ep.obs[k][t] for k in ep.obs}) for t in range(len(ep.actions))]
     )
-    obs = group.create_group("obs")
-    for key, value in ep.obs.items():
-        if key.endswith(("_image", "_depth")):
-            write_frames(obs, key, value)
-        else:
-            obs.create_dataset(key, data=value)
+    return Demo(ep.seed, steps, attrs, ep.first_success + 1, images, proprio)
 
 
-def _write_data_attrs(data: h5py.Group, sim: SimEnv, total: int, noise: float, expert: str) -> None:
-    data.attrs["env_args"] = json.dumps(sim.env_args())
-    data.attrs["total"] = total
-    data.attrs["language_instruction"] = sim.instruction
-    data.attrs["cameras"] = json.dumps(list(sim.cameras))
-    for cam, k in sim.intrinsics().items():
-        data.attrs[f"{cam}_intrinsics"] = k
-    data.attrs["camera_fovy"] = json.dumps(sim.camera_fovy)
-    data.attrs["image_size"] = sim.image_size
-    data.attrs["proprio_keys"] = json.dumps(list(PROPRIO_KEYS))
-    data.attrs["model_fixes"] = json.dumps(sim.model_fixes)
-    data.attrs["noise_std"] = noise
-    data.attrs["expert"] = expert
+def _data_attrs(sim: SimEnv, total: int, noise: float, expert: str) -> dict[str, object]:
+    attrs: dict[str, object] = {
+        "env_args": json.dumps(sim.env_args()),
+        "total": total,
+        "language_instruction": sim.instruction,
+        "cameras": json.dumps(list(sim.cameras)),
+        "camera_fovy": json.dumps(sim.camera_fovy),
+        "image_size": sim.image_size,
+        "proprio_keys": json.dumps(list(PROPRIO_KEYS)),
+        "model_fixes": json.dumps(sim.model_fixes),
+        "noise_std": noise,
+        "expert": expert,
+    }
+    attrs.update({f"{cam}_intrinsics": k for cam, k in sim.intrinsics().items()})
+    return attrs
 
 
 def record_demos(
@@ -210,7 +213,8 @@ def record_demos(
     progress: bool = True,
     sim: SimEnv | None = None,
 ) -> DemoSummary:
-    """Record ``episodes`` successful expert demos of ``task`` into ``out`` (written atomically).
+    """Record ``episodes`` successful expert demos of ``task`` into ``out`` (written atomically,
+    by :func:`capvector.envs.recording.record_file`).
 
     Attempts use seeds ``seed, seed+1, ...`` until ``episodes`` succeed; more than
     ``max_attempts`` (default ``max(2 * episodes, episodes + 20)``) attempts is an error and
@@ -238,46 +242,26 @@ def record_demos(
     expert = make_expert(sim)
     annotator = Annotator(sim.task, sim.spec)
     model_xml = sim.model_xml()
-    summary = DemoSummary(out, sim.task)
-    start = time.perf_counter()
+    render = bool(sim.cameras)
+
+    def attempt(attempt_seed: int) -> Demo | None:
+        ep = record_episode(
+            sim, expert, annotator, attempt_seed, noise=noise, extra_steps=extra_steps,
+            render=render,
+        )  # fmt: skip
+        return None if ep is None else to_demo(ep, sim, model_xml)
+
     bar = tqdm(total=episodes, desc=f"{sim.task} demos", unit="demo", disable=not progress)
     try:
-        with atomic_write_file(out, what="demo file") as tmp, h5py.File(tmp, "w") as f:
-            data = f.create_group("data")
-            while summary.demos < episodes:
-                if summary.attempts >= max_attempts:
-                    raise CapVectorError(
-                        f"the {sim.task} expert on {sim.robot} succeeded in only {summary.demos} "
-                        f"of {summary.attempts} attempts (seeds {seed}..{seed + summary.attempts - 1}),"
-                        f" short of the {episodes} demos asked for: raise --max-attempts or lower "
-                        f"--noise (now {noise})"
-                    )
-                attempt_seed = seed + summary.attempts
-                summary.attempts += 1
-                ep = record_episode(
-                    sim,
-                    expert,
-                    annotator,
-                    attempt_seed,
-                    noise=noise,
-                    extra_steps=extra_steps,
-                    render=bool(sim.cameras),
-                )
-                if ep is not None:
-                    arrays = [ep.actions, ep.executed_actions, ep.states, ep.rewards, ep.dones]
-                    arrays += [ep.annotations, *ep.obs.values()]
-                    check_room_for_demo(out, arrays, model_xml)
-                    _write_demo(data.create_group(f"demo_{summary.demos}"), ep, sim, model_xml)
-                    summary.demos += 1
-                    summary.samples += ep.num_samples
-                    summary.seeds.append(ep.seed)
-                    summary.lengths.append(ep.first_success + 1)
-                    bar.update(1)
-                bar.set_postfix(attempts=summary.attempts, success=f"{summary.success_rate:.0%}")
-            _write_data_attrs(data, sim, summary.samples, noise, type(expert).__name__)
+        return record_file(
+            out, DemoSummary(out, sim.task), episodes, attempt, seed=seed,
+            max_attempts=max_attempts,
+            give_up=f"the {sim.task} expert on {sim.robot}: raise --max-attempts or lower "
+            f"--noise (now {noise})",
+            data_attrs=lambda s: _data_attrs(sim, s.samples, noise, type(expert).__name__),
+            bar=bar,
+        )  # fmt: skip
     finally:
         bar.close()
         if own_sim:
             sim.close()
-    summary.seconds = time.perf_counter() - start
-    return summary

@@ -41,7 +41,7 @@ class EpisodeSpec:
 
 
 def eval_specs(
-    task: str,
+    task_set: str,
     episodes: int,
     *,
     robot: str = DEFAULT_ROBOT,
@@ -50,18 +50,19 @@ def eval_specs(
     gripper: str | None = None,
     variant: str | None = None,
 ) -> list[EpisodeSpec]:
-    """``episodes`` specs with consecutive seeds from ``start_seed`` (disjoint from demo seeds).
+    """``episodes`` specs of the task ``task_set`` with consecutive seeds from ``start_seed``
+    (disjoint from demo seeds): the robosuite suite's ``specs``.
 
     A variant that swaps the arm (``sawyer``, ``ur5e``) sets ``robot``/``gripper``; a visual one
     is kept on the spec and applied after each reset.
     """
-    get_task(task)
+    get_task(task_set)
     visual = None
     if variant is not None:
         v = get_variant(variant)
         robot, gripper = v.robot or robot, v.gripper if v.robot else gripper
         visual = variant if v.visual else None
     return [
-        EpisodeSpec(task, start_seed + i, robot, max_steps, gripper, visual)
+        EpisodeSpec(task_set, start_seed + i, robot, max_steps, gripper, visual)
         for i in range(episodes)
     ]

@@ -5,12 +5,13 @@ the task's own."""
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import Any
 
 from capvector.envs.base import (
     DEFAULT_ROBOT,
-    EVAL_SEED_START,
+    DEMO_SETTINGS,
+    DemoSettings,
     DemoSummary,
     EnvPool,
     Episode,
@@ -28,31 +29,13 @@ class RobosuiteSuite(Suite):
     task_sets = tuple(TASKS)  # a task set is one task
     cameras = ("agentview", "robot0_eye_in_hand")
     example = {"task_set": "Lift", "episodes": 2}
+    # capvector.envs.robosuite.env.PROPRIO_KEYS (that module imports the simulator)
+    demo_proprio_keys = ("robot0_eef_pos", "robot0_eef_axis_angle", "robot0_gripper_qpos")
+    demo_example = {"task_set": "Lift", "noise": 0.0, "extra_steps": 1}
 
-    def specs(
-        self,
-        task_set: str,
-        episodes: int,
-        *,
-        robot: str = DEFAULT_ROBOT,
-        start_seed: int = EVAL_SEED_START,
-        max_steps: int | None = None,
-        gripper: str | None = None,
-        variant: str | None = None,
-    ) -> list[Spec]:
-        """``episodes`` seeds of the task ``task_set`` from ``start_seed``
-        (:func:`~capvector.envs.robosuite.spec.eval_specs`)."""
-        return list(
-            eval_specs(
-                task_set,
-                episodes,
-                robot=robot,
-                start_seed=start_seed,
-                max_steps=max_steps,
-                gripper=gripper,
-                variant=variant,
-            )  # fmt: skip
-        )
+    # ``episodes`` seeds of the task ``task_set`` from ``start_seed``; options ``robot``,
+    # ``start_seed``, ``max_steps``, ``gripper``, ``variant``: the spec module's function itself
+    specs = staticmethod(eval_specs)  # type: ignore[assignment]
 
     def start(self, spec: Spec, envs: EnvPool, **settings: Any) -> Episode:
         from capvector.envs.robosuite.episode import Episode as RobosuiteEpisode  # the simulator
@@ -65,13 +48,9 @@ class RobosuiteSuite(Suite):
         task_set: str,
         episodes: int,
         out: str | os.PathLike[str],
+        settings: DemoSettings = DEMO_SETTINGS,
+        /,
         *,
-        cameras: Sequence[str] = ("agentview", "robot0_eye_in_hand"),
-        image_size: int | None = None,
-        depth: bool = False,
-        seed: int = 0,
-        max_attempts: int | None = None,
-        progress: bool = True,
         robot: str = DEFAULT_ROBOT,
         gripper: str | None = None,
         noise: float | None = None,
@@ -83,10 +62,11 @@ class RobosuiteSuite(Suite):
         0.1, 6 steps after success)."""
         from capvector.envs.robosuite import demos  # the simulator
 
-        given = {"noise": noise, "extra_steps": extra_steps, "image_size": image_size}
+        given = {"noise": noise, "extra_steps": extra_steps, "image_size": settings.image_size}
         summary = demos.record_demos(
-            task_set, episodes, out, robot=robot, gripper=gripper, cameras=cameras, depth=depth,
-            seed=seed, max_attempts=max_attempts, camera_fovy=fovy, progress=progress,
+            task_set, episodes, out, robot=robot, gripper=gripper, cameras=settings.cameras,
+            depth=settings.depth, seed=settings.seed, max_attempts=settings.max_attempts,
+            camera_fovy=fovy, progress=settings.progress,
             **{k: v for k, v in given.items() if v is not None},
         )  # fmt: skip
         return [summary]
