@@ -26,22 +26,26 @@ from __future__ import annotations
 
 import json
 import os
-import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import h5py
 import numpy as np
 from tqdm import tqdm
 
 from capvector.envs.base import DemoSummary
-from capvector.envs.metaworld.env import PROPRIO_KEYS, MetaWorldEnv
+from capvector.envs.metaworld.env import MetaWorldEnv
 from capvector.envs.metaworld.experts import MetaWorldExpert
-from capvector.envs.metaworld.spec import CAMERAS, MAX_STEPS, SUITE_NAME, task_set_tasks
+from capvector.envs.metaworld.spec import (
+    CAMERAS,
+    MAX_STEPS,
+    PROPRIO_KEYS,
+    SUITE_NAME,
+    task_set_tasks,
+)
+from capvector.envs.recording import Demo, record_file
 from capvector.errors import CapVectorError
-from capvector.io.frames import write_frames
-from capvector.io.outputs import atomic_write_file, check_output
+from capvector.io.outputs import check_output
 
 DEFAULT_NOISE = 0.2
 """Std of the DART noise on the xyz action dims (Meta-World units: 0.2 = 2 mm a step)."""
@@ -50,9 +54,7 @@ DEFAULT_EXTRA_STEPS = 6
 DEFAULT_IMAGE_SIZE = 64
 
 
-def record_episode(
-    env: MetaWorldEnv, seed: int, *, noise: float, extra_steps: int
-) -> dict[str, np.ndarray] | None:
+def record_episode(env: MetaWorldEnv, seed: int, *, noise: float, extra_steps: int) -> Demo | None:
     """The expert from ``seed``'s initial state, recorded; None if it did not solve the task in
     the protocol's 500 steps, or was no longer solved at the last recorded step."""
     expert = MetaWorldExpert(env.task)
@@ -86,27 +88,18 @@ def record_episode(
             if not solved:
                 return None
             break
-    out = {key: np.stack(values) for key, values in rows.items()}
-    out["first_success"] = np.int64(first_success)
-    return out
-
-
-def _write_demo(
-    group: h5py.Group, demo: dict[str, np.ndarray], seed: int, env: MetaWorldEnv
-) -> None:
-    group.attrs["num_samples"] = demo["actions"].shape[0]
-    group.attrs["seed"] = seed
-    group.attrs["language_instruction"] = env.instruction
-    group.attrs["first_success"] = int(demo["first_success"])
-    for key, value in demo.items():
-        if key == "first_success":
-            continue
-        if key.endswith("_image"):
-            write_frames(group.require_group("obs"), key.removeprefix("obs/"), value)
-        elif key in ("actions", "executed_actions"):
-            group.create_dataset(key, data=value.astype(np.float32))
-        else:
-            group.create_dataset(key, data=value)
+    steps = {key: np.stack(values) for key, values in rows.items()}
+    for key in ("actions", "executed_actions"):
+        steps[key] = steps[key].astype(np.float32)
+    return Demo(
+        seed=seed,
+        steps=dict(steps),
+        attrs={"language_instruction": env.instruction, "first_success": first_success},
+        length=first_success + 1,
+        # frames are stored upright, as the episode shows them
+        images={cam: steps[f"obs/{cam}_image"] for cam in env.cameras},
+        proprio=np.concatenate([steps[f"obs/{k}"] for k in PROPRIO_KEYS], 1).astype(np.float32),
+    )
 
 
 def record_task(
@@ -130,43 +123,35 @@ def record_task(
         raise CapVectorError("Meta-World demos need a camera, e.g. --cameras corner2")
     max_attempts = max_attempts or max(2 * episodes, episodes + 20)
     out = check_output(out, overwrite=True, what="demo file")
-    summary = DemoSummary(path=out, task=task)
-    start = time.perf_counter()
     env = MetaWorldEnv(task, cameras=cameras, image_size=image_size)
-    try:
-        with atomic_write_file(out, what="demo file") as tmp, h5py.File(tmp, "w") as f:
-            data = f.create_group("data")
-            while summary.demos < episodes:
-                if summary.attempts >= max_attempts:
-                    raise CapVectorError(
-                        f"the {task} expert succeeded in only {summary.demos} of {summary.attempts}"
-                        f" attempts (seeds {seed}..{seed + summary.attempts - 1}), short of the "
-                        f"{episodes} demos asked for: raise --max-attempts or lower --noise"
-                    )
-                attempt = seed + summary.attempts
-                summary.attempts += 1
-                demo = record_episode(env, attempt, noise=noise, extra_steps=extra_steps)
-                if demo is None:
-                    continue
-                _write_demo(data.create_group(f"demo_{summary.demos}"), demo, attempt, env)
-                summary.demos += 1
-                summary.samples += int(demo["actions"].shape[0])
-                summary.seeds.append(attempt)
-                summary.lengths.append(int(demo["first_success"]) + 1)
-            data.attrs["env_args"] = json.dumps(
+
+    def data_attrs(summary: DemoSummary) -> dict[str, Any]:
+        return {
+            "env_args": json.dumps(
                 {"env_name": task, "type": SUITE_NAME, "env_kwargs": {"max_steps": MAX_STEPS}}
-            )
-            data.attrs["total"] = summary.samples
-            data.attrs["language_instruction"] = env.instruction
-            data.attrs["cameras"] = json.dumps(list(cameras))
-            data.attrs["image_size"] = image_size
-            data.attrs["proprio_keys"] = json.dumps(list(PROPRIO_KEYS))
-            data.attrs["noise_std"] = noise
-            data.attrs["expert"] = type(MetaWorldExpert(task).policy).__name__
+            ),
+            "total": summary.samples,
+            "language_instruction": env.instruction,
+            "cameras": json.dumps(list(cameras)),
+            "image_size": image_size,
+            "proprio_keys": json.dumps(list(PROPRIO_KEYS)),
+            "noise_std": noise,
+            "expert": type(MetaWorldExpert(task).policy).__name__,
+        }
+
+    try:
+        return record_file(
+            out,
+            DemoSummary(path=out, task=task),
+            episodes,
+            lambda seed: record_episode(env, seed, noise=noise, extra_steps=extra_steps),
+            seed=seed,
+            max_attempts=max_attempts,
+            give_up="raise --max-attempts or lower --noise",
+            data_attrs=data_attrs,
+        )
     finally:
         env.close()
-    summary.seconds = time.perf_counter() - start
-    return summary
 
 
 def record_task_set(

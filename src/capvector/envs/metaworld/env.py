@@ -32,7 +32,12 @@ from collections.abc import Sequence  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from capvector.envs.metaworld.spec import CAMERAS, INSTRUCTIONS, MAX_STEPS  # noqa: E402
+from capvector.envs.metaworld.spec import (  # noqa: E402
+    CAMERAS,
+    INSTRUCTIONS,
+    MAX_STEPS,
+    PROPRIO_KEYS,
+)
 from capvector.errors import CapVectorError, MissingExtraError, unknown_name  # noqa: E402
 
 
@@ -59,8 +64,6 @@ CORNER2_POS = (0.75, 0.075, 0.7)
 UPSIDE_DOWN = frozenset({"corner2"})
 """Cameras whose frames come out rotated 180 degrees (LeRobot flips ``corner2``'s both axes)."""
 GEOM_GROUPS = (0, 1, 2)
-PROPRIO_KEYS = ("robot0_eef_pos", "robot0_eef_axis_angle", "robot0_gripper_qpos")
-"""The demo files' proprio keys: the names of robosuite's, so configs need no change."""
 
 
 def to_env_action(action: np.ndarray) -> np.ndarray:

@@ -36,6 +36,8 @@ MAX_STEPS = 500
 """LeRobot's ``MetaworldEnv._max_episode_steps`` (Meta-World's ``max_path_length``)."""
 EVAL_EPISODES = 10
 """LeRobot's recommended episodes per task (``docs/source/metaworld.mdx``)."""
+PROPRIO_KEYS = ("robot0_eef_pos", "robot0_eef_axis_angle", "robot0_gripper_qpos")
+"""The demo files' proprio keys: the names of robosuite's, so configs need no change."""
 CAMERAS = ("corner2",)
 """LeRobot's one camera; the others of the model (topview, corner, ...) are not set up upright."""
 

@@ -21,6 +21,7 @@ from capvector.envs.metaworld.spec import (
     CAMERAS,
     EVAL_EPISODES,
     INSTRUCTIONS,
+    PROPRIO_KEYS,
     SUITE_NAME,
     TASK_SETS,
     MetaWorldEpisodeSpec,
@@ -37,6 +38,8 @@ class MetaWorldSuite(Suite):
     eval_episodes = EVAL_EPISODES
     cameras = CAMERAS
     example = {"task_set": "reach-v3", "episodes": 2}
+    demo_example = {"task_set": "reach-v3", "noise": 0.0, "extra_steps": 1}
+    demo_proprio_keys = PROPRIO_KEYS
 
     def specs(
         self,
