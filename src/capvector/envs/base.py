@@ -24,6 +24,7 @@ seeds a training demo used; demos start at ``--seed`` (default 0), evaluation at
 from __future__ import annotations
 
 import inspect
+import logging
 import os
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Hashable, Mapping, Sequence
@@ -41,6 +42,7 @@ EVAL_SEED_START = 1_000_000
 VALIDATION_SEED_START = 2_000_000
 """First λ-sweep seed: disjoint from demo seeds and from evaluation seeds."""
 DEFAULT_ROBOT = "Panda"
+log = logging.getLogger(__name__)
 
 
 class Observation(TypedDict, total=False):
@@ -118,6 +120,32 @@ class EpisodeResult:
     final_proprio: tuple[float, ...] | None = None
     """The robot's raw proprio after the last step (eef pos, axis-angle, fingers): where it ended,
     comparable across simulators (``capvector evaluate --json``)."""
+
+
+def end_episode(
+    spec: Spec,
+    success: bool,
+    steps: int,
+    reason: str | None,
+    frames: list[np.ndarray] | None,
+    final_proprio: np.ndarray | None,
+) -> EpisodeResult:
+    """The :class:`EpisodeResult` every suite's episode returns: a failure other than the step
+    limit (a fault, a non-finite action) is logged as a warning naming the episode, and a final
+    proprio with a non-finite entry (after a simulation fault) is no position (None)."""
+    if reason is not None and not reason.startswith("step limit"):
+        log.warning("%s seed %d (%s): %s", spec.task, spec.seed, spec.robot, reason)
+    final = None
+    if final_proprio is not None and np.isfinite(final_proprio).all():
+        final = tuple(np.asarray(final_proprio).tolist())
+    return EpisodeResult(
+        success, steps, reason, frames, spec.seed, spec.task, spec.robot, spec.variant, final
+    )
+
+
+def side_by_side(images: Mapping[str, np.ndarray]) -> np.ndarray:
+    """One video frame: the cameras' (H, W, 3) images side by side, in their order."""
+    return np.concatenate(list(images.values()), axis=1)
 
 
 def as_chunk(actions: Any) -> np.ndarray:

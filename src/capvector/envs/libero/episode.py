@@ -20,13 +20,12 @@ numpy's global random stream stands after the trials before it.
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
-from capvector.envs.base import EnvPool, EpisodeResult, Observation, Spec, as_chunk
+from capvector.envs.base import EnvPool, EpisodeResult, Observation, Spec, as_chunk, end_episode
 from capvector.envs.libero.env import (
     NUM_WAIT_STEPS,
     WAIT_ACTION,
@@ -42,8 +41,6 @@ from capvector.envs.libero.env import (
 )
 from capvector.envs.libero.spec import LiberoEpisodeSpec
 from capvector.errors import CapVectorError
-
-log = logging.getLogger(__name__)
 
 POLICY_GRIPPER: GripperConvention = "close_positive"
 """How a policy's gripper value reads: our policies train on robosuite's -1 open / +1 close, the
@@ -168,13 +165,8 @@ class LiberoEpisode:
             self.frames.append(np.concatenate(images, axis=1))
 
     def _result(self, success: bool, reason: str | None) -> EpisodeResult:
-        spec = self.spec
-        if reason is not None and not reason.startswith("step limit"):
-            log.warning("%s trial %d: %s", spec.task, spec.trial, reason)
-        return EpisodeResult(
-            success, self.steps, reason, self.frames, spec.trial, spec.task, spec.robot,
-            final_proprio=tuple(libero_proprio(self.obs).tolist()),
-        )  # fmt: skip
+        final = libero_proprio(self.obs)
+        return end_episode(self.spec, success, self.steps, reason, self.frames, final)
 
 
 def _check_fovy(env: Any, camera_fovy: Mapping[str, float]) -> None:

@@ -6,18 +6,22 @@ the first success or at the step limit (LeRobot's protocol, :mod:`capvector.envs
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
-from capvector.envs.base import EnvPool, EpisodeResult, Observation, as_chunk
+from capvector.envs.base import (
+    EnvPool,
+    EpisodeResult,
+    Observation,
+    as_chunk,
+    end_episode,
+    side_by_side,
+)
 from capvector.envs.metaworld.env import MetaWorldEnv
 from capvector.envs.metaworld.spec import MetaWorldEpisodeSpec
 from capvector.errors import CapVectorError
-
-log = logging.getLogger(__name__)
 
 
 def metaworld_env(
@@ -94,14 +98,9 @@ class MetaWorldEpisode:
 
     def _record(self, images: Mapping[str, np.ndarray]) -> None:
         if self.frames is not None:
-            self.frames.append(np.concatenate(list(images.values()), axis=1))
+            self.frames.append(side_by_side(images))
 
     def _result(self, success: bool, reason: str | None) -> EpisodeResult:
-        spec = self.spec
-        if reason is not None and not reason.startswith("step limit"):
-            log.warning("%s seed %d: %s", spec.task, spec.seed, reason)
+        # after a simulation fault the proprio may hold NaN: end_episode reports no position
         final = self.sim.proprio()
-        return EpisodeResult(
-            success, self.sim.steps, reason, self.frames, spec.seed, spec.task, spec.robot,
-            spec.variant, tuple(final.tolist()) if np.isfinite(final).all() else None,
-        )  # fmt: skip
+        return end_episode(self.spec, success, self.sim.steps, reason, self.frames, final)

@@ -10,18 +10,22 @@ success or at the step limit (``EpisodeSpec.max_steps``, else the task's default
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
-from capvector.envs.base import EnvPool, EpisodeResult, Observation, as_chunk
+from capvector.envs.base import (
+    EnvPool,
+    EpisodeResult,
+    Observation,
+    as_chunk,
+    end_episode,
+    side_by_side,
+)
 from capvector.envs.robosuite.env import SimEnv, SimulationFault
 from capvector.envs.robosuite.spec import EpisodeSpec
 from capvector.envs.robosuite.variants import SceneRandomizer, get_variant
-
-log = logging.getLogger(__name__)
 
 
 def to_env_action(action: np.ndarray) -> np.ndarray:
@@ -138,14 +142,9 @@ class Episode:
 
     def _record(self, images: Mapping[str, np.ndarray]) -> None:
         if self.frames is not None:
-            self.frames.append(np.concatenate(list(images.values()), axis=1))
+            self.frames.append(side_by_side(images))
 
     def _result(self, success: bool, reason: str | None) -> EpisodeResult:
-        spec = self.spec
-        if reason is not None and not reason.startswith("step limit"):
-            log.warning("%s seed %d (%s): %s", spec.task, spec.seed, spec.robot, reason)
-        final = self.sim.proprio()  # after a simulation fault it may hold NaN: not a position
-        return EpisodeResult(
-            success, self.sim.steps, reason, self.frames, spec.seed, spec.task, spec.robot,
-            spec.variant, tuple(final.tolist()) if np.isfinite(final).all() else None,
-        )  # fmt: skip
+        # after a simulation fault the proprio may hold NaN: end_episode reports no position
+        final = self.sim.proprio()
+        return end_episode(self.spec, success, self.sim.steps, reason, self.frames, final)
