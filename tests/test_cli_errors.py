@@ -100,7 +100,7 @@ CASES: dict[str, tuple[Callable[[Path, Path], list[str]], str]] = {
     ),
     "demos: --workers for a robosuite task": (
         lambda i, o: ["demos", "--task", "Lift", "--episodes", "2", "--workers", "2", "--out", str(o / "d.hdf5")],
-        r"--workers does not apply to robosuite demos; its options: --cameras, ",
+        r"--workers does not apply to robosuite demos; its options: --robot, --gripper, --noise, --extra-steps, --fovy",
     ),
     "demos: negative --workers, before simulating": (
         lambda i, o: ["demos", "--suite", "libero_spatial", "--episodes-per-task", "2", "--workers", "-1", "--out", str(o / "d")],
