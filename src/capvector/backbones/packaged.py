@@ -300,6 +300,11 @@ def gemma3_270m_tokenizer_folder() -> Path:
     return gemma3_270m_folder() / "tokenizer"
 
 
+PACKAGED_TOKENIZERS = {"gemma3-270m": gemma3_270m_tokenizer_folder}
+"""Tokenizers shipped inside the weight packages, by the name a config's ``tokenizer`` gives
+them: each a folder of saved tokenizer files, built with the cache on first use."""
+
+
 # -- EfficientNet-Lite0 ------------------------------------------------------------------------
 
 
@@ -321,6 +326,7 @@ __all__ = [
     "EFFICIENTNET_LITE0",
     "GEMMA3_270M",
     "MINI_EXTRA",
+    "PACKAGED_TOKENIZERS",
     "PackagedFile",
     "PackagedWeightsError",
     "WeightSource",

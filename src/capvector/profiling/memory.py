@@ -463,8 +463,14 @@ def trace_step(
 
 
 def _tiny_tokenizer(preset: str) -> dict[str, Any]:
-    """The family's tiny-preset tokenizer, so a full-size preset can run a meta forward pass."""
+    """A tokenizer for a meta forward pass: a full-size preset's comes with its checkpoint, so it
+    borrows its family's tiny-preset one; a preset built from weight packages (the mini) gets its
+    own from the packages' folder (a meta build reads no packages itself)."""
+    from capvector.backbones.packaged import PACKAGED_TOKENIZERS
+
     config = preset_config(preset)
+    if getattr(config, "tokenizer", None) in PACKAGED_TOKENIZERS:
+        return {"tokenizer": str(PACKAGED_TOKENIZERS[config.tokenizer]())}
     if not hasattr(config, "tokenizer") or config.tokenizer:
         return {}
     for name in list_presets():

@@ -60,6 +60,12 @@ def backbone_info_cli(
         print(f"  {name:<{width}}  {count:>15,}")
     print(f"  {'total':<{width}}  {total:>15,}")
     print(f"  {'capability':<{width}}  {in_vector:>15,}  (parameters a capability vector covers)")
+    for source in model.weight_provenance():  # a preset built from pretrained weight packages
+        print(f"pretrained weights: {source['weights']}")
+        print(f"  packages  {', '.join(source['packages'])}")
+        print(f"  sha256    {source['sha256']}")
+        print(f"  licence   {source['license']}")
+        print(f"  origin    {source['origin']}")
     if memory:
         print(estimate)
     if flops:

@@ -11,6 +11,7 @@ transformers dequantises 6 layers and not 18.
 from __future__ import annotations
 
 import dataclasses
+import re
 from pathlib import Path
 
 import numpy as np
@@ -202,3 +203,19 @@ def test_export_holds_only_what_differs_from_the_packages_and_loads_back(
     torch.testing.assert_close(
         loaded.predict_action(observation), model.predict_action(observation), rtol=0, atol=0
     )
+
+
+def test_backbone_info_names_the_weights_and_plans_memory_with_gemmas_tokenizer(capsys) -> None:
+    from capvector.backbones.packaged import gemma3_270m_tokenizer_folder
+    from capvector.profiling.memory import _tiny_tokenizer
+    from capvector.workflows.backbone_info import backbone_info_main
+
+    # The planner's traced step tokenizes its prompt with the packages' own Gemma tokenizer (a
+    # meta build reads no packages itself), not a byte-level stand-in.
+    assert _tiny_tokenizer(PRESET) == {"tokenizer": str(gemma3_270m_tokenizer_folder())}
+    assert backbone_info_main([PRESET, "--memory", "--batch", "1"]) == 0
+    out = capsys.readouterr().out
+    for source in (GEMMA3_270M, EFFICIENTNET_LITE0):
+        assert f"pretrained weights: {source.name}" in out
+        assert source.sha256 in out
+    assert float(re.search(r"total, checkpointed\s+([\d.]+) GiB", out).group(1)) > 0
