@@ -27,3 +27,15 @@ def test_row_lines_up_with_the_header() -> None:
 
     line = Row("pi05-3b", 1.5, 2.0, 30.0, 28.0, 4.0, 0.35).line()
     assert len(line) == len(HEADER) and "1.07" in line and "35.0%" in line
+
+
+def test_libero_episode_runs_the_evaluate_path_at_the_recipes_settings() -> None:
+    """The GPU check's LIBERO episode, on the CPU with the tiny preset: LIBERO's real scene, the
+    policy built as the check builds it (frozen bf16, LoRA r 32) under bf16 autocast."""
+    pytest.importorskip("robosuite", reason="LIBERO needs the sim extra")
+    sys.path.insert(0, str(TOOL.parent))
+    from gpu_check import libero_episode
+
+    line = libero_episode("openvla-oft-tiny", "cpu", max_steps=16)
+    assert line.startswith("LIBERO-Spatial task 0, initial state 0, openvla-oft-tiny on cpu")
+    assert " 16 steps in " in line and "(bf16-mixed)" in line

@@ -5,12 +5,15 @@ r 32 alpha 16, ``bf16-mixed`` autocast, AdamW, batch 8), a warm-up and a timed t
 ``torch.cuda.max_memory_allocated`` against the planner's GPU estimate
 (``capvector backbone-info PRESET --memory``), samples/s and the model FLOPs utilisation (the
 planner's FLOPs per sample, ``--flops``, over the step time and ``--gpu-tflops``); then the GL
-renderer MuJoCo's EGL gets (LIBERO renders through it: an NVIDIA renderer, not llvmpipe).
+renderer MuJoCo's EGL gets (LIBERO renders through it: an NVIDIA renderer, not llvmpipe); last, one
+LIBERO-Spatial episode of the first preset through ``capvector evaluate``'s rollout path on the GPU
+under bf16 autocast (``evaluate_module``; random weights, so it checks that the episode runs and
+what a step costs, not success).
 
     python tools/gpu_check.py [--presets pi05-3b ...] [--batch 8] [--gpu-tflops 989]
+        [--libero-steps N]
 
-Without CUDA it says so in one line and exits 0. Not here yet: ``capvector evaluate --device cuda
---precision bf16`` on one LIBERO episode (issue 58, item 7) needs a full-size export to evaluate.
+Without CUDA it says so in one line and exits 0.
 """
 
 from __future__ import annotations
@@ -92,6 +95,49 @@ def check_preset(preset: str, batch: int, gpu_tflops: float) -> Row:
     )  # fmt: skip
 
 
+def libero_episode(
+    preset: str, device: str, precision: str = "bf16-mixed", max_steps: int | None = None
+) -> str:
+    """One LIBERO-Spatial episode (task 0, official initial state 0, LIBERO's protocol; at most
+    ``max_steps`` steps after the wait steps, default the suite's) of ``preset`` built at the
+    recipe's settings for LIBERO's two cameras, 8-d state and 8 x 7 action chunks."""
+    import torch
+
+    from capvector.backbones.base import preset_config
+    from capvector.data.episodes import EvalTask
+    from capvector.data.spec import DataSpec
+    from capvector.module import VLAModule
+    from capvector.training.lora import LoraSettings
+    from capvector.workflows.evaluate import evaluate_module
+
+    config = preset_config(preset)
+    spec = DataSpec(
+        cameras=["agentview", "robot0_eye_in_hand"], proprio_keys=["ee_states", "gripper_states"],
+        image_size=getattr(config, "image_size", 224),
+    )  # fmt: skip
+    tokenizer = {} if getattr(config, "tokenizer", "x") else {"tokenizer": "byte"}
+    module = VLAModule(
+        backbone=preset, backbone_overrides=tokenizer, data_spec=spec,
+        lora=LoraSettings(r=32, alpha=16), frozen_dtype="bfloat16",
+    )  # fmt: skip
+    module.eval().to(device)
+    options = {"tasks": [0]} if max_steps is None else {"tasks": [0], "max_steps": max_steps}
+    task = EvalTask("libero_spatial", episodes=1, options=options)
+    start = time.perf_counter()
+    (result,) = evaluate_module(
+        module, [task], videos=0, batch_size=1, workers=0, precision=precision
+    )
+    seconds = time.perf_counter() - start
+    del module
+    if device.startswith("cuda"):
+        torch.cuda.empty_cache()
+    outcome = "success" if result.success else f"no success ({result.reason}; random weights)"
+    return (
+        f"LIBERO-Spatial task 0, initial state 0, {preset} on {device} ({precision}): "
+        f"{result.steps} steps in {seconds:.1f} s, {outcome}"
+    )
+
+
 def egl_renderer() -> str:
     os.environ.setdefault("MUJOCO_GL", "egl")
     try:
@@ -107,6 +153,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--presets", nargs="+", default=list(FAMILIES))
     parser.add_argument("--batch", type=int, default=8)
     parser.add_argument("--gpu-tflops", type=float, default=989.0, help="H100 bf16 dense: 989")
+    parser.add_argument(
+        "--libero-steps", type=int, help="cap the LIBERO episode (default: the suite's limit)"
+    )
     args = parser.parse_args(argv)
     import torch
 
@@ -123,6 +172,11 @@ def main(argv: list[str] | None = None) -> int:
             failed = True
             print(f"{preset:<28} failed: {type(err).__name__}: {str(err)[:200]}", flush=True)
     print(f"MuJoCo EGL renderer (LIBERO): {egl_renderer()}")
+    try:
+        print(libero_episode(args.presets[0], "cuda", max_steps=args.libero_steps), flush=True)
+    except Exception as err:
+        failed = True
+        print(f"LIBERO episode failed: {type(err).__name__}: {str(err)[:200]}", flush=True)
     return 1 if failed else 0
 
 

@@ -16,7 +16,7 @@ from capvector.errors import CapVectorError
 from capvector.eval.device import Precision, resolve_device, resolve_precision
 from capvector.eval.results import SuccessRow, format_success_table, pooled_row, success_rows
 from capvector.io.outputs import atomic_write_bytes, check_output
-from capvector.module import load_module
+from capvector.module import VLAModule, load_module
 from capvector.policy import VLAPolicy
 from capvector.tool_cli import run_tool
 
@@ -41,12 +41,31 @@ def evaluate(
     cameras render at ``image_size`` (default: the policy's own; the backbone resizes what it
     gets to its input size). The policy runs on ``device`` under ``precision`` (defaults: CUDA
     with bf16 autocast when there is a GPU, else the CPU in float32)."""
-    from capvector.eval.rollout import RolloutEvaluator
-
-    specs = EpisodeDataset(tasks).specs  # an unknown task or variant fails before the load
+    EpisodeDataset(tasks)  # an unknown task or variant fails before the load
     torch_device = resolve_device(device)
     precision = resolve_precision(torch_device, precision)  # refused before the load
     module = load_module(checkpoint).eval().to(torch_device)
+    return evaluate_module(
+        module, tasks, video_dir, videos, execute_steps, batch_size, workers, image_size, precision
+    )
+
+
+def evaluate_module(
+    module: VLAModule,
+    tasks: list[EvalTask],
+    video_dir: str | None = None,
+    videos: int = 2,
+    execute_steps: int | None = None,
+    batch_size: int = 8,
+    workers: int | None = None,
+    image_size: int | None = None,
+    precision: Precision = "32-true",
+) -> list[EpisodeResult]:
+    """``evaluate`` of a module already in memory, where its parameters are (what
+    ``tools/gpu_check.py`` rolls out without an export)."""
+    from capvector.eval.rollout import RolloutEvaluator
+
+    specs = EpisodeDataset(tasks).specs
     spec = module.data_spec
     evaluator = RolloutEvaluator(
         cameras=spec.cameras, image_size=image_size or spec.image_size,
