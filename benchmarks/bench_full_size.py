@@ -19,7 +19,7 @@ Results go to ``--out`` (JSON, rewritten atomically after each preset); a preset
 skipped, so an interrupted run resumes preset by preset.
 
     python benchmarks/bench_full_size.py --presets pi05-3b [--variants sft aux ...] [--out FILE]
-        [--vector DIR] [--export DIR] [--threads N]
+        [--vector DIR] [--export DIR] [--threads N] [--steps N]
 """
 
 from __future__ import annotations
@@ -84,11 +84,14 @@ def run_one(
     vector: str | None = None,
     export: str | None = None,
     lr: float | None = None,
+    steps: int = 2,
 ) -> dict[str, Any]:
     """Two steps of ``preset`` in this process; the row for the JSON. With ``export``, the model is
     exported there afterwards (in the base's dtype, as ``ExportOnFitEnd`` writes it). ``lr``
     replaces the family's learning rate: two steps at Pi0.5's 2.5e-5 move LoRA-merged weights by
-    less than a bf16 step, so two bf16 exports would be identical and no vector could be taken."""
+    less than a bf16 step, so two bf16 exports would be identical and no vector could be taken.
+    ``steps=0`` builds and exports only (a full-size export to serve, with less memory than a
+    step needs)."""
     import lightning as L
     import torch
 
@@ -141,13 +144,14 @@ def run_one(
         built_peak = high_water() - baseline
         record = Record()
         trainer = L.Trainer(
-            max_steps=2, accelerator="cpu", precision="bf16-mixed", logger=False,
+            max_steps=steps, accelerator="cpu", precision="bf16-mixed", logger=False,
             enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
             enable_checkpointing=False, default_root_dir=tmp,
             callbacks=[StepCost(), *callbacks_of(variant, vector), record],
             gradient_clip_val=1.0,
         )  # fmt: skip
-        trainer.fit(module, dm)
+        if steps:
+            trainer.fit(module, dm)
     peak = high_water() - baseline
     exported: dict[str, Any] = {}
     if export is not None:
@@ -201,6 +205,7 @@ def plan(preset: str, variant: str) -> dict[str, Any]:
     settings = TrainingSettings(
         batch=1, precision="bf16-mixed", strategy="ddp", lora_rank=32, frozen_dtype="bfloat16",
         attention="math", activation_checkpointing=checkpointing,
+        objectives=("spatial", "reasoning") if variant.startswith("aux") else (),
     )  # fmt: skip
     planned = estimate_memory(preset, settings, device="cpu")
     activations = planned.activations_checkpointed if checkpointing else planned.activations
@@ -208,6 +213,7 @@ def plan(preset: str, variant: str) -> dict[str, Any]:
     terms = {
         "parameters": planned.parameters, "gradients": planned.gradients,
         "optimizer": planned.optimizer, "activations": activations, "working": working,
+        "objectives": planned.objectives_checkpointed if checkpointing else planned.objectives,
     }  # fmt: skip
     return {
         "planner_cpu_gib": planned.total / GIB,
@@ -224,6 +230,7 @@ def main() -> None:
     parser.add_argument("--export", type=Path, help="export each run to EXPORT/PRESET-VARIANT")
     parser.add_argument("--threads", type=int, default=2, help="OMP_NUM_THREADS of each run")
     parser.add_argument("--lr", type=float, help="learning rate (default: the family's)")
+    parser.add_argument("--steps", type=int, default=2, help="training steps (0: build, export)")
     parser.add_argument("--run", nargs=2, metavar=("PRESET", "VARIANT"), help=argparse.SUPPRESS)
     parser.add_argument("--plan", nargs=2, metavar=("PRESET", "VARIANT"), help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -232,7 +239,8 @@ def main() -> None:
         return
     if args.run:
         export = None if args.export is None else str(args.export / "-".join(args.run))
-        print(json.dumps(run_one(*args.run, vector=args.vector, export=export, lr=args.lr)))
+        row = run_one(*args.run, vector=args.vector, export=export, lr=args.lr, steps=args.steps)
+        print(json.dumps(row))
         return
     rows: list[dict[str, Any]] = json.loads(args.out.read_text()) if args.out.is_file() else []
     done = {(r["preset"], r["variant"]) for r in rows}
@@ -244,6 +252,7 @@ def main() -> None:
             extra = [*(["--vector", args.vector] if args.vector else [])]
             extra += ["--export", str(args.export)] if args.export else []
             extra += ["--lr", str(args.lr)] if args.lr is not None else []
+            extra += ["--steps", str(args.steps)] if args.steps != 2 else []
             out = subprocess.run(
                 [sys.executable, __file__, "--run", preset, variant, *extra],
                 capture_output=True, text=True,

@@ -11,11 +11,13 @@ from capvector.backbones import build_backbone, list_presets
 from capvector.backbones.starvla import HALF, tiny_qwen_architecture
 from capvector.cli import main
 from capvector.errors import CapVectorError
+from capvector.objectives.base import compute_losses
 from capvector.profiling.memory import (
     MemoryEstimate,
     efficient_attention,
     estimate_memory,
     lora_settings,
+    make_objective,
     measure_activations,
     saved_activation_bytes,
     synthetic_batch,
@@ -206,3 +208,61 @@ def test_no_term_is_negative(preset: str) -> None:
     issue's settings here; batch 2 with and without bf16 in the planner test above."""
     settings = TrainingSettings(8, lora_rank=4, frozen_dtype="bfloat16")
     assert_no_negative_term(estimate_memory(preset, settings))
+
+
+def test_objectives_term_is_what_the_objectives_cost_in_a_real_step() -> None:
+    """Issue 58: the planner counted the backbone's step only, so aux-SFT at full size (pi05-3b)
+    measured 1.30x its estimate. The aux estimate exceeds the SFT one by its objectives term, and
+    that term matches what attaching both objectives costs a real CPU step (the allocator's peak
+    from torch.profiler, plus the projector and its AdamW state)."""
+    base = TrainingSettings(2, "bf16-mixed", "ddp", lora_rank=4, frozen_dtype="bfloat16")
+    sft = estimate_memory("pi05-tiny", base, device="cpu")
+    aux_settings = replace(base, objectives=("spatial", "reasoning"))
+    aux = estimate_memory("pi05-tiny", aux_settings, device="cpu")
+    assert_no_negative_term(aux)
+    assert sft.objectives == sft.objectives_checkpointed == 0
+    assert aux.objectives > 0 and aux.objectives_checkpointed > 0
+    assert aux.total - sft.total == pytest.approx(aux.objectives)
+
+    def measured(names: tuple[str, ...]) -> float:
+        torch.manual_seed(0)
+        model = build_backbone("pi05-tiny")
+        set_trainable(model, lora_settings(4))
+        objectives = [make_objective(name) for name in names]
+        for objective in objectives:
+            objective.bind(model)
+        cast_frozen_parameters(model, torch.bfloat16, keep=set())
+        modules = [model, *objectives]
+        trainable = [p for m in modules for p in m.parameters() if p.requires_grad]
+        optimizer = torch.optim.AdamW(trainable, foreach=True)
+        batch = synthetic_batch(model, 2, "cpu", objectives=True)
+
+        def step() -> None:
+            with torch.autocast("cpu", dtype=torch.bfloat16):
+                losses = compute_losses(model, objectives, batch)
+                loss = losses["action"] + sum(o.weight * losses[o.name] for o in objectives)
+            loss.backward()
+            optimizer.step()
+            optimizer.zero_grad(set_to_none=True)
+
+        step()  # AdamW state
+        static = sum(p.nbytes for m in modules for p in m.parameters()) + sum(
+            t.nbytes for s in optimizer.state.values() for t in s.values() if t.dim()
+        )
+        return static + profiled_peak(step)
+
+    cost = measured(("spatial", "reasoning")) - measured(())
+    assert cost > 0
+    assert 0.85 * cost <= aux.objectives <= 1.15 * cost
+
+
+def test_backbone_info_takes_objectives(capsys: pytest.CaptureFixture[str]) -> None:
+    argv = ["backbone-info", "pi05-tiny", "--memory", "--batch", "1", "--lora-rank", "4",
+            "--objectives", "spatial", "reasoning"]  # fmt: skip
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "objectives=['spatial', 'reasoning']" in out
+    line = next(row for row in out.splitlines() if row.strip().startswith("auxiliary objectives "))
+    assert float(line.split()[-2]) > 0
+    with pytest.raises(CapVectorError, match="spatail"):
+        estimate_memory("pi05-tiny", TrainingSettings(objectives=("spatail",)))

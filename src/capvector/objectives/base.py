@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Iterable
 
 from torch import Tensor, nn
 
@@ -34,6 +35,23 @@ class Objective(nn.Module, ABC):
     @abstractmethod
     def forward(self, batch: Batch, output: VLAOutput, backbone: VLABackbone) -> Tensor:
         """The unweighted scalar loss of this term."""
+
+
+def compute_losses(
+    backbone: VLABackbone, objectives: Iterable[Objective], batch: Batch
+) -> dict[str, Tensor]:
+    """The unweighted loss terms of one training step, by name: ``action`` and each objective's,
+    from one forward pass that keeps what every objective requests. ``VLAModule`` trains on them;
+    the memory planner traces them."""
+    objectives = list(objectives)
+    request = OutputRequest()
+    for objective in objectives:
+        request = request.merged(objective.request)
+    output = backbone(batch, request)
+    losses = {"action": output.loss}
+    for objective in objectives:
+        losses[objective.name] = objective(batch, output, backbone)
+    return losses
 
 
 OBJECTIVES: Registry[type[Objective]] = Registry(

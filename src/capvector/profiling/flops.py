@@ -13,8 +13,13 @@ from dataclasses import dataclass, field
 
 from capvector.backbones.base import VLABackbone
 from capvector.data.batch import Batch
-from capvector.objectives.base import OBJECTIVES, Objective
-from capvector.profiling.memory import HostValuesMetaCompute, meta_backbone, synthetic_batch
+from capvector.objectives.base import Objective
+from capvector.profiling.memory import (
+    HostValuesMetaCompute,
+    make_objective,
+    meta_backbone,
+    synthetic_batch,
+)
 
 BUILTIN_OBJECTIVES = ("spatial", "reasoning")
 
@@ -73,12 +78,6 @@ class FlopsEstimate:
             "forward of the blocks)"
         )
         return "\n".join(lines)
-
-
-def make_objective(name: str) -> Objective:
-    """The auxiliary objective ``name`` (``OBJECTIVES``) with its defaults (spatial: the geometric
-    teacher)."""
-    return OBJECTIVES.get(name)()
 
 
 def training_step_flops(

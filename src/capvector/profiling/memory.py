@@ -16,6 +16,12 @@ memory-efficient kernel, which saves the output and a (B, heads, S) logsumexp in
 math path's (B, heads, S, S) attention probabilities. Attention computed outside SDPA (Pi0.5's
 ``joint_attention``) keeps its matrices on a GPU too, and is counted as such.
 
+Auxiliary objectives (``TrainingSettings.objectives``) are traced as ``VLAModule`` runs them, in
+the same step: reasoning co-training's causal text pass with its full-vocabulary logits, their
+float32 copy, log-softmax and gradient; spatial alignment's hidden states, teacher features and
+projector. Their term is what that step holds beyond the same step without them, plus the
+projector's weights and AdamW state.
+
 The batch stays on the CPU with real values (``HostValuesMetaCompute``): forward passes read values
 to build prompts (Pi0.5's and StarVLA's discretised state), find token positions and multimodal
 RoPE indices (Qwen-VL), which a meta tensor does not have. Only the work that touches weights runs
@@ -43,6 +49,7 @@ from torch.utils._python_dispatch import TorchDispatchMode, _disable_current_mod
 from capvector.backbones.base import VLABackbone, build_backbone, list_presets, preset_config
 from capvector.data.batch import Batch
 from capvector.errors import CapVectorError
+from capvector.objectives.base import OBJECTIVES, Objective, compute_losses
 from capvector.profiling.meta import on_meta
 from capvector.profiling.settings import TrainingSettings
 from capvector.training.lora import (
@@ -79,6 +86,12 @@ class MemoryEstimate:
     """Whether ``total`` assumes activation checkpointing (``VLAModule(activation_checkpointing)``)."""
     trainable_parameters: float = 0.0
     """Of ``parameters``, the bytes of those that train (float32 unless ``bf16-true``)."""
+    objectives: float = 0.0
+    """What the auxiliary objectives add to the step: the traced peak with them beyond the peak
+    without (their activations, logits, teacher features and gradients), plus their parameters
+    (the alignment projector) with AdamW's two moments. 0 without objectives, never negative."""
+    objectives_checkpointed: float = 0.0
+    """The same with the backbone's blocks checkpointed (the text pass is checkpointed too)."""
 
     @property
     def total(self) -> float:
@@ -90,11 +103,16 @@ class MemoryEstimate:
 
     @property
     def total_plain(self) -> float:
-        return self._states + self.activations + self.working
+        return self._states + self.activations + self.working + self.objectives
 
     @property
     def total_checkpointed(self) -> float:
-        return self._states + self.activations_checkpointed + self.working_checkpointed
+        return (
+            self._states
+            + self.activations_checkpointed
+            + self.working_checkpointed
+            + self.objectives_checkpointed
+        )
 
     def table(self) -> str:
         rows: list[tuple[str, float]] = [
@@ -104,9 +122,11 @@ class MemoryEstimate:
             ("optimizer (AdamW)", self.optimizer),
             ("activations", self.activations),
             ("working memory", self.working),
+            ("auxiliary objectives", self.objectives),
             ("total, no checkpointing", self.total_plain),
             ("activations, checkpointed", self.activations_checkpointed),
             ("working memory, checkpointed", self.working_checkpointed),
+            ("auxiliary objectives, ckpt", self.objectives_checkpointed),
             ("total, checkpointed", self.total_checkpointed),
         ]
         lines = [f"  {name:<29} {value / GIB:10.3f} GiB" for name, value in rows]
@@ -414,10 +434,14 @@ def trace_step(
     backward: bool = True,
     device: str = "cuda",
     keep_gradients: bool = True,
+    objectives: Sequence[Objective] = (),
 ) -> tuple[float, float]:
     """(bytes autograd saves in the forward, peak bytes alive during the step) of one training
     step of ``backbone`` with AdamW, the AdamW state already there (a later step): forward,
     backward, ``optimizer.step()``. Parameters and AdamW state are not in the peak.
+
+    ``objectives`` (bound to ``backbone``, on its device) add their weighted losses as
+    ``VLAModule.training_step`` does; what of theirs trains is optimized with the backbone.
 
     ``keep_gradients=False`` drops each gradient as soon as it is complete, as FSDP2 and ZeRO
     free the unsharded gradient once it is reduce-scattered (their shards are counted apart)."""
@@ -436,7 +460,8 @@ def trace_step(
         batch = pytree.tree_map_only(
             Tensor, lambda t: t.to(torch.bfloat16) if t.is_floating_point() else t, batch
         )
-    trainable = [p for p in backbone.parameters() if p.requires_grad]
+    modules = [backbone, *objectives]
+    trainable = [p for m in modules for p in m.parameters() if p.requires_grad]
     # foreach=True is AdamW's default on a GPU; its temporaries are part of the peak.
     optimizer = torch.optim.AdamW(trainable, foreach=True)
     for p in trainable:
@@ -449,10 +474,13 @@ def trace_step(
             p.register_post_accumulate_grad_hook(lambda p: setattr(p, "grad", None))
     store: list[float] = []
     with LiveBytes() as live, HostValuesMetaCompute(), kernels() as gpu:
-        live.exclude([*backbone.parameters(), *backbone.buffers()])
+        live.exclude([t for m in modules for t in (*m.parameters(), *m.buffers())])
         live.exclude([t for state in optimizer.state.values() for t in state.values()])
         with saved_activation_bytes(store, backbone):
-            loss = backbone(batch).loss
+            losses = compute_losses(backbone, objectives, batch)
+            loss = losses["action"]
+            for objective in objectives:
+                loss = loss + objective.weight * losses[objective.name]
         gpu.clear_cast_cache()  # autocast's cache goes when its region ends, after the forward
         if backward:
             loss.backward()
@@ -498,6 +526,12 @@ def _check(settings: TrainingSettings) -> torch.dtype:
     return FROZEN_DTYPES[settings.frozen_dtype]
 
 
+def make_objective(name: str) -> Objective:
+    """The auxiliary objective ``name`` (``OBJECTIVES``) with its defaults (spatial: the geometric
+    teacher, 64 features with position embedding, as ``aux_sft.yaml``)."""
+    return OBJECTIVES.get(name)()
+
+
 def meta_backbone(preset: str, lora_rank: int | None, **overrides: Any) -> VLABackbone:
     """``preset`` with its weights on the meta device, trainable as LoRA of ``lora_rank`` or fully."""
     with on_meta():
@@ -521,27 +555,38 @@ def estimate_memory(
     precision, strategy, devices = settings.precision, settings.strategy, settings.devices
     shard_params = strategy in ("fsdp2", "deepspeed_zero3")
     shard_grads = strategy != "ddp" and devices > 1
-    traces = []
+    names = tuple(settings.objectives)  # the CLI gives a list
+    for name in names:  # an unknown name fails before minutes of tracing
+        OBJECTIVES.get(name)
+    traces, with_objectives = [], []
     for checkpointed in (False, True):
-        backbone = meta_backbone(preset, settings.lora_rank)
-        set_storage_dtypes(backbone, precision, dtype)
-        batch = synthetic_batch(backbone, settings.batch, "cpu")
-        try:
-            traces.append(
-                trace_step(
-                    backbone,
-                    batch,
-                    checkpointed,
-                    precision,
-                    settings.attention,
-                    device=device,
-                    keep_gradients=not shard_grads,
+        for attach in (False, True) if names else (False,):
+            backbone = meta_backbone(preset, settings.lora_rank)
+            objectives = [make_objective(name) for name in names] if attach else []
+            for objective in objectives:  # before the cast: reasoning may unfreeze the LM head
+                objective.bind(backbone)  # builds projectors
+                objective.to("meta")  # gradients must stay on one device
+            set_storage_dtypes(backbone, precision, dtype)
+            batch = synthetic_batch(backbone, settings.batch, "cpu", objectives=bool(names))
+            try:
+                trace = trace_step(
+                    backbone, batch, checkpointed, precision, settings.attention, device=device,
+                    keep_gradients=not shard_grads, objectives=objectives,
                 )  # fmt: skip
-            )
-        except (NotImplementedError, RuntimeError):
-            # A forward that reads values of meta results (data-dependent shapes downstream of
-            # the weights) cannot be traced; then only the weight-related terms are estimated.
-            traces.append((float("nan"), float("nan")))
+            except (NotImplementedError, RuntimeError):
+                # A forward that reads values of meta results (data-dependent shapes downstream
+                # of the weights) cannot be traced; then only the weight-related terms are
+                # estimated.
+                trace = (float("nan"), float("nan"))
+            if attach:
+                own = sum(
+                    p.numel() * p.element_size()
+                    for o in objectives for p in o.parameters() if p.requires_grad
+                )  # fmt: skip
+                # Their gradients are in the traced peak; their weights and AdamW state are not.
+                with_objectives.append((trace[1], 3 * own))
+            else:
+                traces.append(trace)
     params = list(backbone.parameters())
     total = sum(p.numel() * p.element_size() for p in params)
     trainable = sum(p.numel() * p.element_size() for p in params if p.requires_grad)
@@ -559,6 +604,9 @@ def estimate_memory(
     grads = trainable / (devices if shard_grads else 1)
     traced_grads = 0 if shard_grads else trainable
     (saved, peak), (saved_checkpointed, peak_checkpointed) = traces
+    extra = [0.0, 0.0]
+    for i, (peak_with, own) in enumerate(with_objectives):
+        extra[i] = _beyond(peak_with, traces[i][1]) + own
     return MemoryEstimate(
         parameters=param_bytes,
         gradients=grads,
@@ -569,6 +617,8 @@ def estimate_memory(
         working_checkpointed=_beyond(peak_checkpointed, saved_checkpointed + traced_grads),
         checkpointing=settings.activation_checkpointing,
         trainable_parameters=trainable / (devices if shard_params else 1),
+        objectives=extra[0],
+        objectives_checkpointed=extra[1],
     )
 
 
@@ -601,6 +651,7 @@ __all__ = [
     "TrainingSettings",
     "describe",
     "estimate_memory",
+    "make_objective",
     "meta_backbone",
     "synthetic_batch",
 ]

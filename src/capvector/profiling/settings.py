@@ -22,6 +22,8 @@ class TrainingSettings:
             matrix kept), or math (what the meta device and some CPUs take)
         activation_checkpointing: the total assumes model.activation_checkpointing: true (both
             figures are always reported)
+        objectives: auxiliary objectives attached, by name (spatial, reasoning: aux_sft.yaml's
+            pair, with their defaults); their cost is a term of its own
     """
 
     batch: int = 8
@@ -32,3 +34,4 @@ class TrainingSettings:
     frozen_dtype: str = "float32"
     attention: str = "efficient"
     activation_checkpointing: bool = False
+    objectives: tuple[str, ...] = ()
