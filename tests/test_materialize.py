@@ -147,3 +147,42 @@ def test_peak_build_memory_is_about_the_bf16_size(tmp_path: Path) -> None:
     folder = module.export(tmp_path / "pre")
     del module
     check(build_peak("bfloat16", folder))
+
+
+def test_a_bf16_export_loads_for_inference_in_bf16(demo_file: Path, tmp_path: Path) -> None:
+    """``capvector serve`` and ``evaluate`` under autocast (``load_for_inference(keep_dtype)``): a
+    bf16 export's weights stay bf16, as written (a full-size one in float32 is twice the memory),
+    and the policy answers as from the float32 load, up to bf16 rounding of the norms."""
+    import numpy as np
+
+    from capvector.module import load_for_inference
+    from capvector.policy import VLAPolicy
+
+    dm = RobotDataModule(train_files=[str(demo_file)], batch_size=4)
+    torch.manual_seed(0)
+    source = VLAModule(
+        backbone="openvla-oft-tiny", data_spec=dm.spec, lora=LoraSettings(r=4, alpha=4),
+        frozen_dtype="bfloat16",
+    )  # fmt: skip
+    folder = source.export(tmp_path / "bf16")
+    (kept, spec), (full, _) = (
+        load_for_inference(folder, keep_dtype=True),
+        load_for_inference(folder),
+    )
+    assert spec == source.data_spec and not kept.training
+    floating = [p for p in kept.parameters() if p.is_floating_point()]
+    assert floating and all(p.dtype == torch.bfloat16 and not p.requires_grad for p in floating)
+    assert all(p.dtype == torch.float32 for p in full.parameters() if p.is_floating_point())
+    reference = full.state_dict()
+    for name, tensor in kept.state_dict().items():
+        assert torch.equal(tensor.float(), reference[name].float()), name
+    rng = np.random.default_rng(0)
+    observation = {
+        "images": {c: rng.integers(0, 255, (64, 64, 3), dtype=np.uint8) for c in spec.cameras},
+        "proprio": rng.normal(size=spec.proprio_dim).astype(np.float32),
+        "instruction": "lift the red cube",
+    }
+    a = VLAPolicy(kept, spec, "bf16-mixed")(observation)
+    b = VLAPolicy(full, spec, "bf16-mixed")(observation)
+    assert np.isfinite(a).all() and a.shape == b.shape
+    np.testing.assert_allclose(a, b, atol=0.1 * np.abs(b).max() + 1e-3)

@@ -46,7 +46,7 @@ from capvector.io.names import (
     CheckpointMetadata,
 )
 from capvector.io.weights import dtype_name, parse_dtype
-from capvector.objectives.base import Objective
+from capvector.objectives.base import Objective, compute_losses
 from capvector.policy import VLAPolicy
 from capvector.training.distributed import full_state_dict, is_rank_zero, parallelize
 from capvector.training.loggers import log_file, log_video, logging_step, run_folder
@@ -269,11 +269,7 @@ class VLAModule(L.LightningModule):
         return self.backbone(batch).actions
 
     def compute_losses(self, batch: Batch) -> dict[str, Tensor]:
-        output = self.backbone(batch, self.output_request())
-        losses = {"action": output.loss}
-        for name, objective in self.objectives.items():
-            losses[name] = objective(batch, output, self.backbone)
-        return losses
+        return compute_losses(self.backbone, self.objectives.values(), batch)
 
     def training_step(self, batch: Batch, batch_idx: int) -> Tensor:
         losses = self.compute_losses(batch)
@@ -550,6 +546,34 @@ def held_out_action_l1(backbone: VLABackbone, batch: Batch) -> Tensor:
     )
 
 
+def _folder_data_spec(folder: Path) -> dict[str, Any]:
+    spec_file = folder / DATA_SPEC_FILE
+    if not spec_file.is_file():
+        raise BackboneError(f"{folder} has no {DATA_SPEC_FILE}: export it with capvector")
+    return read_json(spec_file)
+
+
+def load_for_inference(
+    checkpoint: str | Path, keep_dtype: bool = False
+) -> tuple[VLABackbone, DataSpec]:
+    """The backbone (in eval mode, nothing trains) and data spec of a checkpoint or an export
+    folder, as ``capvector evaluate`` and ``serve`` run them.
+
+    ``keep_dtype``: an export's weights stay in the dtype it was written in (its ``torch_dtype``)
+    instead of float32, loaded tensor by tensor. For inference under autocast, where a float32
+    copy of a bf16 export is twice the memory for nothing (pi05-3b: 13 GB instead of 6.4 GB); a
+    Lightning checkpoint loads as ``load_module`` loads it."""
+    folder = local_folder(checkpoint, "checkpoint")
+    if keep_dtype and folder.is_dir():
+        spec = _as(DataSpec, _folder_data_spec(folder))
+        assert spec is not None
+        dtype = frozen_dtype_of(load_export_config(folder).get("torch_dtype", "float32"))
+        backbone = load_pretrained(str(checkpoint), dtype, lambda m: m.requires_grad_(False))
+        return backbone.eval(), spec
+    module = load_module(checkpoint)
+    return module.backbone.eval(), module.data_spec
+
+
 def _export_data_spec(folder: str) -> dict[str, Any] | None:
     """The data spec an export was trained with (None for one without, e.g. an import)."""
     path = local_folder(folder, "model.pretrained") / DATA_SPEC_FILE
@@ -592,10 +616,7 @@ def load_module(checkpoint: str | Path, map_location: str = "cpu") -> VLAModule:
     id's snapshot; objectives, which are training-only, are dropped)."""
     folder = local_folder(checkpoint, "checkpoint")
     if folder.is_dir():  # a hub id stays the module's `pretrained`: its exports name it as base
-        spec_file = folder / DATA_SPEC_FILE
-        if not spec_file.is_file():
-            raise BackboneError(f"{checkpoint} has no {DATA_SPEC_FILE}: export it with capvector")
-        return VLAModule(pretrained=str(checkpoint), data_spec=read_json(spec_file))
+        return VLAModule(pretrained=str(checkpoint), data_spec=_folder_data_spec(folder))
     if not Path(checkpoint).is_file():
         raise BackboneError(f"checkpoint {checkpoint} does not exist")
     ckpt = load_torch(checkpoint, map_location=map_location, weights_only=False)

@@ -16,11 +16,13 @@ from capvector.errors import CapVectorError
 from capvector.eval.device import Precision, resolve_device, resolve_precision
 from capvector.eval.results import SuccessRow, format_success_table, pooled_row, success_rows
 from capvector.io.outputs import atomic_write_bytes, check_output
-from capvector.module import VLAModule, load_module
+from capvector.module import VLAModule, load_for_inference
 from capvector.policy import VLAPolicy
 from capvector.tool_cli import run_tool
 
 if TYPE_CHECKING:
+    from capvector.backbones.base import VLABackbone
+    from capvector.data.spec import DataSpec
     from capvector.eval.rollout import EpisodeResult
 
 
@@ -44,10 +46,12 @@ def evaluate(
     EpisodeDataset(tasks)  # an unknown task or variant fails before the load
     torch_device = resolve_device(device)
     precision = resolve_precision(torch_device, precision)  # refused before the load
-    module = load_module(checkpoint).eval().to(torch_device)
-    return evaluate_module(
-        module, tasks, video_dir, videos, execute_steps, batch_size, workers, image_size, precision
-    )
+    # Under autocast a bf16 export runs in bf16 (no float32 copy).
+    backbone, spec = load_for_inference(checkpoint, keep_dtype=precision != "32-true")
+    return evaluate_backbone(
+        backbone.to(torch_device), spec, tasks, video_dir, videos, execute_steps, batch_size,
+        workers, image_size, precision,
+    )  # fmt: skip
 
 
 def evaluate_module(
@@ -63,17 +67,36 @@ def evaluate_module(
 ) -> list[EpisodeResult]:
     """``evaluate`` of a module already in memory, where its parameters are (what
     ``tools/gpu_check.py`` rolls out without an export)."""
+    return evaluate_backbone(
+        module.backbone, module.data_spec, tasks, video_dir, videos, execute_steps,
+        batch_size, workers, image_size, precision,
+    )  # fmt: skip
+
+
+def evaluate_backbone(
+    backbone: VLABackbone,
+    spec: DataSpec,
+    tasks: list[EvalTask],
+    video_dir: str | None = None,
+    videos: int = 2,
+    execute_steps: int | None = None,
+    batch_size: int = 8,
+    workers: int | None = None,
+    image_size: int | None = None,
+    precision: Precision = "32-true",
+) -> list[EpisodeResult]:
+    """The rollouts of ``evaluate`` for a backbone (where its parameters are, in the mode it is in) and
+    the data spec it was trained with."""
     from capvector.eval.rollout import RolloutEvaluator
 
     specs = EpisodeDataset(tasks).specs
-    spec = module.data_spec
     evaluator = RolloutEvaluator(
         cameras=spec.cameras, image_size=image_size or spec.image_size,
         camera_fovy=spec.camera_fovy, execute_steps=execute_steps, videos=videos,
         video_dir=None if video_dir is None else Path(video_dir), batch_size=batch_size,
         workers=workers,
     )  # fmt: skip
-    policy = VLAPolicy(module.backbone, spec, precision)
+    policy = VLAPolicy(backbone, spec, precision)
     return evaluator.run(policy, specs, progress=True)
 
 

@@ -18,7 +18,7 @@ import torch
 
 from capvector.errors import CapVectorError
 from capvector.eval.device import Precision, resolve_device, resolve_precision
-from capvector.module import load_module
+from capvector.module import load_for_inference
 from capvector.policy import VLAPolicy
 from capvector.serve.schema import (
     IMAGES,
@@ -35,20 +35,21 @@ from capvector.tool_cli import run_tool
 
 
 class ServedPolicy:
-    """A checkpoint or export loaded once as ``capvector evaluate`` loads it (``load_module`` +
+    """A checkpoint or export loaded once as ``capvector evaluate`` loads it (``load_for_inference`` +
     ``VLAPolicy``: statistics, cameras, crop and tokenizer from the export), on ``device``, each
     forward under ``precision``."""
 
     def __init__(self, ckpt: str, device: torch.device, precision: Precision) -> None:
         self.precision = precision
-        module = load_module(ckpt).eval().to(device)
-        self.spec = module.data_spec
-        self.tokenizer = module.backbone.tokenizer
-        self.policy = VLAPolicy(module.backbone, self.spec, precision)
+        # Under autocast a bf16 export is served in bf16 (no float32 copy).
+        backbone, self.spec = load_for_inference(ckpt, keep_dtype=precision != "32-true")
+        backbone.to(device)
+        self.tokenizer = backbone.tokenizer
+        self.policy = VLAPolicy(backbone, self.spec, precision)
         self.device = device
         self.describe = {
-            "family": module.backbone.config_class.family,
-            "preset": module.backbone.config.preset,
+            "family": backbone.config_class.family,
+            "preset": backbone.config.preset,
         }
 
     def act_batch(self, observations: Sequence[Observation]) -> list[np.ndarray]:
