@@ -85,13 +85,18 @@ def run_one(
     export: str | None = None,
     lr: float | None = None,
     steps: int = 2,
-) -> dict[str, Any]:
+    strategy: str = "auto",
+    devices: int = 1,
+    overrides: dict[str, Any] | None = None,
+) -> dict[str, Any] | None:
     """Two steps of ``preset`` in this process; the row for the JSON. With ``export``, the model is
     exported there afterwards (in the base's dtype, as ``ExportOnFitEnd`` writes it). ``lr``
     replaces the family's learning rate: two steps at Pi0.5's 2.5e-5 move LoRA-merged weights by
     less than a bf16 step, so two bf16 exports would be identical and no vector could be taken.
     ``steps=0`` builds and exports only (a full-size export to serve, with less memory than a
-    step needs)."""
+    step needs). ``strategy`` (``ddp`` or ``fsdp2``: ``ModelParallelStrategy``, as
+    ``configs/scale/fsdp2.yaml``) over ``devices`` CPU processes, each rank's peak gathered: rank 0
+    returns the row, the others None. ``overrides`` change the preset's config (a mid-size model)."""
     import lightning as L
     import torch
 
@@ -134,7 +139,8 @@ def run_one(
         baseline = high_water()
         start = time.perf_counter()
         module = VLAModule(
-            backbone=preset, backbone_overrides={"tokenizer": "byte"}, data_spec=dm.spec,
+            backbone=preset, backbone_overrides={"tokenizer": "byte", **(overrides or {})},
+            data_spec=dm.spec,
             lora=LoraSettings(r=32, alpha=16), frozen_dtype="bfloat16",
             activation_checkpointing=checkpointing,
         )  # fmt: skip
@@ -148,11 +154,18 @@ def run_one(
             enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
             enable_checkpointing=False, default_root_dir=tmp,
             callbacks=[StepCost(), *callbacks_of(variant, vector), record],
-            gradient_clip_val=1.0,
+            gradient_clip_val=None if strategy == "fsdp2" else 1.0,  # FSDP2 clips by norm only
+            strategy=strategy_of(strategy, devices), devices=devices,
         )  # fmt: skip
         if steps:
             trainer.fit(module, dm)
     peak = high_water() - baseline
+    rank_peaks = [peak]
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        rank_peaks = [0] * torch.distributed.get_world_size()
+        torch.distributed.all_gather_object(rank_peaks, peak)
+        if torch.distributed.get_rank() != 0:
+            return None
     exported: dict[str, Any] = {}
     if export is not None:
         start = time.perf_counter()
@@ -185,6 +198,13 @@ def run_one(
         "build_seconds": build_seconds,
         "step_seconds": record.seconds,
         "peak_rss_above_baseline_gib": peak / GIB,
+        **({"strategy": strategy, "devices": devices} if devices > 1 else {}),
+        **(
+            {"rank_peak_rss_above_baseline_gib": [p / GIB for p in rank_peaks]}
+            if devices > 1
+            else {}
+        ),
+        **({"overrides": overrides} if overrides else {}),
         "build_peak_rss_above_baseline_gib": built_peak / GIB,
         "objectives": sorted(module.objectives),
         "lr": module.optimizer_settings.lr,
@@ -193,6 +213,17 @@ def run_one(
         "torch": torch.__version__,
         "threads": torch.get_num_threads(),
     }
+
+
+def strategy_of(name: str, devices: int) -> Any:
+    """Lightning's strategy for ``name``: ``fsdp2`` as ``configs/scale/fsdp2.yaml`` sets it."""
+    if name != "fsdp2":
+        return name
+    from lightning.pytorch.strategies import ModelParallelStrategy
+
+    return ModelParallelStrategy(
+        data_parallel_size=devices, tensor_parallel_size=1, save_distributed_checkpoint=False
+    )
 
 
 def plan(preset: str, variant: str) -> dict[str, Any]:
@@ -231,6 +262,9 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="OMP_NUM_THREADS of each run")
     parser.add_argument("--lr", type=float, help="learning rate (default: the family's)")
     parser.add_argument("--steps", type=int, default=2, help="training steps (0: build, export)")
+    parser.add_argument("--strategy", default="auto", choices=("auto", "ddp", "fsdp2"))
+    parser.add_argument("--devices", type=int, default=1, help="CPU processes (with --strategy)")
+    parser.add_argument("--overrides", type=json.loads, help="preset config changes (JSON)")
     parser.add_argument("--run", nargs=2, metavar=("PRESET", "VARIANT"), help=argparse.SUPPRESS)
     parser.add_argument("--plan", nargs=2, metavar=("PRESET", "VARIANT"), help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -239,8 +273,12 @@ def main() -> None:
         return
     if args.run:
         export = None if args.export is None else str(args.export / "-".join(args.run))
-        row = run_one(*args.run, vector=args.vector, export=export, lr=args.lr, steps=args.steps)
-        print(json.dumps(row))
+        row = run_one(
+            *args.run, vector=args.vector, export=export, lr=args.lr, steps=args.steps,
+            strategy=args.strategy, devices=args.devices, overrides=args.overrides,
+        )  # fmt: skip
+        if row is not None:  # rank 0
+            print(json.dumps(row))
         return
     rows: list[dict[str, Any]] = json.loads(args.out.read_text()) if args.out.is_file() else []
     done = {(r["preset"], r["variant"]) for r in rows}
@@ -253,6 +291,9 @@ def main() -> None:
             extra += ["--export", str(args.export)] if args.export else []
             extra += ["--lr", str(args.lr)] if args.lr is not None else []
             extra += ["--steps", str(args.steps)] if args.steps != 2 else []
+            if args.devices > 1:
+                extra += ["--strategy", args.strategy, "--devices", str(args.devices)]
+            extra += ["--overrides", json.dumps(args.overrides)] if args.overrides else []
             out = subprocess.run(
                 [sys.executable, __file__, "--run", preset, variant, *extra],
                 capture_output=True, text=True,
@@ -262,14 +303,16 @@ def main() -> None:
                 print(f"{preset} {variant}: failed (exit {out.returncode})\n{out.stderr[-3000:]}")
                 continue
             row = json.loads(out.stdout.strip().splitlines()[-1])
-            planned = subprocess.run(
-                [sys.executable, __file__, "--plan", preset, variant], capture_output=True,
-                text=True, env={**os.environ, "OMP_NUM_THREADS": str(args.threads)},
-            )  # fmt: skip
-            if planned.returncode == 0:
-                row.update(json.loads(planned.stdout.strip().splitlines()[-1]))
-            else:  # the measured row is kept; what the planner said instead of its figure
-                row["planner_error"] = planned.stderr.strip().splitlines()[-1]
+            # The planner plans the preset itself, on one device: no figure for the others.
+            if not args.overrides and args.devices == 1 and args.steps:
+                planned = subprocess.run(
+                    [sys.executable, __file__, "--plan", preset, variant], capture_output=True,
+                    text=True, env={**os.environ, "OMP_NUM_THREADS": str(args.threads)},
+                )  # fmt: skip
+                if planned.returncode == 0:
+                    row.update(json.loads(planned.stdout.strip().splitlines()[-1]))
+                else:  # the measured row is kept; what the planner said instead of its figure
+                    row["planner_error"] = planned.stderr.strip().splitlines()[-1]
             row["command"] = " ".join(
                 ["python benchmarks/bench_full_size.py --presets", preset, "--variants", variant,
                  *extra, "--threads", str(args.threads)]
