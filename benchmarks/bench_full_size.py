@@ -160,10 +160,12 @@ def run_one(
         if steps:
             trainer.fit(module, dm)
     peak = high_water() - baseline
-    rank_peaks = [peak]
+    # Each rank's (peak above its baseline, its peak RSS): the baselines differ (rank 0 launched
+    # the others after building its model).
+    rank_peaks = [(peak, high_water())]
     if torch.distributed.is_available() and torch.distributed.is_initialized():
-        rank_peaks = [0] * torch.distributed.get_world_size()
-        torch.distributed.all_gather_object(rank_peaks, peak)
+        rank_peaks = [(0, 0)] * torch.distributed.get_world_size()
+        torch.distributed.all_gather_object(rank_peaks, (peak, high_water()))
         if torch.distributed.get_rank() != 0:
             return None
     exported: dict[str, Any] = {}
@@ -200,7 +202,10 @@ def run_one(
         "peak_rss_above_baseline_gib": peak / GIB,
         **({"strategy": strategy, "devices": devices} if devices > 1 else {}),
         **(
-            {"rank_peak_rss_above_baseline_gib": [p / GIB for p in rank_peaks]}
+            {
+                "rank_peak_rss_above_baseline_gib": [above / GIB for above, _ in rank_peaks],
+                "rank_peak_rss_gib": [rss / GIB for _, rss in rank_peaks],
+            }
             if devices > 1
             else {}
         ),
