@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import json
+from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +23,7 @@ from capvector.errors import CapVectorError
 from capvector.eval.rollout import RolloutEvaluator, close_envs
 
 SUITE = "libero_spatial"
+PORT = f"port (robosuite {version('robosuite')}, MuJoCo {version('mujoco')})"
 
 
 @pytest.fixture(scope="module")
@@ -66,6 +68,9 @@ def test_evaluate_runs_the_protocol_in_workers_and_here_alike(
     assert "| 0% (0/2; 0%–66%) | 3.0 |" in table and f"| {SUITE} (all) |" in table
     (row,) = json.loads((runs["0"][0] / "eval.json").read_text())
     assert row["instruction"] == instruction and row["episodes"] == 2
+    # which stack and renderer made it, in the row and under the table
+    assert row["stack"] == PORT
+    assert f"\nStack: {row['stack']}, {row['renderer']} renderer." in table
     final = [episode.pop("final_proprio") for episode in row["per_episode"]]
     assert row["per_episode"] == [
         {"suite": SUITE, "task": 0, "trial": trial, "success": False, "steps": 3,
@@ -105,8 +110,12 @@ def test_the_validation_loop_logs_libero_success_per_task(export: Path, tmp_path
     assert metrics["val/episodes"] == "2.0"
     assert metrics["val/success_rate"] == metrics[f"val/success_rate_by_task/{SUITE}/0"] == "0.0"
     with (version / "episodes.csv").open() as f:
-        episodes = [(e["task"], e["seed"], e["success"]) for e in csv.DictReader(f)]
+        rows = list(csv.DictReader(f))
+    episodes = [(e["task"], e["seed"], e["success"]) for e in rows]
     assert episodes == [(f"{SUITE}/0", "0", "0"), (f"{SUITE}/0", "1", "0")]
+    # the port, never to be read as upstream LIBERO's robosuite 1.4 (evaluate --backend upstream)
+    assert {e["stack"] for e in rows} == {PORT}
+    assert {e["renderer"] for e in rows} <= {"fast", "official"} and len(rows) == 2
 
 
 def press_down(observation: dict) -> np.ndarray:

@@ -291,7 +291,7 @@ def test_a_fit_with_rollouts_logs_to_mlflow_tensorboard_and_wandb_at_one_step(
     (video,) = artifacts.rglob("*.mp4")
     assert video.parent.name == "step000001"
     episodes = (artifacts / "episodes.csv").read_text().splitlines()
-    assert episodes[0] == "step,task,seed,success" and len(episodes) == 2
+    assert episodes[0] == "step,task,seed,success,stack,renderer" and len(episodes) == 2
     # The run's own files beside Lightning's checkpoints, inside the run's folder.
     folder = store / experiment.experiment_id / run.info.run_id
     assert {"checkpoints", "export", "videos", "episodes.csv"} <= {p.name for p in folder.iterdir()}

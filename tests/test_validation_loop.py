@@ -6,6 +6,7 @@ import csv
 import json
 import subprocess
 import sys
+from importlib.metadata import version as installed
 from pathlib import Path
 
 import pytest
@@ -120,6 +121,10 @@ def test_fit_runs_the_rollout_validation_loop(tmp_path: Path) -> None:
         ("2", "Lift", "1000000"),
         ("2", "Lift", "1000001"),
     ]
+    # and which simulator made them (capvector.envs.base.Suite.provenance)
+    assert {(e["stack"], e["renderer"]) for e in episodes} == {
+        (f"robosuite {installed('robosuite')}, MuJoCo {installed('mujoco')}", "MuJoCo")
+    }
     with (version / "metrics.csv").open() as f:
         rate = next(
             float(r["val/success_rate"]) for r in csv.DictReader(f) if r["val/success_rate"]

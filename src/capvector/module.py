@@ -29,6 +29,7 @@ from capvector.data.batch import Batch
 from capvector.data.episodes import EpisodeDataset, EpisodeItem, is_episode_batch
 from capvector.data.spec import DataSpec
 from capvector.envs.base import Spec
+from capvector.envs.registry import suite_of
 from capvector.errors import CapVectorError
 from capvector.eval.metrics import SuccessRate
 from capvector.eval.results import metric_key
@@ -39,6 +40,7 @@ from capvector.io.names import (
     BASE_DELTA,
     CHECKPOINT_METADATA,
     DATA_SPEC_FILE,
+    EPISODE_COLUMNS,
     EPISODES_LOG,
     MERGED_VECTORS,
     STATISTICS_FILE,
@@ -347,9 +349,11 @@ class VLAModule(L.LightningModule):
                 log_video(self.loggers, f"val/video/{path.stem}", result.frames, path,
                           logging_step(self.trainer))  # fmt: skip
         for item, result in zip(counted, results, strict=True):
-            self._episode_rows.append(
-                [self.global_step, _task_key(item.spec), item.spec.seed, int(result.success)]
-            )
+            made_by = suite_of(item.spec).provenance(item.spec)
+            self._episode_rows.append([
+                self.global_step, _task_key(item.spec), item.spec.seed, int(result.success),
+                made_by.stack, made_by.renderer,
+            ])  # fmt: skip
             self.episode_count.update(1.0)
             for key in (_task_key(item.spec), "all"):
                 self.success_rates[key].update(result.success)
@@ -381,12 +385,14 @@ class VLAModule(L.LightningModule):
         if not self._episode_rows:
             return
         new = not self._episodes_log.exists()
+        # A log begun before episodes said their stack (a resumed fit) keeps its four columns.
+        labelled = new or "stack" in self._episodes_log.open().readline()
         self._episodes_log.parent.mkdir(parents=True, exist_ok=True)
         with self._episodes_log.open("a", newline="") as f:
             writer = csv.writer(f)
             if new:
-                writer.writerow(["step", "task", "seed", "success"])
-            writer.writerows(self._episode_rows)
+                writer.writerow(EPISODE_COLUMNS)
+            writer.writerows(row if labelled else row[:4] for row in self._episode_rows)
         self._episode_rows = []
         log_file(self.loggers, self._episodes_log)
 

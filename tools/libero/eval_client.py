@@ -32,8 +32,15 @@ this one and `capvector evaluate --suite` on our robosuite 1.5 port, differ only
   reset, so both place the fixtures from the same draws (the same poses, checked).
 - A simulator exception fails the trial, as in openpi; a server error stops the run (openpi
   counts it as a failed trial).
+- The cameras are drawn only on the steps whose observation is sent (the last wait step and the
+  last step of each chunk), as `capvector evaluate` draws them: LIBERO's env draws both at every
+  step, ~90% of a step's cost here, and a drawing changes no state. robosuite 1.4 samples a step's
+  observables after its first physics substep (`Observable.update`: the sampling period equals
+  the control period, so each step samples anew), so the images sent are those the env draws
+  drawing at every step, to the bit (`--draw-every-step` draws them all, as openpi's client).
 
-It prints a per-task table and `--json` writes rows in the shape of `capvector evaluate --json`,
+It prints a per-task table and `--json` writes rows in the shape of `capvector evaluate --json`
+(each says its `stack`, robosuite 1.4's and MuJoCo's versions, and `renderer`),
 each episode with its first action chunk and the state of every request besides success, steps,
 reason and the final state (`final_proprio`); `--observations` writes the first request of every
 trial as sent (npz).
@@ -51,7 +58,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+import mujoco
 import numpy as np
+import robosuite
 from libero.libero import benchmark
 from libero.libero.envs import OffScreenRenderEnv
 from openpi_client.websocket_client_policy import WebsocketClientPolicy
@@ -96,6 +105,43 @@ def request_of(obs: dict[str, np.ndarray], instruction: str) -> dict[str, Any]:
     }
 
 
+# How capvector.eval.provenance names the stack, beside the port's "port (robosuite 1.5.2, ...)".
+STACK = f"upstream LIBERO (robosuite {robosuite.__version__}, MuJoCo {mujoco.__version__})"
+RENDERER = "official"  # robosuite's MuJoCo renderer, LIBERO's own images (capvector's name)
+
+
+class SentCameras:
+    """Draws the cameras only while ``drawing`` (module docstring): each image observable's
+    sensor is wrapped to return its last image otherwise. The wrappers go on after every reset
+    (a hard reset builds new sensors)."""
+
+    def __init__(self, every_step: bool) -> None:
+        self.every_step = every_step
+        self.drawing = True
+
+    def install(self, env: OffScreenRenderEnv) -> None:
+        if self.every_step:
+            return
+        for name, observable in env.env._observables.items():
+            sensor, last = observable._sensor, {}
+            if observable.modality != "image" or hasattr(sensor, "sent_cameras"):
+                continue  # a soft reset keeps the wrapped sensors
+
+            def lazy(obs_cache: dict, sensor: Any = sensor, name: str = name, last: dict = last):
+                if self.drawing or name not in last:
+                    last[name] = sensor(obs_cache)
+                return last[name]
+
+            lazy.__modality__ = sensor.__modality__  # robosuite's @sensor marks it so
+            lazy.sent_cameras = True
+            observable._sensor = lazy
+
+    def step(self, env: OffScreenRenderEnv, action: list[float], sent: bool) -> tuple:
+        """One env step, drawing the cameras if its observation is ``sent`` to the policy."""
+        self.drawing = sent or self.every_step
+        return env.step(action)
+
+
 class TrialFixtures:
     """Seeds numpy's global generator for a trial's reset, and again after the robot's reset, so
     LIBERO places the fixtures from the draws robosuite 1.5 gives it (module docstring)."""
@@ -125,6 +171,7 @@ class TrialFixtures:
 def run_trial(
     env: OffScreenRenderEnv,
     fixtures: TrialFixtures,
+    cameras: SentCameras,
     client: WebsocketClientPolicy,
     init_state: np.ndarray,
     trial: int,
@@ -135,9 +182,10 @@ def run_trial(
     """One trial: its outcome (an episode of `capvector evaluate --json`, plus the first chunk,
     the state sent with every request and the final state) and its first request's arrays."""
     fixtures.reset(env, trial)
+    cameras.install(env)
     obs = env.set_init_state(init_state)
-    for _ in range(NUM_WAIT_STEPS):
-        obs, _, _, _ = env.step(WAIT_ACTION)
+    for wait in range(NUM_WAIT_STEPS):
+        obs, _, _, _ = cameras.step(env, WAIT_ACTION, sent=wait == NUM_WAIT_STEPS - 1)
     first_request = request_of(obs, instruction)
     first_chunk: np.ndarray | None = None
     states: list[list[float]] = []
@@ -148,11 +196,11 @@ def run_trial(
         states.append(request["observation/state"].tolist())
         if first_chunk is None:
             first_chunk = chunk
-        for action in chunk[:replan_steps]:
+        for i, action in enumerate(chunk[:replan_steps]):
             command = action.copy()
             command[-1] = 1.0 if command[-1] > 0 else -1.0  # binarised: module docstring
             try:
-                obs, _, done, _ = env.step(command.tolist())
+                obs, _, done, _ = cameras.step(env, command.tolist(), sent=i == replan_steps - 1)
             except Exception as e:  # as openpi: the trial fails, the evaluation goes on
                 reason = f"{type(e).__name__} at step {steps}: {e}"
                 break
@@ -199,6 +247,8 @@ def row_of(suite: str, task_id: int, instruction: str, episodes: list[dict[str, 
         "mean_steps": sum(e["steps"] for e in episodes) / n,
         "failures": sorted({e["reason"] for e in episodes if e["reason"]}),
         "instruction": instruction,
+        "stack": STACK,
+        "renderer": RENDERER,
         "outcomes": [[e["trial"], e["success"]] for e in episodes],
         "per_episode": episodes,
     }
@@ -245,6 +295,10 @@ def main() -> None:
     parser.add_argument("--max-steps", type=int, help="step limit (default: the suite's)")
     parser.add_argument("--image-size", type=int, help="render size (default: the policy's)")
     parser.add_argument("--replan-steps", type=int, help="actions per request (default: chunk)")
+    parser.add_argument(
+        "--draw-every-step", action="store_true",
+        help="draw the cameras at every step, not only where the policy is asked (same images)",
+    )  # fmt: skip
     parser.add_argument("--json", type=Path, help="write the rows, every episode's outcome")
     parser.add_argument("--observations", type=Path, help="write first requests' arrays (npz)")
     parser.add_argument(
@@ -276,6 +330,7 @@ def main() -> None:
     )
 
     rows, arrays, fixtures = [], {}, TrialFixtures()
+    cameras = SentCameras(args.draw_every_step)
     for task_id in tasks:
         task = bench.get_task(task_id)
         env = OffScreenRenderEnv(
@@ -287,8 +342,9 @@ def main() -> None:
         episodes = []
         for trial in range(args.trials):
             episode, request = run_trial(
-                env, fixtures, client, init_states[trial], trial, task.language, max_steps, replan
-            )
+                env, fixtures, cameras, client, init_states[trial], trial, task.language,
+                max_steps, replan,
+            )  # fmt: skip
             episodes.append({"suite": args.suite, "task": task_id, "trial": trial, **episode})
             key = f"{args.suite}/{task_id}/{trial}"
             arrays.update(

@@ -240,6 +240,30 @@ class EnvPool(Protocol):
         ...
 
 
+@dataclass(frozen=True)
+class Provenance:
+    """What produced a result: the simulator stack (packages and versions) and the renderer."""
+
+    stack: str
+    renderer: str
+
+    def to_dict(self) -> dict[str, str]:
+        return {"stack": self.stack, "renderer": self.renderer}
+
+
+def stack_label(packages: Sequence[tuple[str, str]]) -> str:
+    """``robosuite 1.5.2, MuJoCo 3.9.0``: each (name, distribution) with its installed version."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    def installed(distribution: str) -> str:
+        try:
+            return version(distribution)
+        except PackageNotFoundError:
+            return "not installed"
+
+    return ", ".join(f"{name} {installed(dist)}" for name, dist in packages)
+
+
 class Suite(ABC):
     """A benchmark: its episode specs, environments and episodes. Subclass it in the suite's own
     package, register it in :data:`capvector.envs.registry.SUITES` (a built-in, a
@@ -328,6 +352,15 @@ class Suite(ABC):
     def instruction(self, spec: Spec) -> str | None:
         """The language instruction of ``spec``'s task, for result tables (None: not shown)."""
         return None
+
+    stack_packages: ClassVar[tuple[tuple[str, str], ...]] = (("MuJoCo", "mujoco"),)
+    """(name, distribution) of what simulates the suite, for :meth:`provenance`."""
+
+    def provenance(self, spec: Spec) -> Provenance:
+        """Which simulator stack and renderer produce ``spec``'s results: every row of
+        ``capvector evaluate --json`` and ``episodes.csv`` says, so no number is read as another
+        stack's (a LIBERO port's against upstream LIBERO's published ones)."""
+        return Provenance(stack_label(self.stack_packages), "MuJoCo")
 
     def check(self, specs: Sequence[Spec]) -> None:
         """Raise ``CapVectorError`` for specs that cannot run, before any episode does."""

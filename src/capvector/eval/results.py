@@ -60,6 +60,11 @@ class SuccessRow:
     """The task's language instruction (LIBERO's tasks are told apart by it)."""
     outcomes: tuple[tuple[int, bool], ...] = field(default=(), compare=False)
     """(seed, success) of every episode, so intervals paired by seed can be recomputed."""
+    stack: str | None = None
+    """The simulator stack that produced it (``Suite.provenance``), e.g. ``port (robosuite 1.5.2,
+    MuJoCo 3.9.0)`` against ``upstream LIBERO (robosuite 1.4.0, MuJoCo 2.3.7)``."""
+    renderer: str | None = None
+    """Who drew the policy's images (LIBERO: ``fast`` or ``official``)."""
 
     @property
     def success_rate(self) -> float:
@@ -77,6 +82,8 @@ class SuccessRow:
             "success_rate": self.success_rate, "ci95": list(self.ci95),
             "mean_steps": self.mean_steps, "failures": list(self.failures),
             **({"instruction": self.instruction} if self.instruction else {}),
+            **({"stack": self.stack} if self.stack else {}),
+            **({"renderer": self.renderer} if self.renderer else {}),
             "outcomes": [[seed, bool(ok)] for seed, ok in self.outcomes],
         }  # fmt: skip
 
@@ -87,6 +94,7 @@ class SuccessRow:
             successes=int(row["successes"]), mean_steps=float(row.get("mean_steps", 0.0)),
             variant=row.get("variant"), failures=tuple(row.get("failures", ())),
             label=label, instruction=row.get("instruction"), outcomes=tuple((int(a), bool(b)) for a, b in row.get("outcomes", ())),
+            stack=row.get("stack"), renderer=row.get("renderer"),
         )  # fmt: skip
 
 
@@ -123,7 +131,14 @@ def pooled_row(rows: Sequence[SuccessRow], task: str) -> SuccessRow:
         task, rows[0].robot if rows else DEFAULT_ROBOT, episodes, sum(r.successes for r in rows),
         steps / episodes if episodes else 0.0,
         failures=tuple(sorted({f for r in rows for f in r.failures})),
+        stack=_shared(r.stack for r in rows), renderer=_shared(r.renderer for r in rows),
     )  # fmt: skip
+
+
+def _shared(values: Iterable[str | None]) -> str | None:
+    """The one value every row has, else None (rows of several stacks pooled)."""
+    distinct = set(values)
+    return distinct.pop() if len(distinct) == 1 else None
 
 
 INSTRUCTION_WIDTH = 48
@@ -132,20 +147,44 @@ INSTRUCTION_WIDTH = 48
 
 def format_success_table(rows: Sequence[SuccessRow]) -> str:
     """Markdown: a label column when rows carry labels, a variant column when any has one, an
-    instruction column (shortened) when any has one."""
+    instruction column (shortened) when any has one; the stack and renderer that produced the
+    rows in a line under it (a column when they differ)."""
     labelled = any(r.label for r in rows)
     varied = any(r.variant for r in rows)
     told = any(r.instruction for r in rows)
     head = ["stage"] * labelled + ["task"] + ["instruction"] * told + ["robot"]
     head += ["variant"] * varied + ["success (n; 95% CI)", "mean steps"]
+    # Which stack and renderer: a line under the table when every row shares them, else a column
+    # (a recipe's table of stages run on the LIBERO port and on upstream LIBERO).
+    stacks = {(r.stack, r.renderer) for r in rows if r.stack or r.renderer}
+    mixed = bool(stacks) and len({(r.stack, r.renderer) for r in rows}) > 1
+    head += ["stack"] * mixed
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         cells = [r.label or ""] * labelled + [r.task]
         cells += [_shorten(r.instruction or "", INSTRUCTION_WIDTH)] * told + [r.robot]
         cells += [r.variant or "–"] * varied
         cells += [success_cell(r.successes, r.episodes), f"{r.mean_steps:.1f}"]
+        cells += [_provenance(r)] * mixed
         lines.append("| " + " | ".join(cells) + " |")
+    if stacks and not mixed:
+        lines.append(f"\nStack: {_provenance(rows[0])}.")
     return "\n".join(lines)
+
+
+def _provenance(row: SuccessRow) -> str:
+    return provenance_label(row.stack, row.renderer)
+
+
+NOT_RECORDED = "not recorded"
+"""The stack of results written before results said which stack produced them."""
+
+
+def provenance_label(stack: str | None, renderer: str | None) -> str:
+    """``port (robosuite 1.5.2, MuJoCo 3.9.0), fast renderer``, or :data:`NOT_RECORDED`."""
+    if not stack:
+        return NOT_RECORDED
+    return stack + (f", {renderer} renderer" if renderer else "")
 
 
 def _shorten(text: str, width: int) -> str:

@@ -28,6 +28,8 @@ SUCCESS_BY_TASK = "val/success_rate_by_task"
 also the folder of another."""
 EPISODES_LOG = "episodes.csv"
 """Per-episode rollout outcomes of the validation loop, beside Lightning's ``metrics.csv``."""
+EPISODE_COLUMNS = ("step", "task", "seed", "success", "stack", "renderer")
+"""``episodes.csv``'s header: each outcome with the simulator stack and renderer behind it."""
 
 # A capability vector folder (capvector extract / compose), and its PEFT LoRA adapter form.
 VECTOR_FORMAT = "capvector-vector"

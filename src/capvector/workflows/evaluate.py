@@ -7,7 +7,7 @@ import dataclasses
 from collections.abc import Sequence
 from json import dumps
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 from capvector.data.episodes import EpisodeDataset, EvalTask
 from capvector.envs.base import Spec, check_options
@@ -127,6 +127,8 @@ def evaluate_cli(
     json: str | None = None,
     device: str | None = None,
     precision: Precision | None = None,
+    backend: Backend = "port",
+    upstream_env: str | None = None,
 ) -> None:
     """Rollouts of a checkpoint in a registered suite: robosuite tasks (--task), or a task set
     (--suite: a LIBERO suite, ...) under its suite's protocol.
@@ -167,10 +169,33 @@ def evaluate_cli(
         device: where the policy runs, e.g. cpu, cuda, cuda:1 (default: cuda when there is one)
         precision: 32-true, or bf16-mixed / 16-mixed (autocast; 16-mixed needs a GPU); default
             bf16-mixed on a GPU, 32-true elsewhere
+        backend: who simulates a LIBERO suite: port (this project's LIBERO on robosuite 1.5 and
+            MuJoCo 3) or upstream (upstream LIBERO on robosuite 1.4 and MuJoCo 2.3.7, the stack
+            of LIBERO's data and published numbers, in its own environment, driving this policy
+            through a local `capvector serve`; official rendering)
+        upstream_env: the upstream environment's folder (default $CAPVECTOR_LIBERO14, else
+            ~/.cache/capvector/libero14, where tools/libero/install_libero14.sh puts it)
     """
     for what, path in (("--json", json), ("--video", video)):
         if path is not None:  # before minutes of rollouts
             check_output(path, overwrite=True, inputs=[ckpt], what=what)
+    if backend == "upstream":
+        given = dict(
+            task=task, robot=robot, gripper=gripper,
+            variant=variant if any(v is not None for v in variant) else None,
+            start_seed=start_seed, from_demos=from_demos, video=video, batch_size=batch_size,
+            workers=workers, rendering=None if rendering == "official" else rendering,
+        )  # fmt: skip
+        rows = _evaluate_upstream(
+            ckpt, suite, tasks, episodes, trials, max_steps, image_size, execute_steps,
+            upstream_env, device, precision, given,
+        )  # fmt: skip
+        _report(rows, suite, json)
+        return
+    if upstream_env is not None:
+        raise CapVectorError(
+            "--upstream-env is where --backend upstream runs: add --backend upstream"
+        )
     options = dict(
         robot=robot, gripper=gripper, start_seed=start_seed, tasks=tasks, max_steps=max_steps,
         rendering=rendering, from_demos=from_demos,
@@ -194,21 +219,87 @@ def evaluate_cli(
         spec = by_row[row.task, row.robot, row.variant][0][0]
         return suite_of(spec).instruction(spec)
 
-    rows = [dataclasses.replace(row, instruction=instruction(row)) for row in success_rows(results)]
-    # a task set of several tasks (--suite) also gets its pooled row
-    table = rows if suite is None else [*rows, pooled_row(rows, f"{suite} (all)")]
-    print(format_success_table(table))
-    if json:
-        payload = [
-            {**row.to_dict(), "per_episode": [
-                {**s.describe(), "success": r.success, "steps": r.steps, "reason": r.reason,
-                 "final_proprio": r.final_proprio}
-                for s, r in by_row[row.task, row.robot, row.variant]
-            ]}
-            for row in rows
-        ]  # fmt: skip
-        atomic_write_bytes(json, dumps(payload, indent=2).encode())
+    def labelled(row: SuccessRow) -> SuccessRow:
+        spec = by_row[row.task, row.robot, row.variant][0][0]
+        made_by = suite_of(spec).provenance(spec)
+        return dataclasses.replace(
+            row, instruction=instruction(row), stack=made_by.stack, renderer=made_by.renderer
+        )
+
+    rows = [labelled(row) for row in success_rows(results)]
+    episodes_of = {
+        (row.task, row.robot, row.variant): [
+            {**s.describe(), "success": r.success, "steps": r.steps, "reason": r.reason,
+             "final_proprio": r.final_proprio}
+            for s, r in by_row[row.task, row.robot, row.variant]
+        ]
+        for row in rows
+    }  # fmt: skip
+    _report([(row, episodes_of[row.task, row.robot, row.variant]) for row in rows], suite, json)
     _refuse_non_finite_actions(specs, results)
+
+
+Backend = Literal["port", "upstream"]
+"""Who simulates a LIBERO suite for ``capvector evaluate``."""
+
+
+def _report(
+    rows: Sequence[tuple[SuccessRow, list[dict[str, Any]]]], suite: str | None, json: str | None
+) -> None:
+    """Print the table (a task set of several tasks, --suite, also gets its pooled row) and write
+    --json: each row with its episodes (``per_episode``), stack and renderer."""
+    table = [row for row, _ in rows]
+    print(
+        format_success_table(
+            table if suite is None else [*table, pooled_row(table, f"{suite} (all)")]
+        )
+    )
+    if json:
+        payload = [{**row.to_dict(), "per_episode": episodes} for row, episodes in rows]
+        atomic_write_bytes(json, dumps(payload, indent=2).encode())
+
+
+def _evaluate_upstream(
+    ckpt: str,
+    suite: str | None,
+    tasks: Sequence[int] | None,
+    episodes: int | None,
+    trials: int | None,
+    max_steps: int | None,
+    image_size: int | None,
+    execute_steps: int | None,
+    upstream_env: str | None,
+    device: str | None,
+    precision: Precision | None,
+    given: dict[str, Any],
+) -> list[tuple[SuccessRow, list[dict[str, Any]]]]:
+    """``--backend upstream``: the flags it cannot honour refused, the environment found (or the
+    command that installs it named) before the checkpoint loads, then the rows."""
+    from capvector.workflows.evaluate_upstream import evaluate_upstream, upstream_python
+
+    unsupported = [_flag(k) for k, v in given.items() if v is not None]
+    if unsupported:
+        raise CapVectorError(
+            f"--backend upstream runs LIBERO's protocol as upstream does and does not take "
+            f"{', '.join(unsupported)}: drop it, or use --backend port"
+        )
+    if suite is None or suite_for_task_set(suite).name != "libero":
+        raise CapVectorError(
+            f"--backend upstream evaluates a LIBERO suite (--suite libero_spatial, ...), got "
+            f"{'--suite ' + suite if suite else 'no --suite'}"
+        )
+    if episodes is not None and trials is not None:
+        raise CapVectorError("--episodes and --trials are the same: give one")
+    count = trials or episodes or suite_for_task_set(suite).eval_episodes
+    options = {k: v for k, v in (("tasks", tasks), ("max_steps", max_steps)) if v is not None}
+    EpisodeDataset([EvalTask(suite, count, "libero", options)])  # bad tasks or trials refused
+    upstream_python(upstream_env)  # refused before the load
+    rows = evaluate_upstream(
+        ckpt, suite, tasks, count, max_steps=max_steps, image_size=image_size,
+        execute_steps=execute_steps, upstream_env=upstream_env, device=device,
+        precision=precision,
+    )  # fmt: skip
+    return [(SuccessRow.from_dict(row), row["per_episode"]) for row in rows]
 
 
 NON_FINITE = "non-finite action"

@@ -16,6 +16,7 @@ import io
 import itertools
 import json
 import statistics
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -31,7 +32,7 @@ from capvector.eval.comparison import (
     compare,
     format_difference,
 )
-from capvector.eval.results import metric_key
+from capvector.eval.results import metric_key, provenance_label
 from capvector.io.outputs import atomic_write_bytes, check_output
 from capvector.tool_cli import run_tool
 from capvector.training.loggers import log_figure
@@ -54,6 +55,8 @@ class SeedRun:
     held_out_l1: dict[int, float] = field(default_factory=dict)
     step_seconds: list[float] = field(default_factory=list)
     peak_memory_mib: float | None = None
+    stacks: set[str] = field(default_factory=set)
+    """Which simulator stack and renderer its rollouts ran on (``episodes.csv``)."""
 
 
 def read_fit(stage_dir: Path) -> SeedRun:
@@ -78,7 +81,26 @@ def read_fit(stage_dir: Path) -> SeedRun:
                 run.peak_memory_mib = max(run.peak_memory_mib or 0.0, float(row[PEAK_MEMORY]))
     if not run.success:
         raise CapVectorError(f"{path} has no {SUCCESS}: the fit ran without rollout validation")
+    run.stacks = episode_log_stacks(stage_dir)
     return run
+
+
+def episode_log_stacks(stage_dir: Path) -> set[str]:
+    """The stacks (and renderers) a fit's ``episodes.csv`` says its rollouts ran on; a log from
+    before it said, or none: ``not recorded``."""
+    stacks = set()
+    for path in sorted((stage_dir / "fit" / "version_0").glob("episodes*.csv")):
+        with path.open() as f:
+            stacks |= {
+                provenance_label(r.get("stack"), r.get("renderer")) for r in csv.DictReader(f)
+            }
+    return stacks or {provenance_label(None, None)}
+
+
+def evaluation_stacks(stage_dir: Path) -> set[str]:
+    """The stacks (and renderers) the rows of an ``evaluate`` stage's ``results.json`` name."""
+    rows = json.loads((stage_dir / "results.json").read_text())
+    return {provenance_label(r.get("stack"), r.get("renderer")) for r in rows}
 
 
 def read_evaluation(stage_dir: Path) -> tuple[int, int]:
@@ -125,7 +147,11 @@ def steps_to(success: dict[int, float], threshold: float) -> int | None:
 
 
 def summarize_arm(
-    label: str, runs: list[SeedRun], start_counts: tuple[int, int], threshold: float
+    label: str,
+    runs: list[SeedRun],
+    start_counts: tuple[int, int],
+    threshold: float,
+    start_stacks: Iterable[str] = (),
 ) -> dict[str, Any]:
     start = start_counts[0] / start_counts[1]
     steps = sorted(set.intersection(*(set(r.success) for r in runs)))
@@ -146,6 +172,8 @@ def summarize_arm(
         "steps_to_threshold": reached,
         "step_seconds": _spread(seconds) if seconds else None,
         "peak_memory_mib": max(memory) if memory else None,
+        # Which stack produced its numbers (step 0's evaluation and every fit's rollouts).
+        "stacks": sorted(set(start_stacks).union(*(r.stacks for r in runs))),
     }
 
 
@@ -165,7 +193,12 @@ def _spread(values: list[float]) -> dict[str, Any]:
     }
 
 
-def format_table(arms: list[dict], references: dict[str, float], threshold: float) -> str:
+def format_table(
+    arms: list[dict],
+    references: dict[str, float],
+    threshold: float,
+    reference_stacks: dict[str, list[str]] | None = None,
+) -> str:
     steps = sorted({int(s) for a in arms for s in a["success"]})
     head = ["arm", *(f"step {s}" for s in steps), f"steps to {threshold:.0%}",
             "held-out L1 (last)", "s/step", "peak MiB"]  # fmt: skip
@@ -189,7 +222,18 @@ def format_table(arms: list[dict], references: dict[str, float], threshold: floa
         lines.append("| " + " | ".join(cells) + " |")
     for label, rate in references.items():
         lines.append("| " + " | ".join([label, f"{rate:.0%}", *["" for _ in head[2:]]]) + " |")
-    return "\n".join(lines)
+    return "\n".join(lines) + "\n\n" + format_stacks(arms, reference_stacks or {})
+
+
+def format_stacks(arms: list[dict], reference_stacks: dict[str, list[str]]) -> str:
+    """Which simulator stack and renderer produced the numbers: one line when every arm shares
+    them, else one line per arm (a LIBERO port's numbers are never read as upstream's)."""
+    per_arm = {a["arm"]: a.get("stacks") or [provenance_label(None, None)] for a in arms}
+    per_arm |= reference_stacks
+    distinct = {tuple(v) for v in per_arm.values()}
+    if len(distinct) == 1:
+        return f"Stack: {'; '.join(distinct.pop())}."
+    return "\n".join(f"Stack of {label}: {'; '.join(v)}." for label, v in per_arm.items())
 
 
 def plot(arms: list[dict], references: dict[str, float], path: Path) -> None:
@@ -319,9 +363,11 @@ def report(
         dirs = _stage_dirs(run_dir, label, pattern)
         runs = [read_fit(d) for d in dirs]
         start = read_evaluation(run_dir / start_stage)
-        summaries.append(summarize_arm(label, runs, start, threshold))
+        start_stacks = evaluation_stacks(run_dir / start_stage)
+        summaries.append(summarize_arm(label, runs, start, threshold, start_stacks))
         stage_dirs[label] = (dirs, run_dir / start_stage)
     ref_counts = {label: read_evaluation(run_dir / stage) for label, stage in references}
+    ref_stacks = {label: sorted(evaluation_stacks(run_dir / stage)) for label, stage in references}
     training = zero_shot_arms = None
     if compare_to:
         steps = sorted(set.intersection(*(set(map(int, a["success"])) for a in summaries)) - {0})
@@ -331,8 +377,9 @@ def report(
             zero_shot_arm(label, _stage_dirs(run_dir, label, g)) for label, g in zero_shot
         ]
     return write_report(
-        out, summaries, ref_counts, threshold, compare_to, training, zero_shot_arms, resamples
-    )
+        out, summaries, ref_counts, threshold, compare_to, training, zero_shot_arms, resamples,
+        ref_stacks,
+    )  # fmt: skip
 
 
 def report_from_results(
@@ -352,6 +399,7 @@ def report_from_results(
         result = json.loads(path.read_text())
         summaries = [_summary_from_json(arm, threshold) for arm in result["arms"]]
         ref_counts = {label: tuple(c) for label, c in result["reference_counts"].items()}
+        ref_stacks = result.get("reference_stacks", {})  # absent: written before stacks were
         training = _outcomes_from_json(result["comparison"]) if "comparison" in result else None
         zero_shot = _outcomes_from_json(result["zero_shot"]) if "zero_shot" in result else None
     except FileNotFoundError as err:
@@ -367,8 +415,9 @@ def report_from_results(
             "--compare-to"
         )
     return write_report(
-        out, summaries, ref_counts, threshold, compare_to, training, zero_shot, resamples
-    )
+        out, summaries, ref_counts, threshold, compare_to, training, zero_shot, resamples,
+        ref_stacks,
+    )  # fmt: skip
 
 
 def _summary_from_json(arm: dict[str, Any], threshold: float) -> dict[str, Any]:
@@ -387,7 +436,8 @@ def _summary_from_json(arm: dict[str, Any], threshold: float) -> dict[str, Any]:
         # only their spread is used, so the first seeds carry them.
         run.step_seconds = seconds[i : i + 1]
         runs.append(run)
-    return summarize_arm(arm["arm"], runs, tuple(counts["0"][0]), threshold)
+    stacks = set(arm.get("stacks", ()))  # absent: written before reports said which stack
+    return summarize_arm(arm["arm"], runs, tuple(counts["0"][0]), threshold, stacks)
 
 
 def _outcomes_from_json(section: dict[str, Any]) -> list[ArmOutcomes]:
@@ -412,15 +462,17 @@ def write_report(
     training: list[ArmOutcomes] | None,
     zero_shot: list[ArmOutcomes] | None,
     resamples: int,
+    ref_stacks: dict[str, list[str]] | None = None,
 ) -> str:
     """Tables, comparisons, ``results.json`` and plot from the arms' summaries and outcomes."""
     refs = {label: k / n for label, (k, n) in ref_counts.items()}
-    table = format_table(summaries, refs, threshold)
+    table = format_table(summaries, refs, threshold, ref_stacks)
     result: dict[str, Any] = {
         "threshold": threshold,
         "arms": summaries,
         "references": refs,
         "reference_counts": {label: list(c) for label, c in ref_counts.items()},
+        "reference_stacks": ref_stacks or {},
     }
     sections = [table]
     if compare_to and training is not None:

@@ -4,6 +4,7 @@ task's official initial state i), its step limits the OpenVLA-OFT / openpi proto
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Sequence
 from typing import Any
@@ -14,12 +15,25 @@ from capvector.envs.base import (
     DemoSummary,
     EnvPool,
     Episode,
+    Provenance,
     Spec,
     Suite,
+    stack_label,
 )
 from capvector.envs.libero.env import LIBERO_NUM_TASKS, LIBERO_TRIALS, Rendering
 from capvector.envs.libero.spec import LiberoEpisodeSpec, libero_specs
 from capvector.envs.registry import SUITES
+
+
+@functools.cache
+def resolved_rendering(rendering: Rendering) -> str:
+    """``fast`` or ``official``: who draws the images under ``rendering`` on this machine (asked
+    of OpenGL once a process)."""
+    if rendering != "auto":
+        return rendering
+    from capvector.envs.libero.render import fast_rendering_default  # queries OpenGL
+
+    return "fast" if fast_rendering_default() else "official"
 
 
 @SUITES.register("libero")
@@ -59,6 +73,15 @@ class LiberoSuite(Suite):
 
         assert isinstance(spec, LiberoEpisodeSpec), spec
         return libero_task(spec.suite, spec.task_id).instruction
+
+    def provenance(self, spec: Spec) -> Provenance:
+        """The port (LIBERO on robosuite 1.5 and MuJoCo 3, ``rpent-libero``), never to be read as
+        upstream LIBERO's stack (robosuite 1.4, MuJoCo 2.3.7: ``evaluate --backend upstream``),
+        and the renderer ``rendering`` resolves to here (``auto``: fast where OpenGL is
+        software)."""
+        assert isinstance(spec, LiberoEpisodeSpec), spec
+        stack = f"port ({stack_label((('robosuite', 'robosuite'), ('MuJoCo', 'mujoco')))})"
+        return Provenance(stack, resolved_rendering(spec.rendering))
 
     def check(self, specs: Sequence[Spec]) -> None:
         """Every trial that starts from a demo (``from_demos``) finds it."""

@@ -40,6 +40,7 @@ class MetaWorldSuite(Suite):
     example = {"task_set": "reach-v3", "episodes": 2}
     demo_example = {"task_set": "reach-v3", "noise": 0.0, "extra_steps": 1}
     demo_proprio_keys = PROPRIO_KEYS
+    stack_packages = (("Meta-World", "metaworld"), ("MuJoCo", "mujoco"))
 
     def specs(
         self,

@@ -32,6 +32,7 @@ class RobosuiteSuite(Suite):
     # capvector.envs.robosuite.env.PROPRIO_KEYS (that module imports the simulator)
     demo_proprio_keys = ("robot0_eef_pos", "robot0_eef_axis_angle", "robot0_gripper_qpos")
     demo_example = {"task_set": "Lift", "noise": 0.0, "extra_steps": 1}
+    stack_packages = (("robosuite", "robosuite"), ("MuJoCo", "mujoco"))
 
     # ``episodes`` seeds of the task ``task_set`` from ``start_seed``; options ``robot``,
     # ``start_seed``, ``max_steps``, ``gripper``, ``variant``: the spec module's function itself

@@ -1,0 +1,148 @@
+"""`capvector evaluate --backend upstream`: LIBERO's protocol on upstream LIBERO (robosuite 1.4,
+MuJoCo 2.3.7) through the served policy, and every result saying which stack made it.
+
+The upstream environment (`tools/libero/install_libero14.sh`) is not part of CI: the episode test
+skips without it, and runs under `-m referee` (about a minute on the shared machine: LIBERO's env
+built in both stacks, the policy loaded twice).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from capvector.cli import main
+from capvector.eval.results import SuccessRow, format_success_table, pooled_row
+from capvector.workflows.evaluate_upstream import (
+    DEFAULT_UPSTREAM_ENV,
+    INSTALL_SCRIPT,
+    UPSTREAM_ENV_VAR,
+)
+
+SUITE = "libero_spatial"
+EEF_MM = 3.0  # tests/test_libero_served.py: the closed loop before contact, 0.2-1.1 mm measured
+
+
+def upstream_env() -> Path | None:
+    """The upstream environment where the install script (or $CAPVECTOR_LIBERO14) put it."""
+    folder = Path(os.environ.get(UPSTREAM_ENV_VAR) or DEFAULT_UPSTREAM_ENV).expanduser()
+    return folder if (folder / "bin" / "python").is_file() else None
+
+
+def test_without_the_upstream_environment_one_line_names_its_install(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Refused before the checkpoint is read (there is none here), from the flag, the variable
+    and the default folder alike, each naming the command that installs it there."""
+    missing = tmp_path / "nowhere"
+    monkeypatch.setenv("HOME", str(tmp_path))  # the default folder is under ~
+    for flags, env in (
+        (["--upstream-env", str(missing)], None),
+        ([], str(missing)),
+        ([], None),
+    ):
+        if env is None:
+            monkeypatch.delenv(UPSTREAM_ENV_VAR, raising=False)
+        else:
+            monkeypatch.setenv(UPSTREAM_ENV_VAR, env)
+        code = main([
+            "evaluate", "--ckpt", str(tmp_path / "no_export"), "--suite", SUITE, "--tasks", "0",
+            "--trials", "1", "--backend", "upstream", *flags,
+        ])  # fmt: skip
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and len(err.splitlines()) == 1, err
+        folder = missing if flags or env else tmp_path / ".cache" / "capvector" / "libero14"
+        assert f"no upstream LIBERO environment at {folder}" in err
+        assert f"install_libero14.sh {folder}`" in err and INSTALL_SCRIPT.is_file()
+
+
+@pytest.mark.parametrize(
+    ("flags", "named"),
+    [
+        (["--task", "Lift"], "--task"),
+        (["--suite", SUITE, "--video", "v"], "--video"),
+        (["--suite", SUITE, "--rendering", "fast"], "--rendering"),
+        (["--suite", SUITE, "--variant", "camera"], "--variant"),
+        (["--suite", "metaworld_mt10"], "a LIBERO suite"),
+    ],
+)
+def test_the_upstream_backend_refuses_what_it_cannot_honour(
+    flags: list[str], named: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code = main(["evaluate", "--ckpt", str(tmp_path), "--backend", "upstream", *flags])
+    err = capsys.readouterr().err
+    assert code == 2 and named in err, err
+
+
+def test_upstream_env_without_the_upstream_backend_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code = main(["evaluate", "--ckpt", str(tmp_path), "--suite", SUITE, "--upstream-env", "x"])
+    assert code == 2 and "add --backend upstream" in capsys.readouterr().err
+
+
+PORT = "port (robosuite 1.5.2, MuJoCo 3.9.0)"
+UPSTREAM = "upstream LIBERO (robosuite 1.4.0, MuJoCo 2.3.7)"
+
+
+def test_a_table_says_which_stack_and_renderer_made_its_rows() -> None:
+    """One line under the table when every row shares them, a column when they differ, and
+    rows from before results said: not recorded. The JSON form keeps them."""
+    port = SuccessRow("libero_spatial/5", "Panda", 2, 1, 100.0, stack=PORT, renderer="fast")
+    upstream = SuccessRow("libero_spatial/5", "Panda", 2, 0, 220.0, stack=UPSTREAM,
+                          renderer="official")  # fmt: skip
+    table = format_success_table([port, pooled_row([port], "libero_spatial (all)")])
+    assert table.endswith(f"\n\nStack: {PORT}, fast renderer.")
+    mixed = format_success_table([port, upstream]).splitlines()
+    assert mixed[0].endswith("| mean steps | stack |")
+    assert mixed[2].endswith(f"| {PORT}, fast renderer |")
+    assert mixed[3].endswith(f"| {UPSTREAM}, official renderer |")
+    old = SuccessRow("Lift", "Panda", 2, 1, 50.0)
+    assert "stack" not in format_success_table([old])
+    assert format_success_table([old, port]).splitlines()[2].endswith("| not recorded |")
+    assert SuccessRow.from_dict(upstream.to_dict()) == upstream
+    assert pooled_row([port, upstream], "all").stack is None  # pooled across stacks: no one stack
+
+
+@pytest.mark.sim
+@pytest.mark.referee
+def test_one_upstream_episode_is_laid_out_and_moves_as_the_ports(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """One real episode on robosuite 1.4 through the served policy, cut to two chunks, and the
+    same trial on the port with LIBERO's official renderer: the same JSON layout (so `capvector
+    report` and `recipe` read either), each row naming its stack, the same steps, and the end
+    effector where the port leaves it, before any contact, within the served test's EEF_MM."""
+    env = upstream_env()
+    if env is None:
+        pytest.skip(f"no upstream LIBERO environment: {INSTALL_SCRIPT} installs it")
+    monkeypatch.setenv(UPSTREAM_ENV_VAR, str(env))
+    export = Path(__file__).parents[1] / "assets" / "theta_pre"  # as tests/test_libero_served.py
+    runs = {}
+    port_only = ["--rendering", "official", "--workers", "0", "--batch-size", "1", "--videos", "0"]
+    for backend, extra in (("upstream", []), ("port", port_only)):
+        out = tmp_path / f"{backend}.json"
+        code = main([
+            "evaluate", "--ckpt", str(export), "--suite", SUITE, "--tasks", "0", "--trials", "1",
+            "--max-steps", "16", "--backend", backend, "--json", str(out), *extra,
+        ])  # fmt: skip
+        assert code == 0
+        table = capsys.readouterr().out
+        (runs[backend],) = json.loads(out.read_text())
+        stack = runs[backend]["stack"]
+        assert f"Stack: {stack}, {runs[backend]['renderer']} renderer." in table
+    upstream, port = runs["upstream"], runs["port"]
+    assert upstream["stack"] == UPSTREAM and upstream["renderer"] == "official"
+    assert port["stack"].startswith("port (robosuite 1.5") and port["renderer"] == "official"
+    (u,), (p,) = upstream.pop("per_episode"), port.pop("per_episode")
+    assert set(u) >= set(p) and set(upstream) == set(port)  # the client adds states, chunk
+    assert {k: u[k] for k in ("suite", "task", "trial", "success", "steps", "reason")} == {
+        k: p[k] for k in ("suite", "task", "trial", "success", "steps", "reason")
+    }
+    assert u["steps"] == 16 and upstream["outcomes"] == port["outcomes"] == [[0, False]]
+    eef = 1e3 * np.linalg.norm(np.subtract(u["final_proprio"][:3], p["final_proprio"][:3]))
+    assert eef < EEF_MM, eef
