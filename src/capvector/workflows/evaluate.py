@@ -104,6 +104,10 @@ def main(argv: list[str] | None = None) -> int:
     return run_tool(evaluate_cli, argv, "evaluate")
 
 
+Backend = Literal["port", "upstream"]
+"""Who simulates a LIBERO suite for ``capvector evaluate``."""
+
+
 def evaluate_cli(
     ckpt: str,
     task: Sequence[str] | None = None,
@@ -237,10 +241,6 @@ def evaluate_cli(
     }  # fmt: skip
     _report([(row, episodes_of[row.task, row.robot, row.variant]) for row in rows], suite, json)
     _refuse_non_finite_actions(specs, results)
-
-
-Backend = Literal["port", "upstream"]
-"""Who simulates a LIBERO suite for ``capvector evaluate``."""
 
 
 def _report(
