@@ -108,20 +108,40 @@ def test_a_table_says_which_stack_and_renderer_made_its_rows() -> None:
     assert pooled_row([port, upstream], "all").stack is None  # pooled across stacks: no one stack
 
 
+@pytest.fixture(scope="module")
+def export(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """An untrained tiny OpenVLA-OFT export that sees LIBERO's agentview at 32 px (as
+    tests/test_libero_eval.py's: rendering dominates a LIBERO step on a CPU)."""
+    import torch
+
+    from capvector.data.spec import DataSpec
+    from capvector.data.statistics import compute_statistics
+    from capvector.module import VLAModule
+
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    statistics = compute_statistics(rng.normal(size=(100, 7)), rng.normal(size=(100, 8)), 4)
+    spec = DataSpec(cameras=["agentview"], image_size=32, statistics={"capvector": statistics})
+    folder = tmp_path_factory.mktemp("libero") / "export"
+    VLAModule(backbone="openvla-oft-tiny", data_spec=spec).export(folder)
+    return folder
+
+
 @pytest.mark.sim
 @pytest.mark.referee
 def test_one_upstream_episode_is_laid_out_and_moves_as_the_ports(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
-) -> None:
+    export: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:  # fmt: skip
     """One real episode on robosuite 1.4 through the served policy, cut to two chunks, and the
     same trial on the port with LIBERO's official renderer: the same JSON layout (so `capvector
     report` and `recipe` read either), each row naming its stack, the same steps, and the end
-    effector where the port leaves it, before any contact, within the served test's EEF_MM."""
+    effector where the port leaves it, before any contact, within the served test's EEF_MM. A
+    policy trained at other fields of view is refused there as on the port."""
     env = upstream_env()
     if env is None:
         pytest.skip(f"no upstream LIBERO environment: {INSTALL_SCRIPT} installs it")
     monkeypatch.setenv(UPSTREAM_ENV_VAR, str(env))
-    export = Path(__file__).parents[1] / "assets" / "theta_pre"  # as tests/test_libero_served.py
     runs = {}
     port_only = ["--rendering", "official", "--workers", "0", "--batch-size", "1", "--videos", "0"]
     for backend, extra in (("upstream", []), ("port", port_only)):
@@ -140,9 +160,16 @@ def test_one_upstream_episode_is_laid_out_and_moves_as_the_ports(
     assert port["stack"].startswith("port (robosuite 1.5") and port["renderer"] == "official"
     (u,), (p,) = upstream.pop("per_episode"), port.pop("per_episode")
     assert set(u) >= set(p) and set(upstream) == set(port)  # the client adds states, chunk
-    assert {k: u[k] for k in ("suite", "task", "trial", "success", "steps", "reason")} == {
-        k: p[k] for k in ("suite", "task", "trial", "success", "steps", "reason")
-    }
+    same = ("suite", "task", "trial", "success", "steps", "reason")
+    assert {k: u[k] for k in same} == {k: p[k] for k in same}
     assert u["steps"] == 16 and upstream["outcomes"] == port["outcomes"] == [[0, False]]
     eef = 1e3 * np.linalg.norm(np.subtract(u["final_proprio"][:3], p["final_proprio"][:3]))
     assert eef < EEF_MM, eef
+    # θ_pre trained on robosuite's Lift cameras (agentview at 35°): LIBERO's is 45°
+    theta_pre = Path(__file__).parents[1] / "assets" / "theta_pre"
+    code = main([
+        "evaluate", "--ckpt", str(theta_pre), "--suite", SUITE, "--tasks", "0", "--trials", "1",
+        "--backend", "upstream",
+    ])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2 and "vertical field of view of 35.0°, LIBERO's scene has 45.0°" in err, err

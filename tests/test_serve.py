@@ -209,6 +209,7 @@ def test_openpi_client_gets_the_in_process_actions(server: Server, reference: VL
     meta = client.get_server_metadata()
     assert meta["cameras"] == CAMERAS and meta["action_horizon"] == 8 and meta["action_dim"] == 7
     assert meta["openpi_keys"]["observation/wrist_image"] == "images/robot0_eye_in_hand"
+    assert meta["camera_fovy"] is None  # trained at the scene's own (a LIBERO client checks it)
     requests = [observation(seed, spelling) for seed in range(4) for spelling in ("openpi", "ours")]
     expected = [in_process(reference, [o])[0] for o in requests]
     for request, actions in zip(requests, expected, strict=True):

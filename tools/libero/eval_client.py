@@ -72,6 +72,7 @@ MAX_STEPS = {  # openpi's examples/libero/main.py: the longest training demo plu
     "libero_10": 520,
     "libero_90": 400,
 }
+CAMERAS = ("agentview", "robot0_eye_in_hand")  # openpi's observation/image, /wrist_image
 NUM_WAIT_STEPS = 10
 WAIT_ACTION = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0]
 FIXTURE_SEED_START = 1_000_000  # capvector.envs.base.EVAL_SEED_START
@@ -266,6 +267,31 @@ def write_atomically(path: Path, data: bytes) -> None:
     os.replace(tmp, path)
 
 
+def check_cameras(meta: dict[str, Any]) -> None:
+    """The policy's cameras are LIBERO's, in the order openpi's keys send them (agentview as
+    `observation/image`, the wrist as `observation/wrist_image`)."""
+    cameras = list(meta["cameras"])
+    if cameras != list(CAMERAS[: len(cameras)]):
+        raise SystemExit(
+            f"the served policy sees cameras {cameras}; this client sends {list(CAMERAS)} in "
+            "that order: serve a policy trained on LIBERO's cameras"
+        )
+
+
+def check_fovy(env: OffScreenRenderEnv, meta: dict[str, Any]) -> None:
+    """The policy trained at the scene's fields of view where its metadata names them, as
+    `capvector evaluate --suite` checks (LIBERO's cameras are fixed)."""
+    model = env.env.sim.model
+    for camera, degrees in (meta.get("camera_fovy") or {}).items():
+        scene = float(model.cam_fovy[model.camera_name2id(camera)])
+        if abs(scene - degrees) > 1e-3:
+            raise SystemExit(
+                f"the policy was trained with camera {camera} at a vertical field of view of "
+                f"{degrees}°, LIBERO's scene has {scene}°: LIBERO's cameras are fixed, so "
+                "evaluate a policy trained on LIBERO's views"
+            )
+
+
 def wait_for_server(host: str, port: int, timeout: float) -> None:
     """Return once ``host:port`` accepts a connection; exit with a message after ``timeout`` s.
     openpi's client waits for the server forever (a typo'd port or a server that crashed while
@@ -321,6 +347,7 @@ def main() -> None:
     replan = args.replan_steps or horizon
     if not 1 <= replan <= horizon:
         parser.error(f"--replan-steps {replan}: the served chunk has {horizon} actions")
+    check_cameras(meta)
     size = args.image_size or int(meta["image_size"])
     max_steps = args.max_steps or MAX_STEPS[args.suite]
     print(
@@ -338,6 +365,7 @@ def main() -> None:
             camera_heights=size,
             camera_widths=size,
         )
+        check_fovy(env, meta)
         init_states = bench.get_task_init_states(task_id)
         episodes = []
         for trial in range(args.trials):

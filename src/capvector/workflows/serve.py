@@ -89,6 +89,9 @@ class ServedPolicy:
             **self.describe,
             "cameras": list(spec.cameras),
             "image_size": spec.image_size,
+            # The cameras' vertical field of view it trained at (None: the scene's own), so a
+            # client whose scene has fixed cameras (LIBERO) can refuse a policy of other views.
+            "camera_fovy": spec.camera_fovy,
             "proprio_dim": spec.proprio_dim,
             "action_dim": spec.action_dim,
             "action_horizon": spec.chunk_size,
