@@ -82,6 +82,7 @@ class PolicyServer:
         batch_window: float = 0.002,
         idle_timeout: float | None = 300.0,
         max_connections: int = 64,
+        keepalive: float | None = 20.0,
     ) -> None:
         """
         Args:
@@ -93,6 +94,9 @@ class PolicyServer:
             idle_timeout: seconds a connection may go without a request before it is closed
                 (None: never).
             max_connections: most connections open at once; one more is closed on opening.
+            keepalive: seconds between pings, and to wait for their answer, before a silent
+                connection is closed (websockets' default 20; None: no pings). A client that
+                steps a simulator on a loaded machine may not answer in time between requests.
         """
         self.act_batch = act_batch
         self.schema = schema
@@ -101,6 +105,7 @@ class PolicyServer:
         self.batch_window = batch_window
         self.idle_timeout = idle_timeout
         self.max_connections = max_connections
+        self.keepalive = keepalive
         self._open = 0
         self._queue: asyncio.Queue[_Pending] | None = None
 
@@ -113,7 +118,8 @@ class PolicyServer:
             try:
                 async with serve(
                     self._connection, sock=sock, compression=None, max_size=self.schema.max_message_bytes,
-                    process_request=_health_check,
+                    process_request=_health_check, ping_interval=self.keepalive,
+                    ping_timeout=self.keepalive,
                 ):  # fmt: skip
                     stopped = asyncio.create_task(stop.wait())
                     # The batcher ends only by raising (a bug): stop serving then, not silently.

@@ -131,14 +131,17 @@ def _run_client(command: list[str], env: dict[str, str]) -> None:
 def served(policy: Any, host: str = "127.0.0.1") -> Iterator[int]:
     """Serve ``policy`` (a :class:`~capvector.workflows.serve.ServedPolicy`) on a free port of
     ``host`` from a thread of this process; yields the port, stops and joins on exit. One
-    connection at a time is what the client needs, so no batching window."""
+    connection at a time is what the client needs, so no batching window; no keepalive pings
+    either: the client answers them only between its steps, and a loaded machine (12 processes
+    on 2 cores) kept it from answering within websockets' 20 s, which closed the connection in
+    the middle of a trial."""
     from capvector.serve.schema import ObservationSchema
     from capvector.serve.server import PolicyServer
 
     schema = ObservationSchema.of(policy.spec, count_tokens=policy.count_tokens)
     server = PolicyServer(
         policy.act_batch, schema, policy.metadata(schema, 1), max_batch=1, batch_window=0.0,
-        idle_timeout=None, max_connections=2,
+        idle_timeout=None, max_connections=2, keepalive=None,
     )  # fmt: skip
     loop = asyncio.new_event_loop()
     stop = asyncio.Event()
