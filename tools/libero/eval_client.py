@@ -74,6 +74,7 @@ MAX_STEPS = {  # openpi's examples/libero/main.py: the longest training demo plu
 }
 CAMERAS = ("agentview", "robot0_eye_in_hand")  # openpi's observation/image, /wrist_image
 NUM_WAIT_STEPS = 10
+ERROR = "eval_client.py: error: "  # how a refusal starts (capvector evaluate shows that line)
 WAIT_ACTION = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0]
 FIXTURE_SEED_START = 1_000_000  # capvector.envs.base.EVAL_SEED_START
 
@@ -273,7 +274,7 @@ def check_cameras(meta: dict[str, Any]) -> None:
     cameras = list(meta["cameras"])
     if cameras != list(CAMERAS[: len(cameras)]):
         raise SystemExit(
-            f"the served policy sees cameras {cameras}; this client sends {list(CAMERAS)} in "
+            f"{ERROR}the served policy sees cameras {cameras}; this client sends {list(CAMERAS)} in "
             "that order: serve a policy trained on LIBERO's cameras"
         )
 
@@ -285,8 +286,9 @@ def check_fovy(env: OffScreenRenderEnv, meta: dict[str, Any]) -> None:
     for camera, degrees in (meta.get("camera_fovy") or {}).items():
         scene = float(model.cam_fovy[model.camera_name2id(camera)])
         if abs(scene - degrees) > 1e-3:
+            env.close()  # before the message: robosuite's renderer dies noisily at exit
             raise SystemExit(
-                f"the policy was trained with camera {camera} at a vertical field of view of "
+                f"{ERROR}the policy was trained with camera {camera} at a vertical field of view of "
                 f"{degrees}°, LIBERO's scene has {scene}°: LIBERO's cameras are fixed, so "
                 "evaluate a policy trained on LIBERO's views"
             )
@@ -304,7 +306,7 @@ def wait_for_server(host: str, port: int, timeout: float) -> None:
         except OSError as err:
             if time.monotonic() >= deadline:
                 raise SystemExit(
-                    f"no policy server answers at {host}:{port} after {timeout:.0f} s ({err}): "
+                    f"{ERROR}no policy server answers at {host}:{port} after {timeout:.0f} s ({err}): "
                     "start `capvector serve --ckpt EXPORT --port PORT` first, or raise "
                     "--connect-timeout while a large model loads"
                 ) from None

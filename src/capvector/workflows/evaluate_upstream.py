@@ -34,6 +34,8 @@ DEFAULT_UPSTREAM_ENV = Path("~/.cache/capvector/libero14")
 TOOLS = Path(__file__).resolve().parents[3] / "tools" / "libero"
 INSTALL_SCRIPT = TOOLS / "install_libero14.sh"
 CLIENT = TOOLS / "eval_client.py"
+CLIENT_ERROR = "eval_client.py: error: "
+"""How the client's refusals start (``ERROR`` there)."""
 
 
 def upstream_python(env: str | os.PathLike[str] | None = None) -> Path:
@@ -107,19 +109,24 @@ def evaluate_upstream(
 
 def _run_client(command: list[str], env: dict[str, str]) -> None:
     """Run the client, its progress lines through to stdout (robosuite 1.4's warnings left out);
-    a client that fails is one line with its last words."""
+    a client that fails is one line: its refusal, else its last words."""
     process = subprocess.Popen(
         command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
         stdin=subprocess.DEVNULL,
     )  # fmt: skip
     assert process.stdout is not None
     tail: list[str] = []
+    refusals: list[str] = []  # what the client said is wrong, one line each
     for line in process.stdout:
         if "robosuite WARNING" in line:
             continue
         tail = [*tail[-4:], line.rstrip()]
+        if CLIENT_ERROR in line:
+            refusals.append(line.split(CLIENT_ERROR, 1)[1].rstrip())
         print(line, end="", flush=True)
     if process.wait() != 0:
+        if refusals:
+            raise CapVectorError(f"LIBERO's client on robosuite 1.4 refused: {refusals[-1]}")
         last = next((t for t in reversed(tail) if t.strip()), "no output")
         raise CapVectorError(
             f"LIBERO's client in the upstream environment failed (exit {process.returncode}): "
