@@ -8,6 +8,7 @@ built in both stacks, the policy loaded twice).
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 from pathlib import Path
@@ -106,6 +107,33 @@ def test_a_table_says_which_stack_and_renderer_made_its_rows() -> None:
     assert format_success_table([old, port]).splitlines()[2].endswith("| not recorded |")
     assert SuccessRow.from_dict(upstream.to_dict()) == upstream
     assert pooled_row([port, upstream], "all").stack is None  # pooled across stacks: no one stack
+
+
+COMMITTED = Path(__file__).parents[1] / "docs" / "results" / "libero_upstream"
+
+
+def test_the_committed_upstream_table_is_its_evaluations() -> None:
+    """docs/results.md's port-vs-upstream table is computed from episodes.csv; every outcome and
+    step count there is the one the committed `capvector evaluate --json` of its stack wrote,
+    and those name their stacks (tools/libero/upstream_study_table.py --collect made it)."""
+    with (COMMITTED / "episodes.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 15 and {r["trial"] for r in rows} == {"0"}  # the declared subset
+    for stack in ("port", "upstream"):
+        runs = {
+            path.stem: json.loads(path.read_text()) for path in (COMMITTED / stack).glob("*.json")
+        }
+        assert set(runs) == {r["policy"] for r in rows}
+        for r in rows:
+            (row,) = [x for x in runs[r["policy"]] if x["task"] == f"{SUITE}/{r['task']}"]
+            (episode,) = row["per_episode"]
+            assert (int(episode["success"]), episode["steps"]) == (
+                int(r[stack]),
+                int(r[f"{stack}_steps"]),
+            )
+            assert (row["stack"], row["renderer"]) == (r[f"{stack}_stack"], r[f"{stack}_renderer"])
+        stacks = {(x["stack"], x["renderer"]) for run in runs.values() for x in run}
+        assert stacks == ({(UPSTREAM, "official")} if stack == "upstream" else {(PORT, "fast")})
 
 
 @pytest.fixture(scope="module")

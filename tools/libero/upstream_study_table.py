@@ -34,7 +34,8 @@ COLUMNS = ["policy", "arm", "task", "trial", "study", "port", "upstream", "port_
 
 def collect(results: Path, study: Path) -> list[dict]:
     rows = []
-    for upstream_file in sorted((results / "upstream").glob("*.json")):
+    files = (results / "upstream").glob("*.json")
+    for upstream_file in sorted(files, key=lambda f: (f.stem[-1], "spatial" in f.stem)):  # plan
         policy = upstream_file.stem
         port_file = results / "port" / upstream_file.name
         if not port_file.is_file():
@@ -73,7 +74,8 @@ def tables(rows: list[dict]) -> str:
         out.append("| " + " | ".join(map(str, cells)) + " |")
     out += ["", "| arm | policies × episodes | " + " | ".join(STACKS) + " | upstream − port now "
             "| upstream − study | outcomes agree, upstream/port now |", "|---|---|---|---|---|---|---|---|"]  # fmt: skip
-    for arm in dict.fromkeys(r["arm"] for r in rows):
+    by_arm: dict[str, dict[str, np.ndarray]] = {}
+    for arm in [a for a in ARMS.values() if any(r["arm"] == a for r in rows)]:
         mine = [r for r in rows if r["arm"] == arm]
         policies = list(dict.fromkeys(r["policy"] for r in mine))
         seeds = sorted({(r["task"], r["trial"]) for r in mine})
@@ -84,6 +86,7 @@ def tables(rows: list[dict]) -> str:
         }  # fmt: skip
         arms = [ArmOutcomes(s, [STEP], seeds, outcomes[s].astype(float)) for s in STACKS]
         diffs = {(d["arm"], d["against"]): d for d in compare(arms, ["port", "study"])}
+        by_arm[arm] = outcomes
         cells = [arm, f"{len(policies)} × {len(seeds)}"]
         cells += [success_cell(int(outcomes[s].sum()), outcomes[s].size) for s in STACKS]
         cells += [format_difference(diffs["upstream", against]["points"][STEP])
@@ -91,6 +94,15 @@ def tables(rows: list[dict]) -> str:
         agree = int((outcomes["upstream"] == outcomes["port"]).sum())
         cells.append(f"{agree}/{outcomes['port'].size}")
         out.append("| " + " | ".join(cells) + " |")
+    if len(by_arm) == 2:  # the study's question on each stack: the objective's difference
+        (sft, sft_arm), (spatial, spatial_arm) = by_arm.items()
+        out += ["", f"| stack | {spatial} − {sft} (paired bootstrap 95% interval) |", "|---|---|"]
+        seeds = sorted({(r["task"], r["trial"]) for r in rows})
+        for s in STACKS:
+            arms = [ArmOutcomes(name, [STEP], seeds, outcomes[s].astype(float))
+                    for name, outcomes in ((sft, sft_arm), (spatial, spatial_arm))]  # fmt: skip
+            (d,) = compare(arms, [sft])
+            out.append(f"| {STACKS[s]} | {format_difference(d['points'][STEP])} |")
     return "\n".join(out)
 
 
