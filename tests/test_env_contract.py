@@ -13,6 +13,7 @@ import pickle
 import subprocess
 import sys
 from dataclasses import FrozenInstanceError, fields, replace
+from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
@@ -107,6 +108,12 @@ def test_an_episode_meets_the_contract(name: str, envs: EnvCache) -> None:
     assert not result.success and result.steps == 3 and result.reason.startswith("step limit")
     assert (result.task, result.seed, result.robot) == (first.task, first.seed, first.robot)
     assert result.variant == first.variant
+
+    # Which simulator stack and renderer made it, with the versions installed (every result row
+    # and episodes.csv carry it: a LIBERO port's numbers are not upstream LIBERO's).
+    made_by = suite.provenance(first)
+    versions = [version(dist) for _, dist in suite.stack_packages]
+    assert made_by.renderer and all(v in made_by.stack for v in versions), made_by
 
     # A fault fails the episode, not the caller.
     episode = _start(name, first, envs)

@@ -47,6 +47,7 @@ class LiberoSuite(Suite):
     example = {"task_set": "libero_spatial", "episodes": 2, "tasks": [0]}
     demo_proprio_keys = ("ee_states", "gripper_states")  # LIBERO's released layout
     demo_example = {"task_set": "libero_spatial", "tasks": [0]}
+    stack_packages = (("robosuite", "robosuite"), ("MuJoCo", "mujoco"))  # rpent-libero's
 
     def specs(
         self,
@@ -80,7 +81,7 @@ class LiberoSuite(Suite):
         and the renderer ``rendering`` resolves to here (``auto``: fast where OpenGL is
         software)."""
         assert isinstance(spec, LiberoEpisodeSpec), spec
-        stack = f"port ({stack_label((('robosuite', 'robosuite'), ('MuJoCo', 'mujoco')))})"
+        stack = f"port ({stack_label(self.stack_packages)})"
         return Provenance(stack, resolved_rendering(spec.rendering))
 
     def check(self, specs: Sequence[Spec]) -> None:
