@@ -316,3 +316,22 @@ def _reference_differences(scenes: list[str], looks: list[str]) -> dict[str, np.
         finally:
             env.close()
     return {look: np.array(rows) for look, rows in out.items()}
+
+
+@pytest.mark.slow
+def test_fast_close_is_closer_to_upstream_images() -> None:
+    # One of the reference's five scenes (a scene costs an env and two renderers): task 7's, with
+    # the stove (its mirror), the plate's stripes and a bowl in both cameras.
+    diff = _reference_differences(["libero_spatial_7_0"], ["fast", "fast-close"])
+    fast, close = diff["fast"].mean(axis=0), diff["fast-close"].mean(axis=0)  # (camera, measure)
+    # Measured here (agentview, wrist): fast 3.67 and 3.68 grey levels, 3.8 and 3.7 % of pixels
+    # > 32 levels apart; fast-close 1.47 and 2.08, 1.2 and 2.1 % (all five scenes:
+    # benchmarks/bench_libero_render_look.py, docs/evaluation.md). One of fast-close's settings
+    # alone (MSAA: 0.71 of fast's wrist difference; reflections, 8 mm cells: 0.84 and 0.87 of
+    # agentview's, over the five scenes) misses the 0.65 bound; a broken mesh, texture or image
+    # orientation misses the absolute ones.
+    assert np.all(close < 0.65 * fast), (close, fast)
+    assert np.all(close[:, 0] < 2.5) and np.all((fast[:, 0] > 2.5) & (fast[:, 0] < 5.5)), (
+        close,
+        fast,
+    )
