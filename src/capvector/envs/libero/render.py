@@ -31,6 +31,11 @@ mostly at edges (anti-aliasing) and on the mirror: ``benchmarks/bench_libero_ren
 measures both, and :meth:`FastRenderEnv.render` draws the state a step returns, where robosuite's camera
 observations show the state 2 substeps (4 ms) earlier (its sampling timer).
 
+How it draws is a look (:class:`FastLook`, presets in :data:`FAST_LOOKS`): ``fast`` as above (the
+default), ``fast-close`` with reflections, 4x MSAA and finer decimation of large meshes, less than
+half as far from upstream's images at ~2.3x the fast step's cost
+(``benchmarks/bench_libero_render_look.py``, ``docs/evaluation.md``).
+
 :func:`fast_rendering_default` decides the default: fast where the GL renderer is a software one
 (``MUJOCO_GL=osmesa``, or an EGL/GLX renderer string naming llvmpipe, softpipe, swrast, ...),
 robosuite's where a GPU draws (it renders the full scene in milliseconds there).
