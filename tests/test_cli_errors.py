@@ -102,6 +102,10 @@ CASES: dict[str, tuple[Callable[[Path, Path], list[str]], str]] = {
         lambda i, o: ["demos", "--task", "Lift", "--episodes", "2", "--workers", "2", "--out", str(o / "d.hdf5")],
         r"--workers does not apply to robosuite demos; its options: --robot, --gripper, --noise, --extra-steps, --fovy",
     ),
+    "demos: an unknown --rendering, before simulating": (
+        lambda i, o: ["demos", "--suite", "libero_spatial", "--episodes-per-task", "2", "--rendering", "fastt", "--out", str(o / "d")],
+        r"unknown rendering 'fastt'.*did you mean fast",
+    ),
     "demos: negative --workers, before simulating": (
         lambda i, o: ["demos", "--suite", "libero_spatial", "--episodes-per-task", "2", "--workers", "-1", "--out", str(o / "d")],
         r"--workers must be 0 \(this process\) or more, got -1",

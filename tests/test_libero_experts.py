@@ -28,6 +28,7 @@ from capvector.envs.libero.demos import (
 )
 from capvector.envs.libero.episode import POLICY_GRIPPER, build_libero_env, start_trial
 from capvector.envs.libero.experts import FIXTURE_SEED_START, PlaceGoal, place_goal, run_trial
+from capvector.envs.libero.render import fast_rendering_default
 from capvector.envs.libero.spec import LiberoEpisodeSpec
 from capvector.errors import CapVectorError
 from capvector.module import VLAModule
@@ -143,6 +144,8 @@ def test_demos_suite_writes_libero_layout_that_trains(demo_file: Path) -> None:
         assert data.attrs["macros_image_convention"] == "opengl"
         assert data.attrs["bddl_file_content"].startswith("(define")
         assert data.attrs["num_demos"] == 1
+        # who drew the images: --rendering's default, auto (the fast renderer on a CPU)
+        assert data.attrs["rendering"] == ("fast" if fast_rendering_default() else "official")
         demo = data["demo_0"]
         steps = demo["actions"].shape[0]
         assert data.attrs["total"] == steps == demo.attrs["num_samples"]

@@ -11,6 +11,8 @@ absolute difference in grey levels (0-255); the threshold is explained where it 
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import mujoco
 import numpy as np
 import pytest
@@ -78,6 +80,35 @@ def test_decimation_leaves_a_mesh_coarser_than_the_grid_alone() -> None:
     np.testing.assert_array_equal(positions, vert[moved])
 
 
+def test_smoothed_normals_follow_the_surface_and_keep_creases() -> None:
+    from capvector.envs.libero.render import decimate_mesh, smooth_normals
+
+    vert, face = _sphere_mesh(48)
+    kept, faces, moved, positions = decimate_mesh(vert, face, 8)
+    new = vert.copy()
+    new[moved] = positions
+    radial = new[faces] / np.linalg.norm(new[faces], axis=-1, keepdims=True)  # (K, 3, 3)
+
+    def degrees(normals: np.ndarray) -> float:
+        cos = np.clip(np.einsum("kjx,kjx->kj", normals, radial), -1, 1)
+        return float(np.degrees(np.arccos(cos)).mean())
+
+    # What decimation alone leaves a face: the normal of the small original face it was.
+    original = _normals(vert, face[kept])
+    original /= np.linalg.norm(original, axis=1, keepdims=True)
+    flat = degrees(np.repeat(original[:, None], 3, axis=1))
+    smooth = degrees(smooth_normals(new, faces))
+    assert smooth < 3.0 and flat > 3 * smooth, (smooth, flat)
+    # A cube's edges are creases: every corner keeps its own face's normal.
+    cube = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=float)
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    tris = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
+    corner = smooth_normals(cube, tris)
+    own = _normals(cube, tris)
+    own /= np.linalg.norm(own, axis=1, keepdims=True)
+    np.testing.assert_allclose(corner, np.repeat(own[:, None], 3, axis=1), atol=1e-12)
+
+
 def _model_xml() -> str:
     vert, face = _sphere_mesh(32)
     v = " ".join(map(str, vert.ravel()))
@@ -109,6 +140,39 @@ def test_render_model_changes_a_copy_and_only_the_drawn_meshes() -> None:
     assert drawn.mesh_facenum[collision] == facenum[collision]
     assert drawn.vis.quality.numslices == 12 and model.vis.quality.numslices == 28
     np.testing.assert_array_equal(drawn.geom_size[:, :2], model.geom_size[:, :2])
+
+
+def test_render_model_smooths_only_the_decimated_meshes_normals() -> None:
+    from capvector.envs.libero.render import render_model
+
+    model = mujoco.MjModel.from_xml_string(_model_xml())
+    plain, smooth = render_model(model, cells=8), render_model(model, cells=8, smooth=True)
+    visual, collision = (mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_MESH, n) for n in
+                         ("visual", "collision"))  # fmt: skip
+    f0, k = model.mesh_faceadr[visual], plain.mesh_facenum[visual]
+    np.testing.assert_array_equal(smooth.mesh_face[f0 : f0 + k], plain.mesh_face[f0 : f0 + k])
+    changed = smooth.mesh_facenormal[f0 : f0 + k] != plain.mesh_facenormal[f0 : f0 + k]
+    assert changed.mean() > 0.5
+    index = smooth.mesh_facenormal[f0 : f0 + k]
+    assert index.min() >= 0 and index.max() < model.mesh_normalnum[visual]
+    for name in ("mesh_normal", "mesh_facenormal"):  # the source model is left alone
+        np.testing.assert_array_equal(getattr(render_model(model, cells=8), name),
+                                      getattr(plain, name))  # fmt: skip
+    c0, n = model.mesh_faceadr[collision], model.mesh_facenum[collision]
+    np.testing.assert_array_equal(
+        smooth.mesh_facenormal[c0 : c0 + n], model.mesh_facenormal[c0 : c0 + n]
+    )
+
+
+def test_every_fast_look_is_a_rendering_option() -> None:
+    import typing
+
+    from capvector.envs.libero.env import Rendering
+    from capvector.envs.libero.render import FAST_LOOKS, FastLook
+
+    fast = {r for r in typing.get_args(Rendering) if r.startswith("fast")}
+    assert set(FAST_LOOKS) == fast
+    assert FAST_LOOKS["fast"] == FastLook()  # the default look the studies' demos were drawn with
 
 
 def test_fast_rendering_is_the_default_on_a_software_renderer(monkeypatch) -> None:
@@ -207,3 +271,67 @@ def test_fast_images_are_close_to_libero_s_own(runs) -> None:
     assert np.mean(diff) < 6.0 and np.max(diff) < 8.0, (np.mean(diff), np.max(diff))
     flipped = np.abs(official["images"][-1].astype(np.int16) - fast["images"][-1][::-1]).mean()
     assert flipped > 4 * np.max(diff)  # the comparison can tell orientation apart
+
+
+REFERENCE = Path(__file__).parent / "fixtures" / "libero_render"
+"""LIBERO's own images of five scenes, drawn by upstream's stack (robosuite 1.4 / MuJoCo 2.3.7);
+how they were made: its PROVENANCE.md."""
+
+
+def _reference_differences(scenes: list[str], looks: list[str]) -> dict[str, np.ndarray]:
+    """Per look, (scene, camera, 2): mean abs diff and share of pixels > 32 levels apart from the
+    reference, the fast renderer drawing the reference's state (same init state, fixtures)."""
+    import json
+
+    from PIL import Image
+
+    from capvector.envs.libero.env import initial_states, make_libero_env, set_fixture_poses
+    from capvector.envs.libero.render import FAST_LOOKS, image_difference, look_renderer
+
+    meta = json.loads((REFERENCE / "scenes.json").read_text())
+    out: dict[str, list] = {look: [] for look in looks}
+    for scene in scenes:
+        entry = meta["scenes"][scene]
+        env = make_libero_env(entry["suite"], entry["task"], render=False)
+        try:
+            env.reset()
+            set_fixture_poses(env, {k: np.asarray(v) for k, v in entry["fixtures"].items()})
+            env.set_init_state(initial_states(entry["suite"], entry["task"])[entry["init_state"]])
+            model, data = env.env.sim.model._model, env.env.sim.data._data
+            for look in looks:
+                renderer = look_renderer(model, meta["cameras"], meta["size"], FAST_LOOKS[look])
+                try:
+                    images, _ = renderer.render(data)
+                finally:
+                    renderer.close()
+                out[look].append(
+                    [
+                        image_difference(
+                            np.asarray(Image.open(REFERENCE / f"{scene}_{camera}.png")),
+                            images[camera],
+                        )
+                        for camera in meta["cameras"]
+                    ]
+                )
+        finally:
+            env.close()
+    return {look: np.array(rows) for look, rows in out.items()}
+
+
+@pytest.mark.slow
+def test_fast_close_is_closer_to_upstream_images() -> None:
+    # One of the reference's five scenes (a scene costs an env and two renderers): task 7's, with
+    # the stove (its mirror), the plate's stripes and a bowl in both cameras.
+    diff = _reference_differences(["libero_spatial_7_0"], ["fast", "fast-close"])
+    fast, close = diff["fast"].mean(axis=0), diff["fast-close"].mean(axis=0)  # (camera, measure)
+    # Measured here (agentview, wrist): fast 3.67 and 3.68 grey levels, 3.8 and 3.7 % of pixels
+    # > 32 levels apart; fast-close 1.47 and 2.08, 1.2 and 2.1 % (all five scenes:
+    # benchmarks/bench_libero_render_look.py, docs/evaluation.md). One of fast-close's settings
+    # alone (MSAA: 0.71 of fast's wrist difference; reflections, 8 mm cells: 0.84 and 0.87 of
+    # agentview's, over the five scenes) misses the 0.65 bound; a broken mesh, texture or image
+    # orientation misses the absolute ones.
+    assert np.all(close < 0.65 * fast), (close, fast)
+    assert np.all(close[:, 0] < 2.5) and np.all((fast[:, 0] > 2.5) & (fast[:, 0] < 5.5)), (
+        close,
+        fast,
+    )

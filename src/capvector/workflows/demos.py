@@ -43,6 +43,7 @@ def demos_cli(
     fovy: Sequence[str] = (),
     progress: bool = True,
     workers: int | None = None,
+    rendering: str | None = None,
 ) -> None:
     """Record scripted-expert demonstrations of a task (--task, e.g. a robosuite task, to one
     robomimic-layout HDF5 file) or a task set (--suite, e.g. a LIBERO suite, to a folder of one
@@ -74,6 +75,8 @@ def demos_cli(
         progress: show the progress bar
         workers: with --suite, processes recording tasks side by side, a task each (0: this
             one); the files are the same either way
+        rendering: LIBERO: who draws the images (auto, fast, fast-close, official; see
+            capvector evaluate --rendering); the states and actions are the same whoever draws
     """
     if (task is None) == (suite is None):
         raise CapVectorError(
@@ -96,7 +99,8 @@ def demos_cli(
     )
     # the suite's own options when given (robot, noise, tasks, workers, ...)
     given = dict(robot=robot, gripper=gripper, noise=noise, extra_steps=extra_steps,
-                 fovy=_parse_fovy(fovy) or None, tasks=tuple(tasks) or None, workers=workers)  # fmt: skip
+                 fovy=_parse_fovy(fovy) or None, tasks=tuple(tasks) or None, workers=workers,
+                 rendering=rendering)  # fmt: skip
     options = {k: v for k, v in given.items() if v is not None}
     check_options(found.record_demos, options, f"{found.name} demos", _flag)
     for summary in found.record_demos(task_set, episodes, out, settings, **options):

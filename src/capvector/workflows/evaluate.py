@@ -157,8 +157,8 @@ def evaluate_cli(
         max_steps: step limit of an episode (default: the task's; LIBERO: the suite's;
             Meta-World: 500)
         rendering: who draws LIBERO's images: auto (the fast renderer where OpenGL runs on the
-            CPU, robosuite's on a GPU), fast, or official (LIBERO's own: for policies trained on
-            LIBERO's released data)
+            CPU, robosuite's on a GPU), fast, fast-close (the fast one closer to the official
+            look), or official (LIBERO's own: for policies trained on LIBERO's released data)
         from_demos: a folder of LIBERO demos (`capvector demos`): trial i of a task starts where
             its demo i started instead of from official state i, the fixtures placed as they
             were; success from the placements a policy trained on (a diagnostic, not the protocol)

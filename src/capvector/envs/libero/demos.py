@@ -48,6 +48,7 @@ import os
 import queue
 import signal
 import sys
+import typing
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -62,6 +63,8 @@ from capvector.envs.base import DemoSummary, Observation
 from capvector.envs.libero.annotations import LiberoAnnotator
 from capvector.envs.libero.env import (
     LIBERO_NUM_TASKS,
+    Rendering,
+    drawn_by,
     initial_states,
     libero_observation,
     libero_task,
@@ -72,7 +75,7 @@ from capvector.envs.libero.env import (
 from capvector.envs.libero.experts import LiberoPlaceExpert, place_goal, run_trial, task_env
 from capvector.envs.recording import SKIP, Demo, record_file
 from capvector.envs.robosuite.env import camera_intrinsics
-from capvector.errors import CapVectorError
+from capvector.errors import CapVectorError, unknown_name
 from capvector.io.outputs import check_output
 
 LIBERO_IMAGE_SIZE = 128
@@ -281,6 +284,7 @@ def _data_attrs(
         "suite": suite,
         "task_id": task_id,
         "seeds": json.dumps(summary.seeds),
+        "rendering": drawn_by(env),
     }
 
 
@@ -296,9 +300,11 @@ def record_task(
     seed: int = 0,
     max_attempts: int | None = None,
     bar: Any = None,
+    rendering: Rendering = "auto",
 ) -> TaskDemos:
     """``episodes`` successful demos of one task, written atomically to ``out_dir``; ``depth``
-    adds each camera's depth in metres and its intrinsics."""
+    adds each camera's depth in metres and its intrinsics; ``rendering`` draws the images
+    (:data:`~capvector.envs.libero.env.Rendering`; the same states and actions whoever draws)."""
     unknown = [c for c in cameras if c not in CAMERA_KEYS]
     if unknown:
         raise CapVectorError(f"LIBERO demos record cameras {list(CAMERA_KEYS)}, not {unknown}")
@@ -313,6 +319,7 @@ def record_task(
         cameras=list(cameras),
         image_size=image_size,
         render=bool(cameras),
+        rendering=rendering,
         **({"camera_depths": True} if depth else {}),
     )
     keys = {c: CAMERA_KEYS[c] for c in cameras}
@@ -350,13 +357,12 @@ def record_suite(
     max_attempts: int | None = None,
     progress: bool = True,
     workers: int = 0,
+    rendering: Rendering = "auto",
 ) -> list[TaskDemos]:
     """Demos of every task in ``tasks`` (default: the whole suite), one file per task in ``out``;
     ``workers`` processes record tasks side by side (0: this process). A task's demos depend only
     on its id and ``seed``, so the files are the same either way."""
     if suite not in LIBERO_NUM_TASKS:
-        from capvector.errors import unknown_name
-
         raise unknown_name("LIBERO suite", suite, LIBERO_NUM_TASKS)
     if episodes_per_task < 1:
         raise CapVectorError(f"--episodes-per-task must be at least 1, got {episodes_per_task}")
@@ -365,6 +371,8 @@ def record_suite(
     task_ids = list(range(LIBERO_NUM_TASKS[suite])) if not tasks else list(tasks)
     for task_id in task_ids:
         libero_task(suite, task_id)  # a bad id fails before any simulation
+    if rendering not in typing.get_args(Rendering):
+        raise unknown_name("rendering", rendering, typing.get_args(Rendering))
     out_dir = check_output(out, overwrite=True, what="demo folder")
     if out_dir.exists() and not out_dir.is_dir():
         raise CapVectorError(
@@ -379,7 +387,7 @@ def record_suite(
     )
     task_args = dict(
         suite=suite, episodes=episodes_per_task, out_dir=out_dir, image_size=image_size,
-        cameras=cameras, depth=depth, seed=seed, max_attempts=max_attempts,
+        cameras=cameras, depth=depth, seed=seed, max_attempts=max_attempts, rendering=rendering,
     )  # fmt: skip
     try:
         if workers > 0 and len(task_ids) > 1:

@@ -74,10 +74,12 @@ LIBERO_RESOLUTION = 256
 LIBERO_CAMERAS = {"agentview": "agentview_image", "robot0_eye_in_hand": "robot0_eye_in_hand_image"}
 """Our camera name -> LIBERO observation key."""
 
-Rendering = Literal["auto", "fast", "official"]
+Rendering = Literal["auto", "fast", "fast-close", "official"]
 """Who draws the camera images: ``official`` robosuite's renderer (LIBERO as shipped), ``fast``
 :mod:`capvector.envs.libero.render` (same physics, decimated visual meshes; a step with two 128 px
-cameras ~13x cheaper on a CPU), ``auto`` fast where OpenGL runs on the CPU, official on a GPU."""
+cameras ~13x cheaper on a CPU), ``fast-close`` the fast renderer closer to the official look
+(:data:`~capvector.envs.libero.render.FAST_LOOKS`), ``auto`` fast where OpenGL runs on the CPU,
+official on a GPU."""
 
 GripperConvention = Literal["close_positive", "open_is_one"]
 """``close_positive``: -1 open / +1 close (robosuite, LIBERO HDF5, openpi, our demos).
@@ -509,9 +511,9 @@ def make_libero_env(
     if rendering not in typing.get_args(Rendering):
         raise unknown_name("rendering", rendering, typing.get_args(Rendering))
     upstream = libero.name == "upstream"
-    if upstream and rendering == "fast":
+    if upstream and rendering.startswith("fast"):
         raise CapVectorError(
-            f"rendering='fast' needs robosuite 1.5 (rpent-libero), found robosuite "
+            f"rendering={rendering!r} needs robosuite 1.5 (rpent-libero), found robosuite "
             f"{libero.robosuite_version}; pass rendering='official'"
         )
     fast_render = render and not upstream and rendering != "official"
@@ -554,9 +556,20 @@ def make_libero_env(
     if fast_render:
         from capvector.envs.libero.render import FastRenderEnv
 
-        env = FastRenderEnv(env, cameras, image_size, depth=fast_depth)
+        look = "fast" if rendering == "auto" else rendering
+        env = FastRenderEnv(env, cameras, image_size, look=look, depth=fast_depth)
     env.seed(seed)
     return env
+
+
+def drawn_by(env: Any) -> str:
+    """Who draws ``env``'s images, as a :data:`Rendering` name: ``official`` (robosuite's
+    renderer), the fast renderer's look (``fast``, ``fast-close``), or ``none``."""
+    from capvector.envs.libero.render import FastRenderEnv  # GL only where images are drawn
+
+    if isinstance(env, FastRenderEnv):
+        return env.look_name
+    return "official" if getattr(env.env, "has_offscreen_renderer", False) else "none"
 
 
 def seeded_reset(env: Any, seed: int) -> None:

@@ -31,6 +31,11 @@ mostly at edges (anti-aliasing) and on the mirror: ``benchmarks/bench_libero_ren
 measures both, and :meth:`FastRenderEnv.render` draws the state a step returns, where robosuite's camera
 observations show the state 2 substeps (4 ms) earlier (its sampling timer).
 
+How it draws is a look (:class:`FastLook`, presets in :data:`FAST_LOOKS`): ``fast`` as above (the
+default), ``fast-close`` with reflections, 4x MSAA and finer decimation of large meshes, less than
+half as far from upstream's images at ~2.3x the fast step's cost
+(``benchmarks/bench_libero_render_look.py``, ``docs/evaluation.md``).
+
 :func:`fast_rendering_default` decides the default: fast where the GL renderer is a software one
 (``MUJOCO_GL=osmesa``, or an EGL/GLX renderer string naming llvmpipe, softpipe, swrast, ...),
 robosuite's where a GPU draws (it renders the full scene in milliseconds there).
@@ -44,12 +49,13 @@ import hashlib
 import logging
 import os
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from capvector.envs.robosuite.env import CameraRenderer, _gl_context_class
-from capvector.errors import CapVectorError, missing_extra
+from capvector.errors import CapVectorError, missing_extra, unknown_name
 
 try:
     import mujoco
@@ -60,11 +66,16 @@ except ImportError as err:
 
 __all__ = [
     "FAST_CELLS",
+    "FAST_LOOKS",
+    "FastLook",
     "FastRenderEnv",
     "decimate_mesh",
     "fast_rendering_default",
     "gl_renderer",
+    "image_difference",
+    "look_renderer",
     "render_model",
+    "smooth_normals",
 ]
 
 log = logging.getLogger(__name__)
@@ -76,6 +87,8 @@ DRAWN_GROUPS = (1, 2)
 """robosuite's offscreen renderer draws groups 1 (visual meshes) and 2 (its controller's target
 markers) and hides group 0 (collision geoms): ``MjvOption``'s defaults with
 ``render_collision_mesh=False``."""
+SMOOTH_CREASE_DEGREES = 45.0
+"""Faces meeting at more than this angle keep a sharp edge when normals are smoothed."""
 SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swrast", "software rasterizer", "swiftshader")
 """Substrings of ``GL_RENDERER`` (lower case) that name a CPU rasteriser."""
 
@@ -145,6 +158,73 @@ def decimate_mesh(
     return kept, moved[cluster[face[kept]]], moved, positions
 
 
+def smooth_normals(
+    vert: np.ndarray, faces: np.ndarray, crease_degrees: float = SMOOTH_CREASE_DEGREES
+) -> np.ndarray:
+    """Per-corner normals of a (decimated) mesh: (K, 3, 3) unit vectors for ``faces`` (K, 3).
+
+    A corner's normal is the area-weighted mean of the normals of the faces around its vertex
+    that lie within ``crease_degrees`` of its own face's (smoothing groups, as modelling tools
+    compute vertex normals): curved surfaces shade smoothly, a crease such as a box's edge or a
+    plate's rim stays sharp. Decimation alone leaves each surviving face the normals of the small
+    original face it was, nearly one normal per face, which draws a bowl as facets (issue 61).
+    """
+    area = np.cross(vert[faces[:, 1]] - vert[faces[:, 0]], vert[faces[:, 2]] - vert[faces[:, 0]])
+    length = np.linalg.norm(area, axis=1, keepdims=True)  # twice the face's area
+    unit = np.divide(area, length, out=np.zeros_like(area), where=length > 0)
+    cos = np.cos(np.radians(crease_degrees))
+    # Corners sorted by vertex: each corner visits the corners of its vertex's group, the d-th
+    # one in round d (a group holds the few faces around one vertex).
+    corner_vertex = faces.ravel()
+    corner_face = np.repeat(np.arange(len(faces)), 3)
+    order = np.argsort(corner_vertex, kind="stable")
+    vertex, face = corner_vertex[order], corner_face[order]
+    start = np.searchsorted(vertex, vertex, side="left")
+    size = np.bincount(vertex)[vertex]
+    summed = np.zeros((len(order), 3))
+    for d in range(int(size.max(initial=0))):
+        rows = np.flatnonzero(d < size)
+        other = face[start[rows] + d]
+        near = np.einsum("ix,ix->i", unit[other], unit[face[rows]]) >= cos
+        summed[rows[near]] += area[other[near]]
+    normals = np.empty_like(summed)
+    normals[order] = summed
+    norm = np.linalg.norm(normals, axis=1, keepdims=True)
+    normals = np.divide(normals, norm, out=np.repeat(unit, 3, axis=0), where=norm > 0)
+    return normals.reshape(-1, 3, 3)
+
+
+@dataclass(frozen=True)
+class FastLook:
+    """How the fast renderer draws a scene (a preset of :data:`FAST_LOOKS`).
+
+    ``cells``: the decimation grid (:func:`decimate_mesh`), refined to cells of at most
+    ``cell_size`` metres on large meshes (:func:`render_model`); ``smooth``: normals of the decimated
+    surface (:func:`smooth_normals`) instead of the original face's; ``shadows`` and
+    ``reflections``: MuJoCo's, as robosuite's renderer draws them (a shadow map per light; the
+    stove's mirror draws the scene again); ``msaa_samples``: anti-aliasing (robosuite's: 4).
+    Culling (skipping geoms outside a camera's view) is on only with neither shadows nor
+    reflections: an arm above the view still casts a shadow into it.
+    """
+
+    cells: int = FAST_CELLS
+    cell_size: float | None = None
+    smooth: bool = False
+    shadows: bool = False
+    reflections: bool = False
+    msaa_samples: int = 0
+
+
+FAST_LOOKS: dict[str, FastLook] = {
+    "fast": FastLook(),
+    "fast-close": FastLook(reflections=True, msaa_samples=4, cell_size=0.008),
+}
+"""The fast renderer's presets by ``rendering`` name (``capvector.envs.libero.env.Rendering``).
+``fast`` is the default on a CPU and what the studies' demos were drawn with: changing it changes
+every fast-rendered image, so a closer look is a preset of its own (``docs/evaluation.md``
+measures each against robosuite's renderer)."""
+
+
 _DECIMATED: dict[tuple[bytes, int], tuple[np.ndarray, ...]] = {}
 """Decimations by (mesh digest, cells): a hard reset compiles the same meshes again. A scene's
 entries take a few MB; LIBERO has a few hundred distinct meshes in all."""
@@ -157,7 +237,12 @@ def drawn_meshes(model: mujoco.MjModel, groups: Sequence[int] = DRAWN_GROUPS) ->
 
 
 def render_model(
-    model: mujoco.MjModel, cells: int = FAST_CELLS, groups: Sequence[int] = DRAWN_GROUPS
+    model: mujoco.MjModel,
+    cells: int = FAST_CELLS,
+    groups: Sequence[int] = DRAWN_GROUPS,
+    *,
+    smooth: bool = False,
+    cell_size: float | None = None,
 ) -> mujoco.MjModel:
     """A copy of ``model`` whose drawn meshes are decimated; ``model`` itself is not changed.
 
@@ -166,6 +251,11 @@ def render_model(
     Built-in shapes are tessellated more coarsely too: cylinders and spheres with 12 slices and 2
     stacks instead of 28 x 16 (LIBERO's table legs: 4 x ~1k triangles), planes as a grid of 0.5 m
     squares (the floor: 48 x 48 squares); neither changes a 128 px image of these scenes.
+    ``cell_size`` (metres) refines the grid of large meshes: a mesh gets at least as many cells
+    as cells of that size span its largest extent (a stove's burner rings, a plate's rim).
+    ``smooth`` gives each decimated mesh the normals of its new surface (:func:`smooth_normals`),
+    written over its own normal range where they fit (a mesh decimated to a third of its faces
+    or fewer always fits).
     """
     out = copy.copy(model)
     out.vis.quality.numslices = min(out.vis.quality.numslices, 12)
@@ -178,9 +268,13 @@ def render_model(
         vert = np.ascontiguousarray(model.mesh_vert[v0 : v0 + nv], dtype=np.float64)
         face = np.ascontiguousarray(model.mesh_face[f0 : f0 + nf], dtype=np.int32)
         digest = hashlib.blake2b(vert.tobytes() + face.tobytes(), digest_size=16).digest()
-        if (digest, cells) not in _DECIMATED:
-            _DECIMATED[digest, cells] = decimate_mesh(vert, face, cells)
-        kept, faces, moved, positions = _DECIMATED[digest, cells]
+        grid = cells
+        if cell_size is not None:
+            extent = float(np.ptp(vert, axis=0).max()) if nv else 0.0
+            grid = max(cells, int(np.ceil(extent / cell_size)))
+        if (digest, grid) not in _DECIMATED:
+            _DECIMATED[digest, grid] = decimate_mesh(vert, face, grid)
+        kept, faces, moved, positions = _DECIMATED[digest, grid]
         out.mesh_vert[v0 + moved] = positions
         k = len(kept)
         out.mesh_face[f0 : f0 + k] = faces
@@ -188,7 +282,67 @@ def render_model(
         if model.mesh_texcoordadr[i] >= 0:
             out.mesh_facetexcoord[f0 : f0 + k] = model.mesh_facetexcoord[f0 + kept]
         out.mesh_facenum[i] = k
+        if smooth and k < nf:
+            normals, index = _smoothed(digest, grid, vert, faces, moved, positions)
+            n0 = model.mesh_normaladr[i]
+            if len(normals) <= model.mesh_normalnum[i]:
+                out.mesh_normal[n0 : n0 + len(normals)] = normals
+                out.mesh_facenormal[f0 : f0 + k] = index
     return out
+
+
+_SMOOTHED: dict[tuple[bytes, int], tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _smoothed(
+    digest: bytes,
+    cells: int,
+    vert: np.ndarray,
+    faces: np.ndarray,
+    moved: np.ndarray,
+    positions: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """A decimated mesh's distinct smoothed normals (N, 3) and each corner's index (K, 3)."""
+    if (digest, cells) not in _SMOOTHED:
+        new = vert.copy()
+        new[moved] = positions
+        corners = smooth_normals(new, faces).reshape(-1, 3).astype(np.float32)
+        normals, index = np.unique(corners, axis=0, return_inverse=True)
+        _SMOOTHED[digest, cells] = normals, index.reshape(-1, 3).astype(np.int32)
+    return _SMOOTHED[digest, cells]
+
+
+def look_renderer(
+    model: mujoco.MjModel,
+    cameras: Sequence[str],
+    image_size: int,
+    look: FastLook,
+    *,
+    depth: bool = False,
+) -> CameraRenderer:
+    """A :class:`CameraRenderer` that draws ``model``'s scene as ``look`` says."""
+    lit = look.shadows or look.reflections
+    return CameraRenderer(
+        render_model(model, look.cells, smooth=look.smooth, cell_size=look.cell_size),
+        cameras,
+        image_size,
+        depth=depth,
+        msaa_samples=look.msaa_samples,
+        cull=not lit,
+        geom_groups=DRAWN_GROUPS,
+        shadows=look.shadows,
+        reflections=look.reflections,
+    )
+
+
+def image_difference(a: np.ndarray, b: np.ndarray, levels: int = 32) -> tuple[float, float]:
+    """How far image ``b`` is from ``a`` (both (H, W, 3) uint8): the mean absolute difference in
+    grey levels (0-255, over pixels and channels) and the share of pixels whose largest channel
+    difference exceeds ``levels`` (issue 61's two measures)."""
+    if a.shape != b.shape:
+        raise CapVectorError(f"images of shapes {a.shape} and {b.shape} cannot be compared")
+    diff = np.abs(a.astype(np.int16) - b.astype(np.int16))
+    return float(diff.mean()), float((diff.max(axis=-1) > levels).mean())
 
 
 class FastRenderEnv:
@@ -214,15 +368,20 @@ class FastRenderEnv:
         cameras: Sequence[str],
         image_size: int,
         *,
-        cells: int = FAST_CELLS,
+        look: FastLook | str = "fast",
         depth: bool = False,
     ) -> None:
         if not cameras:
             raise CapVectorError("FastRenderEnv needs at least one camera")
+        self.look_name = look if isinstance(look, str) else "custom"
+        if isinstance(look, str):
+            if look not in FAST_LOOKS:
+                raise unknown_name("fast rendering look", look, FAST_LOOKS)
+            look = FAST_LOOKS[look]
         self.env = env
         self.cameras = tuple(cameras)
         self.image_size = image_size
-        self.cells = cells
+        self.look = look
         self.depth = depth
         self._source: mujoco.MjModel | None = None
         self._renderer: CameraRenderer | None = None
@@ -245,12 +404,8 @@ class FastRenderEnv:
             if self._renderer is not None:
                 self._renderer.close()
                 self._renderer = None  # a rebuild that raises leaves no closed renderer behind
-            self._renderer = CameraRenderer(
-                render_model(model, self.cells),
-                self.cameras,
-                self.image_size,
-                depth=self.depth,
-                geom_groups=DRAWN_GROUPS,
+            self._renderer = look_renderer(
+                model, self.cameras, self.image_size, self.look, depth=self.depth
             )
             self._source = model
         # Depth from the same pass as the images: CameraRenderer linearises MuJoCo's depth buffer

@@ -101,11 +101,12 @@ class LiberoSuite(Suite):
         *,
         tasks: Sequence[int] = (),
         workers: int = 0,
+        rendering: Rendering = "auto",
     ) -> list[DemoSummary]:
         """A folder ``out`` of one file per task of the LIBERO suite ``task_set`` (default: every
         task), in LIBERO's released layout, 128 px as released
         (:func:`~capvector.envs.libero.demos.record_suite`); ``workers`` processes record tasks
-        side by side."""
+        side by side; ``rendering`` draws the images (the states do not depend on it)."""
         from capvector.envs.libero.demos import LIBERO_IMAGE_SIZE, record_suite  # LIBERO
 
         size = settings.image_size
@@ -113,4 +114,5 @@ class LiberoSuite(Suite):
             task_set, episodes, out, tasks=tasks, cameras=settings.cameras, depth=settings.depth,
             seed=settings.seed, image_size=LIBERO_IMAGE_SIZE if size is None else size,
             max_attempts=settings.max_attempts, progress=settings.progress, workers=workers,
+            rendering=rendering,
         )  # fmt: skip

@@ -211,6 +211,8 @@ class CameraRenderer:
     picture is unchanged (no shadows or reflections are drawn that could come from such a geom).
     Skybox and haze are off too: no default camera of our tasks sees the sky. ``geom_groups``
     are the geom groups drawn (LIBERO's fast rendering adds robosuite's marker group 2).
+    ``shadows`` and ``reflections`` turn MuJoCo's on (each light's shadow map, mirrors drawn with
+    the scene a second time); a culled geom casts no shadow and shows in no mirror.
     """
 
     def __init__(
@@ -223,6 +225,8 @@ class CameraRenderer:
         msaa_samples: int = 0,
         cull: bool = True,
         geom_groups: Sequence[int] = (1,),
+        shadows: bool = False,
+        reflections: bool = False,
     ) -> None:
         if not cameras:
             raise ValueError("CameraRenderer needs at least one camera")
@@ -258,8 +262,8 @@ class CameraRenderer:
         # Reversed-Z float depth, as mujoco.Renderer sets it (precise over the whole range).
         self._ctx.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
         self._scene = mujoco.MjvScene(model, maxgeom=2000)
-        self._scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
-        self._scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+        self._scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = int(shadows)
+        self._scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = int(reflections)
         self._scene.flags[mujoco.mjtRndFlag.mjRND_SKYBOX] = 0
         self._scene.flags[mujoco.mjtRndFlag.mjRND_HAZE] = 0
         # Bounding-sphere radius per model geom; planes (rbound 0: infinite) are never culled.
