@@ -295,3 +295,24 @@ def test_evaluate_from_demos_names_its_start_states(
     (row,) = json.loads((tmp_path / "r.json").read_text())
     (episode,) = row["per_episode"]
     assert episode["from_demos"] == str(demo_file.parent) and episode["steps"] == 2
+
+
+def test_expert_success_records_every_trial_with_its_commit() -> None:
+    """What `expert_success --out` writes (docs/results/libero_experts_*.json): the trials in
+    init-state order and the commit of the code that ran them."""
+    from capvector.envs.libero.experts import TrialResult
+    from capvector.workflows.expert_success import results_record
+
+    record = results_record(
+        "libero_object", {3: [TrialResult(True, 90), TrialResult(False, 280)], 1: []}
+    )
+    assert list(record["tasks"]) == ["1", "3"]
+    assert record["tasks"]["3"] == [
+        {"success": True, "steps": 90},
+        {"success": False, "steps": 280},
+    ]
+    head = subprocess.run(
+        ["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=Path(__file__).parent
+    ).stdout.strip()
+    assert record["commit"].removesuffix("-dirty") == head
+    assert record["versions"]["mujoco"] == __import__("mujoco").__version__

@@ -3,15 +3,24 @@ suite's official initial states (:mod:`capvector.envs.libero.experts`), as a Mar
 
 from __future__ import annotations
 
+import json
+import subprocess
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
 
 from capvector.envs.libero.experts import TrialResult, evaluate_expert, success_table
+from capvector.io.outputs import atomic_write_file, check_writable
 from capvector.tool_cli import run_tool
 
 
 def expert_success(
-    suite: str, tasks: Sequence[int] = (), trials: int = 50, progress: bool = True
+    suite: str,
+    tasks: Sequence[int] = (),
+    trials: int = 50,
+    progress: bool = True,
+    out: str | None = None,
 ) -> None:
     """Run the scripted expert on the official initial states of a LIBERO suite and print the
     per-task success (LIBERO's predicate) as a Markdown table.
@@ -21,7 +30,11 @@ def expert_success(
         tasks: task ids (default: every task of the suite)
         trials: initial states per task, the first N of the official 50
         progress: show the progress bar
+        out: also write every trial (success, steps) as JSON here, atomically, with the commit
+            and the simulator versions it was measured with
     """
+    if out is not None:
+        check_writable(out, "--out")
 
     def report(task_id: int, results: list[TrialResult]) -> None:  # a long run shows as it goes
         wins = sum(r.success for r in results)
@@ -29,6 +42,46 @@ def expert_success(
 
     results = evaluate_expert(suite, list(tasks) or None, trials, progress=progress, on_task=report)
     print(success_table(suite, results))
+    if out is not None:
+        with atomic_write_file(out, "--out") as tmp:
+            Path(tmp).write_text(json.dumps(results_record(suite, results), indent=1) + "\n")
+
+
+def results_record(suite: str, results: Mapping[int, Sequence[TrialResult]]) -> dict:
+    """What ``--out`` writes: per task the trials in init-state order, and what measured them
+    (the source tree's commit, ``dirty`` when it had changes, and the simulators' versions)."""
+    return {
+        "suite": suite,
+        "commit": _commit(),
+        "versions": {p: _version(p) for p in ("robosuite", "mujoco", "rpent-libero")},
+        "tasks": {
+            str(task): [{"success": r.success, "steps": r.steps} for r in trials]
+            for task, trials in sorted(results.items())
+        },
+    }
+
+
+def _commit() -> str | None:
+    """The commit of the source tree this module runs from (an editable install's), or None."""
+    here = Path(__file__).parent
+
+    def git(*args: str) -> str:
+        return subprocess.run(
+            ["git", "-C", str(here), *args], capture_output=True, text=True, check=True
+        ).stdout.strip()
+
+    try:
+        head = git("rev-parse", "HEAD")
+        return head + ("-dirty" if git("status", "--porcelain", "--", ":/src") else "")
+    except (OSError, subprocess.CalledProcessError):
+        return None
+
+
+def _version(package: str) -> str | None:
+    try:
+        return version(package)
+    except PackageNotFoundError:
+        return None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
