@@ -301,11 +301,10 @@ def test_expert_success_records_every_trial_with_its_commit() -> None:
     """What `expert_success --out` writes (docs/results/libero_experts_*.json): the trials in
     init-state order and the commit of the code that ran them."""
     from capvector.envs.libero.experts import TrialResult
-    from capvector.workflows.expert_success import results_record
+    from capvector.workflows.expert_success import _commit, results_record
 
-    record = results_record(
-        "libero_object", {3: [TrialResult(True, 90), TrialResult(False, 280)], 1: []}
-    )
+    trials = {3: [TrialResult(True, 90), TrialResult(False, 280)], 1: []}
+    record = results_record("libero_object", trials, _commit())
     assert list(record["tasks"]) == ["1", "3"]
     assert record["tasks"]["3"] == [
         {"success": True, "steps": 90},

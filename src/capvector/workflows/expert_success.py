@@ -33,6 +33,7 @@ def expert_success(
         out: also write every trial (success, steps) as JSON here, atomically, with the commit
             and the simulator versions it was measured with
     """
+    commit = _commit()  # before the run, which takes hours: the code that ran, not a later one
     if out is not None:
         check_writable(out, "--out")
 
@@ -44,15 +45,18 @@ def expert_success(
     print(success_table(suite, results))
     if out is not None:
         with atomic_write_file(out, "--out") as tmp:
-            Path(tmp).write_text(json.dumps(results_record(suite, results), indent=1) + "\n")
+            record = results_record(suite, results, commit)
+            Path(tmp).write_text(json.dumps(record, indent=1) + "\n")
 
 
-def results_record(suite: str, results: Mapping[int, Sequence[TrialResult]]) -> dict:
+def results_record(
+    suite: str, results: Mapping[int, Sequence[TrialResult]], commit: str | None
+) -> dict:
     """What ``--out`` writes: per task the trials in init-state order, and what measured them
-    (the source tree's commit, ``dirty`` when it had changes, and the simulators' versions)."""
+    (``commit``, see :func:`_commit`, and the simulators' versions)."""
     return {
         "suite": suite,
-        "commit": _commit(),
+        "commit": commit,
         "versions": {p: _version(p) for p in ("robosuite", "mujoco", "rpent-libero")},
         "tasks": {
             str(task): [{"success": r.success, "steps": r.steps} for r in trials]
@@ -62,7 +66,8 @@ def results_record(suite: str, results: Mapping[int, Sequence[TrialResult]]) -> 
 
 
 def _commit() -> str | None:
-    """The commit of the source tree this module runs from (an editable install's), or None."""
+    """The commit of the source tree this module runs from (an editable install's), ``-dirty``
+    when its ``src`` had changes, or None outside a git checkout."""
     here = Path(__file__).parent
 
     def git(*args: str) -> str:
