@@ -5,7 +5,10 @@
     PYTHONPATH=src python tools/libero/demo_replay_report.py [SUITE ...]
 
 Success is LIBERO's predicate at any step of the replay (an episode of the protocol ends there).
-The comparisons are the test's (tests/test_sim_libero.py: demo_replay).
+The comparisons are the test's (tests/test_sim_libero.py: demo_replay): per task the demos'
+outcomes in both stacks, how many steps apart the predicate first holds where both succeed, and
+the farthest object from robosuite 1.4's after the protocol's 10 wait steps and at the replay's
+end; then the agreement per suite.
 """
 
 from __future__ import annotations
@@ -30,28 +33,37 @@ def main() -> None:
     tasks = sorted({(e["suite"], e["task_id"]) for e in test.DEMO_EPISODES})
     print(
         "| suite | task | demos | success in 1.4 / port | outcome agrees | first success, "
-        "steps apart (max) | objects after the wait steps, max (mm) | disagreeing |"
+        "steps apart (max) | objects after the wait steps, max (mm) | objects at the end, max "
+        "(mm) | disagreeing |"
     )
-    print("|---|---|---|---|---|---|---|---|")
-    total = agreed = 0
+    print("|---|---|---|---|---|---|---|---|---|")
+    agreed: dict[str, list[int]] = {}  # suite: [agreeing, demos]
     for suite, task_id in tasks:
         if args.suites and suite not in args.suites:
             continue
         episodes = [e for e in test.DEMO_EPISODES if (e["suite"], e["task_id"]) == (suite, task_id)]
         env = libero.make_libero_env(suite, task_id, render=False)
-        outs = [test.demo_replay(env, e) for e in episodes]
-        env.close()
+        try:
+            outs = [test.demo_replay(env, e) for e in episodes]
+        finally:
+            env.close()
         agree = [o["success"] == o["ref_success"] for o in outs]
         gaps = [abs(o["first"] - o["ref_first"]) for o in outs if o["success"] and o["ref_success"]]
-        total, agreed = total + len(outs), agreed + sum(agree)
+        count = agreed.setdefault(suite, [0, 0])
+        count[0], count[1] = count[0] + sum(agree), count[1] + len(outs)
         print(
             f"| {suite} | {task_id} | {len(outs)} | {sum(o['ref_success'] for o in outs)} / "
             f"{sum(o['success'] for o in outs)} | {sum(agree)}/{len(outs)} | "
             f"{max(gaps) if gaps else '-'} | {max(o['settled_mm'] for o in outs):.2f} | "
+            f"{max(o['final_mm'] for o in outs):.2f} | "
             f"{', '.join(e['key'] for e, a in zip(episodes, agree, strict=True) if not a) or '-'} |",
             flush=True,
         )
-    print(f"\nagreement: {agreed}/{total} ({100 * agreed / max(total, 1):.1f} %)")
+    print()
+    for suite, (n, total) in agreed.items():
+        print(f"{suite}: outcomes agree on {n}/{total} ({100 * n / total:.1f} %)")
+    n, total = (sum(c[i] for c in agreed.values()) for i in (0, 1))
+    print(f"all: outcomes agree on {n}/{total} ({100 * n / max(total, 1):.1f} %)")
 
 
 if __name__ == "__main__":

@@ -10,12 +10,13 @@ INPUT_DIR holds ``inputs.npz`` and ``episodes.json`` from ``tools/libero/demo_re
 ``set_init_state(start)``, every action stepped open loop (the 10 wait steps, then the demo's).
 Recorded: LIBERO's success predicate after every step (as the steps where it holds), every movable
 object's world position after the wait steps and at the end, and the end effector's at the end.
-OUT_DIR gets ``inputs.npz`` (copied) and ``episodes.json`` with an ``upstream`` entry per episode.
+OUT_DIR gets ``inputs.npz`` and ``episodes.json`` with an ``upstream`` entry per episode. Episodes
+already in OUT_DIR that INPUT_DIR does not hold are kept as they are (their arrays too), so a suite
+can be added to the fixture without replaying the others.
 """
 
 import json
 import os
-import shutil
 import sys
 
 import numpy as np
@@ -73,13 +74,26 @@ def main(inputs, out):
             print(key, episode["upstream"]["success_steps"][:1], flush=True)
         env.close()
     os.makedirs(out, exist_ok=True)
+    arrays = {k: npz[k] for k in npz.files}
+    keys = {e["key"] for e in episodes}
+    if os.path.exists(os.path.join(out, "episodes.json")):
+        with open(os.path.join(out, "episodes.json")) as fh:
+            kept = [e for e in json.load(fh) if e["key"] not in keys]
+        with np.load(os.path.join(out, "inputs.npz")) as old:
+            for e in kept:
+                for name in ("start", "actions", "fixtures"):
+                    arrays[f"{e['key']}/{name}"] = old[f"{e['key']}/{name}"]
+        episodes = kept + episodes
+    episodes.sort(key=lambda e: (e["suite"], e["task_id"], int(e["key"].rsplit("/", 1)[1])))
+    # written beside the targets, then renamed: the npz first (a json naming keys it lacks would
+    # fail loudly; the other way round, silently)
+    with open(os.path.join(out, ".inputs.npz.tmp"), "wb") as fh:
+        np.savez_compressed(fh, **{k: arrays[k] for k in sorted(arrays)})
+    os.replace(os.path.join(out, ".inputs.npz.tmp"), os.path.join(out, "inputs.npz"))
     tmp = os.path.join(out, ".episodes.json.tmp")
     with open(tmp, "w") as fh:
         json.dump(episodes, fh, indent=1)
         fh.write("\n")
-    if os.path.abspath(inputs) != os.path.abspath(out):
-        shutil.copyfile(os.path.join(inputs, "inputs.npz"), os.path.join(out, ".inputs.npz.tmp"))
-        os.replace(os.path.join(out, ".inputs.npz.tmp"), os.path.join(out, "inputs.npz"))
     os.replace(tmp, os.path.join(out, "episodes.json"))
 
 
