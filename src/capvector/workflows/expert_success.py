@@ -31,22 +31,26 @@ def expert_success(
         trials: initial states per task, the first N of the official 50
         progress: show the progress bar
         out: also write every trial (success, steps) as JSON here, atomically, with the commit
-            and the simulator versions it was measured with
+            and the simulator versions it was measured with; rewritten as each task finishes,
+            so a run stopped early keeps the tasks it finished
     """
     commit = _commit()  # before the run, which takes hours: the code that ran, not a later one
     if out is not None:
         check_writable(out, "--out")
 
+    finished: dict[int, list[TrialResult]] = {}
+
     def report(task_id: int, results: list[TrialResult]) -> None:  # a long run shows as it goes
         wins = sum(r.success for r in results)
         print(f"{suite} task {task_id}: {wins}/{len(results)}", file=sys.stderr, flush=True)
+        finished[task_id] = results
+        if out is not None:
+            with atomic_write_file(out, "--out") as tmp:
+                record = results_record(suite, finished, commit)
+                Path(tmp).write_text(json.dumps(record, indent=1) + "\n")
 
     results = evaluate_expert(suite, list(tasks) or None, trials, progress=progress, on_task=report)
     print(success_table(suite, results))
-    if out is not None:
-        with atomic_write_file(out, "--out") as tmp:
-            record = results_record(suite, results, commit)
-            Path(tmp).write_text(json.dumps(record, indent=1) + "\n")
 
 
 def results_record(
