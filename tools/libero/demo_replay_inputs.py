@@ -62,7 +62,9 @@ def main() -> None:
                 arrays[f"{key}/start"] = start
                 hold = np.tile(libero.WAIT_ACTION, (HOLD_STEPS, 1))
                 arrays[f"{key}/actions"] = np.concatenate([wait, actions, hold]).astype(np.float32)
-                arrays[f"{key}/fixtures"] = np.stack([fixtures[n] for n in sorted(fixtures)])
+                # LIBERO-Object's floor scenes have no fixtures: (0, 7)
+                poses = [fixtures[n] for n in sorted(fixtures)]
+                arrays[f"{key}/fixtures"] = np.stack(poses) if poses else np.zeros((0, 7))
                 episodes.append(
                     {
                         "key": key,
