@@ -12,7 +12,9 @@ Recorded: LIBERO's success predicate after every step (as the steps where it hol
 object's world position after the wait steps and at the end, and the end effector's at the end.
 OUT_DIR gets ``inputs.npz`` and ``episodes.json`` with an ``upstream`` entry per episode. Episodes
 already in OUT_DIR that INPUT_DIR does not hold are kept as they are (their arrays too), so a suite
-can be added to the fixture without replaying the others.
+can be added to the fixture without replaying the others; episodes of INPUT_DIR that have an
+``upstream`` entry already (another run's OUT_DIR) are taken as they are, so two runs made side by
+side merge into one fixture.
 """
 
 import json
@@ -52,7 +54,8 @@ def main(inputs, out):
     with open(os.path.join(inputs, "episodes.json")) as fh:
         episodes = json.load(fh)
     npz = np.load(os.path.join(inputs, "inputs.npz"))
-    tasks = sorted({(e["suite"], e["task_id"]) for e in episodes})
+    # episodes that carry an `upstream` entry already (another run's output) are taken as they are
+    tasks = sorted({(e["suite"], e["task_id"]) for e in episodes if "upstream" not in e})
     for suite, task_id in tasks:
         task = benchmark.get_benchmark_dict()[suite]().get_task(task_id)
         bddl = os.path.join(get_libero_path("bddl_files"), task.problem_folder, task.bddl_file)
@@ -64,7 +67,7 @@ def main(inputs, out):
         )
         env.seed(0)
         for episode in episodes:
-            if (episode["suite"], episode["task_id"]) != (suite, task_id):
+            if (episode["suite"], episode["task_id"]) != (suite, task_id) or "upstream" in episode:
                 continue
             key = episode["key"]
             assert sorted(env.env.objects_dict) == episode["objects"], key
