@@ -10,7 +10,8 @@ INPUT_DIR holds ``inputs.npz`` and ``episodes.json`` from ``tools/libero/demo_re
 ``set_init_state(start)``, every action stepped open loop (the 10 wait steps, then the demo's).
 Recorded: LIBERO's success predicate after every step (as the steps where it holds), every movable
 object's world position after the wait steps and at the end, and the end effector's at the end.
-OUT_DIR gets ``inputs.npz`` and ``episodes.json`` with an ``upstream`` entry per episode. Episodes
+OUT_DIR gets ``inputs.npz`` and ``episodes.json`` with an ``upstream`` entry per episode, after
+every task (a run stopped early keeps the tasks it finished). Episodes
 already in OUT_DIR that INPUT_DIR does not hold are kept as they are (their arrays too), so a suite
 can be added to the fixture without replaying the others; episodes of INPUT_DIR that have an
 ``upstream`` entry already (another run's OUT_DIR) are taken as they are, so two runs made side by
@@ -55,6 +56,9 @@ def main(inputs, out):
         episodes = json.load(fh)
     npz = np.load(os.path.join(inputs, "inputs.npz"))
     # episodes that carry an `upstream` entry already (another run's output) are taken as they are
+    done = [e for e in episodes if "upstream" in e]
+    if done:
+        write(out, done, npz)
     tasks = sorted({(e["suite"], e["task_id"]) for e in episodes if "upstream" not in e})
     for suite, task_id in tasks:
         task = benchmark.get_benchmark_dict()[suite]().get_task(task_id)
@@ -66,9 +70,12 @@ def main(inputs, out):
             use_camera_obs=False,
         )
         env.seed(0)
-        for episode in episodes:
-            if (episode["suite"], episode["task_id"]) != (suite, task_id) or "upstream" in episode:
-                continue
+        todo = [
+            e
+            for e in episodes
+            if (e["suite"], e["task_id"]) == (suite, task_id) and "upstream" not in e
+        ]
+        for episode in todo:
             key = episode["key"]
             assert sorted(env.env.objects_dict) == episode["objects"], key
             episode["upstream"] = run(
@@ -76,20 +83,26 @@ def main(inputs, out):
             )
             print(key, episode["upstream"]["success_steps"][:1], flush=True)
         env.close()
+        write(out, todo, npz)  # after every task: a run stopped early keeps the tasks it did
+
+
+def write(out, episodes, npz):
+    """Merge ``episodes`` (their arrays from ``npz``) into the fixture in ``out``: the npz, then the
+    json (a json naming keys the npz lacks fails loudly; the other way round, silently), each
+    written beside its target and renamed."""
     os.makedirs(out, exist_ok=True)
-    arrays = {k: npz[k] for k in npz.files}
+    names = ("start", "actions", "fixtures")
+    arrays = {f"{e['key']}/{n}": npz[f"{e['key']}/{n}"] for e in episodes for n in names}
     keys = {e["key"] for e in episodes}
     if os.path.exists(os.path.join(out, "episodes.json")):
         with open(os.path.join(out, "episodes.json")) as fh:
             kept = [e for e in json.load(fh) if e["key"] not in keys]
         with np.load(os.path.join(out, "inputs.npz")) as old:
-            for e in kept:
-                for name in ("start", "actions", "fixtures"):
-                    arrays[f"{e['key']}/{name}"] = old[f"{e['key']}/{name}"]
+            arrays.update({f"{e['key']}/{n}": old[f"{e['key']}/{n}"] for e in kept for n in names})
         episodes = kept + episodes
-    episodes.sort(key=lambda e: (e["suite"], e["task_id"], int(e["key"].rsplit("/", 1)[1])))
-    # written beside the targets, then renamed: the npz first (a json naming keys it lacks would
-    # fail loudly; the other way round, silently)
+    episodes = sorted(
+        episodes, key=lambda e: (e["suite"], e["task_id"], int(e["key"].rsplit("/", 1)[1]))
+    )
     with open(os.path.join(out, ".inputs.npz.tmp"), "wb") as fh:
         np.savez_compressed(fh, **{k: arrays[k] for k in sorted(arrays)})
     os.replace(os.path.join(out, ".inputs.npz.tmp"), os.path.join(out, "inputs.npz"))
