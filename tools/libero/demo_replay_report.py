@@ -2,7 +2,7 @@
 1.4 / MuJoCo 2.3.7 when the port's scripted-expert demos are replayed open loop in both
 (tests/fixtures/libero_demo_replay), per task::
 
-    PYTHONPATH=src python tools/libero/demo_replay_report.py [SUITE ...]
+    PYTHONPATH=src python tools/libero/demo_replay_report.py [SUITE ...] [--tasks ID ...]
 
 Success is LIBERO's predicate at any step of the replay (an episode of the protocol ends there).
 The comparisons are the test's (tests/test_sim_libero.py: demo_replay): per task the demos'
@@ -24,7 +24,8 @@ TEST = Path(__file__).resolve().parents[2] / "tests" / "test_sim_libero.py"
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("suites", nargs="*", default=None)
+    parser.add_argument("suites", nargs="*", default=None, help="default: every suite")
+    parser.add_argument("--tasks", type=int, nargs="+", help="these task ids only")
     args = parser.parse_args()
     spec = importlib.util.spec_from_file_location("test_sim_libero", TEST)
     assert spec is not None and spec.loader is not None
@@ -39,7 +40,7 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|---|")
     agreed: dict[str, list[int]] = {}  # suite: [agreeing, demos]
     for suite, task_id in tasks:
-        if args.suites and suite not in args.suites:
+        if (args.suites and suite not in args.suites) or (args.tasks and task_id not in args.tasks):
             continue
         episodes = [e for e in test.DEMO_EPISODES if (e["suite"], e["task_id"]) == (suite, task_id)]
         env = libero.make_libero_env(suite, task_id, render=False)
