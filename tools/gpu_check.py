@@ -7,7 +7,7 @@ r 32 alpha 16, ``bf16-mixed`` autocast, AdamW, batch 8), a warm-up and a timed t
 planner's FLOPs per sample, ``--flops``, over the step time and ``--gpu-tflops``); then the GL
 renderer MuJoCo's EGL gets (LIBERO renders through it: an NVIDIA renderer, not llvmpipe); last, one
 LIBERO-Spatial episode of the first preset through ``capvector evaluate``'s rollout path on the GPU
-under bf16 autocast (``evaluate_module``; random weights, so it checks that the episode runs and
+under bf16 autocast (``evaluate_backbone``; random weights, so it checks that the episode runs and
 what a step costs, not success).
 
     python tools/gpu_check.py [--presets pi05-3b ...] [--batch 8] [--gpu-tflops 989]
@@ -108,7 +108,7 @@ def libero_episode(
     from capvector.data.spec import DataSpec
     from capvector.module import VLAModule
     from capvector.training.lora import LoraSettings
-    from capvector.workflows.evaluate import evaluate_module
+    from capvector.workflows.evaluate import evaluate_backbone
 
     config = preset_config(preset)
     spec = DataSpec(
@@ -124,8 +124,8 @@ def libero_episode(
     options = {"tasks": [0]} if max_steps is None else {"tasks": [0], "max_steps": max_steps}
     task = EvalTask("libero_spatial", episodes=1, options=options)
     start = time.perf_counter()
-    (result,) = evaluate_module(
-        module, [task], videos=0, batch_size=1, workers=0, precision=precision
+    (result,) = evaluate_backbone(
+        module.backbone, spec, [task], videos=0, batch_size=1, workers=0, precision=precision
     )
     seconds = time.perf_counter() - start
     del module

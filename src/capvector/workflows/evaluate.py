@@ -16,7 +16,7 @@ from capvector.errors import CapVectorError
 from capvector.eval.device import Precision, resolve_device, resolve_precision
 from capvector.eval.results import SuccessRow, format_success_table, pooled_row, success_rows
 from capvector.io.outputs import atomic_write_bytes, check_output
-from capvector.module import VLAModule, load_for_inference
+from capvector.module import load_for_inference
 from capvector.policy import VLAPolicy
 from capvector.tool_cli import run_tool
 
@@ -51,25 +51,6 @@ def evaluate(
     return evaluate_backbone(
         backbone.to(torch_device), spec, tasks, video_dir, videos, execute_steps, batch_size,
         workers, image_size, precision,
-    )  # fmt: skip
-
-
-def evaluate_module(
-    module: VLAModule,
-    tasks: list[EvalTask],
-    video_dir: str | None = None,
-    videos: int = 2,
-    execute_steps: int | None = None,
-    batch_size: int = 8,
-    workers: int | None = None,
-    image_size: int | None = None,
-    precision: Precision = "32-true",
-) -> list[EpisodeResult]:
-    """``evaluate`` of a module already in memory, where its parameters are (what
-    ``tools/gpu_check.py`` rolls out without an export)."""
-    return evaluate_backbone(
-        module.backbone, module.data_spec, tasks, video_dir, videos, execute_steps,
-        batch_size, workers, image_size, precision,
     )  # fmt: skip
 
 
