@@ -29,10 +29,10 @@ def test_row_lines_up_with_the_header() -> None:
     assert len(line) == len(HEADER) and "1.07" in line and "35.0%" in line
 
 
+@pytest.mark.sim
 def test_libero_episode_runs_the_evaluate_path_at_the_recipes_settings() -> None:
     """The GPU check's LIBERO episode, on the CPU with the tiny preset: LIBERO's real scene, the
     policy built as the check builds it (frozen bf16, LoRA r 32) under bf16 autocast."""
-    pytest.importorskip("robosuite", reason="LIBERO needs the sim extra")
     sys.path.insert(0, str(TOOL.parent))
     from gpu_check import libero_episode
 

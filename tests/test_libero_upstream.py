@@ -11,6 +11,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -167,8 +168,10 @@ def test_one_upstream_episode_is_laid_out_and_moves_as_the_ports(
     effector where the port leaves it, before any contact, within the served test's EEF_MM. A
     policy trained at other fields of view is refused there as on the port."""
     env = upstream_env()
-    if env is None:
-        pytest.skip(f"no upstream LIBERO environment: {INSTALL_SCRIPT} installs it")
+    if env is None:  # an opt-in referee run installs the stack from the registry, one command
+        subprocess.run(["bash", str(INSTALL_SCRIPT)], check=True, timeout=3600)
+        env = upstream_env()
+        assert env is not None, f"{INSTALL_SCRIPT} ran but left no environment"
     monkeypatch.setenv(UPSTREAM_ENV_VAR, str(env))
     runs = {}
     port_only = ["--rendering", "official", "--workers", "0", "--batch-size", "1", "--videos", "0"]
