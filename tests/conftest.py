@@ -244,6 +244,21 @@ def cache_snapshot(cache: Path, repo_id: str, folder: Path) -> Path:
 OPT_IN_MARKERS = ("install", "fullsize", "mini", "referee")
 
 
+def write_untrained_libero_export(folder: Path) -> Path:
+    """An untrained tiny OpenVLA-OFT export that sees LIBERO's agentview at 32 px (rendering
+    dominates a LIBERO step on a CPU), with statistics of 7-d actions and 8-d proprio."""
+    from capvector.data.spec import DataSpec
+    from capvector.data.statistics import compute_statistics
+    from capvector.module import VLAModule
+
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    statistics = compute_statistics(rng.normal(size=(100, 7)), rng.normal(size=(100, 8)), 4)
+    spec = DataSpec(cameras=["agentview"], image_size=32, statistics={"capvector": statistics})
+    VLAModule(backbone="openvla-oft-tiny", data_spec=spec).export(folder)
+    return folder
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Opt-in tests run only when ``-m`` names their marker, not in a plain or a ``-m "not sim"``
     run: the install tests build a fresh environment (minutes; `make test` adds them with

@@ -21,6 +21,7 @@ from capvector.envs.libero import env as libero
 from capvector.envs.libero.spec import LiberoEpisodeSpec, libero_specs
 from capvector.errors import CapVectorError
 from capvector.eval.rollout import RolloutEvaluator, close_envs
+from conftest import write_untrained_libero_export
 
 SUITE = "libero_spatial"
 PORT = f"port (robosuite {version('robosuite')}, MuJoCo {version('mujoco')})"
@@ -29,18 +30,7 @@ PORT = f"port (robosuite {version('robosuite')}, MuJoCo {version('mujoco')})"
 @pytest.fixture(scope="module")
 def export(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """An untrained tiny OpenVLA-OFT export that sees the agentview camera at 32 px."""
-    import torch
-
-    from capvector.data.spec import DataSpec
-    from capvector.data.statistics import compute_statistics
-    from capvector.module import VLAModule
-
-    torch.manual_seed(0)
-    rng = np.random.default_rng(0)
-    statistics = compute_statistics(rng.normal(size=(100, 7)), rng.normal(size=(100, 8)), 4)
-    spec = DataSpec(cameras=["agentview"], image_size=32, statistics={"capvector": statistics})
-    folder = tmp_path_factory.mktemp("libero") / "export"
-    VLAModule(backbone="openvla-oft-tiny", data_spec=spec).export(folder)
+    folder = write_untrained_libero_export(tmp_path_factory.mktemp("libero") / "export")
     yield folder
     close_envs()
 

@@ -24,6 +24,7 @@ from capvector.workflows.evaluate_upstream import (
     INSTALL_SCRIPT,
     UPSTREAM_ENV_VAR,
 )
+from conftest import write_untrained_libero_export
 
 SUITE = "libero_spatial"
 EEF_MM = 3.0  # tests/test_libero_served.py: the closed loop before contact, 0.2-1.1 mm measured
@@ -139,21 +140,7 @@ def test_the_committed_upstream_table_is_its_evaluations() -> None:
 
 @pytest.fixture(scope="module")
 def export(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """An untrained tiny OpenVLA-OFT export that sees LIBERO's agentview at 32 px (as
-    tests/test_libero_eval.py's: rendering dominates a LIBERO step on a CPU)."""
-    import torch
-
-    from capvector.data.spec import DataSpec
-    from capvector.data.statistics import compute_statistics
-    from capvector.module import VLAModule
-
-    torch.manual_seed(0)
-    rng = np.random.default_rng(0)
-    statistics = compute_statistics(rng.normal(size=(100, 7)), rng.normal(size=(100, 8)), 4)
-    spec = DataSpec(cameras=["agentview"], image_size=32, statistics={"capvector": statistics})
-    folder = tmp_path_factory.mktemp("libero") / "export"
-    VLAModule(backbone="openvla-oft-tiny", data_spec=spec).export(folder)
-    return folder
+    return write_untrained_libero_export(tmp_path_factory.mktemp("libero") / "export")
 
 
 @pytest.mark.sim
