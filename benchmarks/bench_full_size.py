@@ -6,8 +6,9 @@ Each preset runs in a process of its own (``--run``), built with random weights 
 weight, which no 24 GiB host holds: its full fine-tuning figure is the planner's), ``bf16-mixed``,
 through ``VLAModule`` and Lightning's loop with the recipe's ``StepCost`` callback (its
 ``ExportOnFitEnd`` is left out: a full-size export is 7-15 GB of disk per run). Text goes through
-a byte-level tokenizer standing in for the real one, at the preset's real vocabulary size (the
-embedding and LM head keep their full shape); no real tokenizer can be had offline here.
+a byte-level tokenizer standing in for the real one (the family's tiny preset's, as the planner
+uses: ``stand_in_tokenizer``), at the preset's real vocabulary size (the embedding and LM head
+keep their full shape); no real tokenizer can be had offline here.
 
 Recorded per preset and variant: the two losses (finite), which parameters received gradients
 (LoRA and heads only), the seconds of the second step, the peak RSS above the process's RSS once
@@ -103,6 +104,7 @@ def run_one(
     from capvector.callbacks import StepCost
     from capvector.data.datamodule import RobotDataModule
     from capvector.module import VLAModule
+    from capvector.profiling.memory import stand_in_tokenizer
     from capvector.profiling.meta import import_build_dependencies
     from capvector.training.lora import LoraSettings
 
@@ -139,7 +141,7 @@ def run_one(
         baseline = high_water()
         start = time.perf_counter()
         module = VLAModule(
-            backbone=preset, backbone_overrides={"tokenizer": "byte", **(overrides or {})},
+            backbone=preset, backbone_overrides={**stand_in_tokenizer(preset), **(overrides or {})},
             data_spec=dm.spec,
             lora=LoraSettings(r=32, alpha=16), frozen_dtype="bfloat16",
             activation_checkpointing=checkpointing,

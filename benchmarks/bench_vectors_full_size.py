@@ -7,8 +7,8 @@ Takes two exports of one full-size preset (θ_aux and θ_sft, e.g. ``bench_full_
 
 - ``extract`` full form (every capability parameter, in the exports' dtype);
 - ``extract`` LoRA form (``--rank``) of the language model, where the auxiliary objectives act
-  (``--lowrank-include``; a truncated SVD of every 2-D weight of a 3 B model takes tens of minutes
-  on two shared cores), its token embedding kept in full (an SVD of 257k × 2048 alone needs 6 GB);
+  (``--lowrank-include``), by ``--svd`` (default ``randomized``: an exact SVD of every 2-D weight
+  of a 7 B language model takes hours on two cores, one 4,096 × 11,008 weight about 90 s);
 - ``inspect`` of both;
 - ``merge`` of the full vector into the base (``λ = 1``).
 
@@ -17,7 +17,9 @@ A numpy referee then checks a sample of tensors without capvector or torch arith
 c = aux − sft in float64, and the merge = base + c rounded to the base's dtype (bf16 rounded to
 nearest-even on the float32 bit pattern, as torch's cast does).
 
-Outputs go under ``--work`` and are deleted at the end unless ``--keep``.
+Outputs go under ``--work`` and are deleted at the end unless ``--keep``. At 7 B, θ_aux, θ_sft,
+the full vector and the merge are 15 GB each: ``--drop-aux`` deletes θ_aux once the vector is
+checked against it, before the merge writes, so three of them are on disk at once, not four.
 
     python benchmarks/bench_vectors_full_size.py --aux A --sft S --base B --work DIR [--out FILE]
 """
@@ -101,25 +103,32 @@ def dtype_in(folder: Path, key: str) -> str:
     raise KeyError(key)
 
 
-def referee(
-    aux: Path, sft: Path, base: Path, vector: Path, meta: Path, keys: list[str]
-) -> dict[str, Any]:
-    """Over ``keys``: how many elements of the vector and of the merge differ from numpy's own
-    c = round(aux − sft) and round(base + c), in float32 arithmetic as IEEE defines it."""
+def vector_referee(aux: Path, sft: Path, vector: Path, keys: list[str]) -> list[dict[str, Any]]:
+    """Over ``keys``: how many elements of the vector differ from numpy's own c = round(aux −
+    sft), in float32 arithmetic as IEEE defines it."""
     rows = []
     for key in keys:
         c32 = float32_of(aux, key) - float32_of(sft, key)  # exact for two bf16 inputs
-        stored = float32_of(vector, key)
         c = round_to(c32, dtype_in(vector, key))
-        merged = round_to(float32_of(base, key) + stored, dtype_in(meta, key))
         rows.append({
             "tensor": key,
             "elements": int(c.size),
-            "vector_mismatches": int((stored != c).sum()),
-            "merge_mismatches": int((float32_of(meta, key) != merged).sum()),
+            "vector_mismatches": int((float32_of(vector, key) != c).sum()),
             "vector_nonzero": int((c != 0).sum()),
         })  # fmt: skip
-    return {"tensors": rows}
+    return rows
+
+
+def merge_referee(base: Path, vector: Path, meta: Path, keys: list[str]) -> list[dict[str, Any]]:
+    """Over ``keys``: how many elements of the merge differ from numpy's round(base + c)."""
+    rows = []
+    for key in keys:
+        merged = round_to(float32_of(base, key) + float32_of(vector, key), dtype_in(meta, key))
+        rows.append({
+            "tensor": key,
+            "merge_mismatches": int((float32_of(meta, key) != merged).sum()),
+        })  # fmt: skip
+    return rows
 
 
 def largest_tensor_bytes(folder: Path) -> tuple[str, int]:
@@ -147,6 +156,10 @@ def main() -> None:
     parser.add_argument("--sample", type=int, default=12, help="tensors the referee checks")
     parser.add_argument("--out", type=Path, default=ROOT / "docs/results/full_size_vectors.json")
     parser.add_argument("--keep", action="store_true", help="keep the outputs under --work")
+    parser.add_argument("--svd", choices=["exact", "randomized"], default="randomized")
+    parser.add_argument(
+        "--drop-aux", action="store_true", help="delete --aux once the vector is checked"
+    )
     args = parser.parse_args()
     work = args.work
     work.mkdir(parents=True, exist_ok=True)
@@ -163,6 +176,8 @@ def main() -> None:
                 str(lowrank),
                 "--rank",
                 str(args.rank),
+                "--svd",
+                args.svd,
                 "--include",
                 *args.lowrank_include,
             ],
@@ -170,34 +185,28 @@ def main() -> None:
         ),  # fmt: skip
         run("inspect full", ["inspect", str(full)], None),
         run("inspect lora", ["inspect", str(lowrank), "--against", str(full)], None),
-        run(
-            "merge",
-            [
-                "merge",
-                "--base",
-                str(args.base),
-                "--vector",
-                str(full),
-                "--out",
-                str(meta),
-                "--overwrite",
-            ],
-            meta,
-        ),  # fmt: skip
     ]
-    name, largest = largest_tensor_bytes(args.base)
     # Spread over the tensors c changes (by name), and one it leaves at zero if there is one.
     norms = json.loads((full / "capability_vector.json").read_text())["tensors"]
     changed = sorted(k for k, t in norms.items() if t["norm"] > 0)
     sample = changed[:: max(1, len(changed) // args.sample)][: args.sample]
     sample += sorted(k for k, t in norms.items() if t["norm"] == 0)[:1]
+    checked = vector_referee(args.aux, args.sft, full, sample)
+    if args.drop_aux:
+        shutil.rmtree(args.aux)
+    merge = ["merge", "--base", str(args.base), "--vector", str(full), "--out", str(meta)]
+    steps.append(run("merge", [*merge, "--overwrite"], meta))
+    for row, merged in zip(checked, merge_referee(args.base, full, meta, sample), strict=True):
+        row.update(merged)
+    name, largest = largest_tensor_bytes(args.base)
     result = {
         "aux": str(args.aux), "sft": str(args.sft), "base": str(args.base),
+        "aux_deleted_before_merge": args.drop_aux,
         "steps": steps,
         "largest_tensor": name,
         "largest_tensor_gib": largest / GIB,
         "merge_peak_above_largest_gib": steps[-1]["peak_rss_gib"] - largest / GIB,
-        "referee": referee(args.aux, args.sft, args.base, full, meta, sample),
+        "referee": {"tensors": checked},
         "command": "python benchmarks/bench_vectors_full_size.py " + " ".join(sys.argv[1:]),
     }  # fmt: skip
     tmp = args.out.with_suffix(".json.tmp")

@@ -315,6 +315,48 @@ def test_svd_factors_truncation_keeps_the_expected_energy() -> None:
     assert zero.rank == 1 and kept == 1.0 and float(zero.rows().abs().sum()) == 0.0
 
 
+def test_randomized_svd_finds_the_exact_top_rank_of_a_low_rank_delta_with_noise() -> None:
+    """What a 7 B extraction meets: θ_aux − θ_sft of two LoRA fits, rank ≤ 2r, plus bf16
+    rounding noise. The range finder gives the exact SVD's rank-k fit to within the noise, the
+    same bits on every call, and refuses an energy rule it cannot evaluate."""
+    g = torch.Generator().manual_seed(3)
+    signal = torch.randn(96, 8, generator=g) @ torch.randn(8, 200, generator=g)
+    delta = signal + 1e-4 * torch.randn(96, 200, generator=g)
+    exact, exact_kept = svd_factors(delta, rank=6)
+    fast, fast_kept = svd_factors(delta, rank=6, method="randomized")
+    best = float((delta - exact.rows()).double().square().sum())
+    found = float((delta - fast.rows()).double().square().sum())
+    assert found == pytest.approx(best, rel=1e-3) and fast.rank == 6
+    assert fast_kept == pytest.approx(exact_kept, rel=1e-6)
+    again, _ = svd_factors(delta, rank=6, method="randomized")
+    assert torch.equal(again.lora_a, fast.lora_a) and torch.equal(again.lora_b, fast.lora_b)
+    with pytest.raises(ValueError, match="fixed rank"):
+        svd_factors(delta, energy=0.9, method="randomized")
+
+
+def test_extract_with_the_randomized_svd_records_it_and_loads_in_peft(
+    tmp_path: Path, models
+) -> None:
+    from capvector.cli import main
+
+    aux = write_export(tmp_path / "aux", models["aux"])
+    sft = write_export(tmp_path / "sft", models["sft"])
+    with pytest.raises(CapVectorError, match="--svd randomized finds a fixed --rank"):
+        extract(aux, sft, tmp_path / "vec", energy=0.9, svd="randomized")
+    out = tmp_path / "vec"
+    args = ["extract", "--aux", str(aux), "--sft", str(sft), "--out", str(out), "--rank", "2"]
+    assert main([*args, "--svd", "randomized"]) == 0
+    meta = json.loads((out / "capability_vector.json").read_text())
+    assert meta["lowrank"]["svd"] == "randomized"
+    exact = extract(aux, sft, tmp_path / "exact", rank=2)
+    for key, tensor in meta["tensors"].items():
+        if tensor["storage"] == "lora":
+            assert tensor["retained_energy"] == pytest.approx(
+                exact["tensors"][key]["retained_energy"], rel=1e-4
+            ), key
+    assert load_vector(out).keys() == load_vector(tmp_path / "exact").keys()
+
+
 def test_bf16_inputs_give_a_bf16_vector_computed_in_float32(tmp_path: Path) -> None:
     torch.manual_seed(0)
     a = {"language_model.w": torch.randn(8, 8).bfloat16()}

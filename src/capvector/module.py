@@ -35,7 +35,7 @@ from capvector.eval.metrics import SuccessRate
 from capvector.eval.results import metric_key
 from capvector.io.hub import local_folder
 from capvector.io.loading import load_torch, read_json
-from capvector.io.lora_layers import constant_scaling, lora_form_state, merge_lora
+from capvector.io.lora_layers import constant_scaling, lora_form_state, merged_lora_view
 from capvector.io.names import (
     BASE_DELTA,
     CHECKPOINT_METADATA,
@@ -47,6 +47,7 @@ from capvector.io.names import (
     SUCCESS_BY_TASK,
     CheckpointMetadata,
 )
+from capvector.io.tensors import LazyTensors, TensorInfo, tensor_info
 from capvector.io.weights import dtype_name, parse_dtype
 from capvector.objectives.base import Objective, compute_losses
 from capvector.policy import VLAPolicy
@@ -487,21 +488,18 @@ class VLAModule(L.LightningModule):
             scaling = constant_scaling(lora_settings.scaling if lora_settings else 1.0)
             state = lora_form_state(state, scaling, base_delta)
         elif lora_settings is not None:
-            state = merge_lora(state, constant_scaling(lora_settings.scaling), dtype=out_dtype)
+            scaling = constant_scaling(lora_settings.scaling)
+            state = merged_lora_view(state, scaling, dtype=out_dtype)
         has_delta = any(".lora_" in k for k in state) and base_delta is not None
-        for name, tensor in state.items():  # one at a time: a float32 copy freed per tensor
+        # Made one at a time as they are written: a 7 B export never holds a second copy.
+        tensors = LazyTensors()
+        for name in state:
+            info = tensor_info(state, name)
             # Low-rank factors (the base-delta form) have no base dtype: float32 unless asked.
-            factor = dtype is None and ".lora_" in name
-            if tensor.is_floating_point() and not factor:
-                state[name] = tensor.to(out_dtype)
-        bad = [
-            name for name, t in state.items() if t.is_floating_point() and not t.isfinite().all()
-        ]
-        if bad:  # a policy that answers NaN must not leave here (float16 can overflow too)
-            raise CapVectorError(
-                f"not exporting to {folder}: {len(bad)} of {len(state)} tensors hold NaN or inf "
-                f"in {dtype_name(out_dtype)}, e.g. {bad[0]}; train from a finite checkpoint (a "
-                "fit stops at its first non-finite loss), or export in float32 (--dtype float32)"
+            keep = not info.dtype.is_floating_point or (dtype is None and ".lora_" in name)
+            out = info if keep else TensorInfo(out_dtype, info.shape)
+            tensors.set(
+                name, out, lambda n=name, d=out.dtype: _finite_export_tensor(state, n, d, folder)
             )
         extra = {
             DATA_SPEC_FILE: dataclasses.asdict(self.data_spec),
@@ -509,7 +507,7 @@ class VLAModule(L.LightningModule):
         }
         return self.backbone.save_pretrained(
             folder,
-            state_dict=state,
+            state_dict=tensors,
             extra_json=extra,
             config_extra={
                 "objectives": sorted(self.objectives),
@@ -530,6 +528,21 @@ class VLAModule(L.LightningModule):
             base_model=self.hparams.get("pretrained"),
             inputs=[self.hparams.get("pretrained")],
         )
+
+
+def _finite_export_tensor(
+    state: Mapping[str, Tensor], name: str, dtype: torch.dtype, folder: str | Path
+) -> Tensor:
+    tensor = state[name].to(dtype)
+    # A policy that answers NaN must not leave here (float16 can overflow too). Raised while the
+    # export writes into its temporary folder, which is then removed: nothing is left behind.
+    if tensor.is_floating_point() and not tensor.isfinite().all():
+        raise CapVectorError(
+            f"not exporting to {folder}: `{name}` holds NaN or inf in {dtype_name(dtype)}; train "
+            "from a finite checkpoint (a fit stops at its first non-finite loss), or export in "
+            "float32 (--dtype float32)"
+        )
+    return tensor
 
 
 T = TypeVar("T")

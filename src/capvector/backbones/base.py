@@ -44,6 +44,7 @@ from capvector.io.names import (
     EXPORT_WEIGHTS,
 )
 from capvector.io.outputs import Inputs, atomic_directory
+from capvector.io.tensors import LazyTensors, tensor_info
 from capvector.io.weights import write_safetensors
 from capvector.registry import Registry
 
@@ -329,8 +330,9 @@ class VLABackbone(nn.Module, ABC):
         statistics = (extra_json or {}).get(STATISTICS_FILE)
         if statistics is not None:  # the last guard: evaluation would normalise with them
             check_finite_statistics(statistics, f"{folder}/{STATISTICS_FILE}")
-        tensors = dict(state_dict if state_dict is not None else self.state_dict())
-        tensors = {k: v.detach().to("cpu").contiguous() for k, v in tensors.items()}
+        tensors = state_dict if state_dict is not None else self.state_dict()
+        if not isinstance(tensors, LazyTensors):  # the writer moves each to the CPU as it writes
+            tensors = LazyTensors({k: v.detach() for k, v in tensors.items()})
         with atomic_directory(folder, overwrite, inputs) as tmp:
             write_safetensors(tmp / EXPORT_WEIGHTS, tensors)
             config = {**self.export_config(), **(config_extra or {})}
@@ -355,7 +357,7 @@ class VLABackbone(nn.Module, ABC):
             {
                 "family": family,
                 "preset": self.config.preset,
-                "parameters": sum(t.numel() for t in tensors.values()),
+                "parameters": sum(tensor_info(tensors, k).numel for k in tensors),
                 "chunk × action dim": f"{self.config.chunk_size} × {self.config.action_dim}",
                 "cameras": self.config.num_images,
                 **{

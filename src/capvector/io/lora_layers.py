@@ -6,7 +6,8 @@ LoRA checkpoint as a vector source (``io.weights``), reading a PEFT adapter as a
 follows peft's ``get_delta_weight`` (``peft/tuners/lora/layer.py``): ``B @ A`` for Linear and 1×1-B
 Conv layers, ``(B @ A)ᵀ`` for Embedding and for ``fan_in_fan_out`` (Conv1D) layers, times the
 layer's scaling; a ``lora_B`` bias (``lora_bias=True``) adds ``s · bias`` to the base bias, as
-peft's ``merge`` does. Imports nothing of the project, so ``vectors`` stays free of Lightning.
+peft's ``merge`` does. Imports nothing of the project but ``io.tensors``, so ``vectors`` stays free
+of Lightning.
 """
 
 from __future__ import annotations
@@ -19,6 +20,8 @@ from typing import Any
 
 import torch
 from torch import Tensor
+
+from capvector.io.tensors import LazyTensors, TensorInfo
 
 _KEY = re.compile(
     r"^(?P<module>.+)\.(?:"
@@ -55,7 +58,8 @@ class LoraLayer:
     def delta(self, rows: slice | None = None, shape: torch.Size | None = None) -> Tensor:
         """``scaling · ΔW`` in float32 (rows of it with ``rows``), reshaped to ``shape``."""
         b, a = self.factors()
-        out = self.scaling * ((b if rows is None else b[rows]).float() @ a.float())
+        out = (b if rows is None else b[rows]).float() @ a.float()
+        out.mul_(self.scaling)  # in place: one float32 copy of the layer alive, not two
         return out if shape is None else out.reshape(shape)
 
     def merged(self, base: Tensor, rows: slice | None = None) -> Tensor:
@@ -63,7 +67,8 @@ class LoraLayer:
         decides the dtype it keeps."""
         base = base if rows is None else base[rows]
         dtype = torch.promote_types(base.dtype, torch.float32)
-        return base.to(dtype) + self.delta(rows, base.shape).to(dtype)
+        # ΔW + base in place (the same bits as base + ΔW), without a float32 copy of the base
+        return self.delta(rows, base.shape).to(dtype).add_(base)
 
     def merged_bias(self, base_bias: Tensor | None) -> Tensor | None:
         if self.bias is None:
@@ -126,20 +131,41 @@ def merge_lora(
 ) -> dict[str, Tensor]:
     """A state dict with every LoRA layer merged into its weight (and bias) and peft's key
     changes undone, the other tensors as they were. A merged layer is computed in float32 and
-    kept in float32 (a bf16 base would round much of the update away), or in ``dtype``: cast
-    layer by layer, so a bf16 export of a 3 B model never holds all its merged weights in
-    float32 at once (8.8 GB for ``pi05-3b``'s LoRA targets)."""
-    merged, layers = split_lora(state, scaling, fan_in_fan_out)
+    kept in float32 (a bf16 base would round much of the update away), or in ``dtype``."""
+    return dict(merged_lora_view(state, scaling, fan_in_fan_out, dtype).items())
+
+
+def merged_lora_view(
+    state: Mapping[str, Tensor],
+    scaling: Callable[[str, int], float],
+    fan_in_fan_out: bool = False,
+    dtype: torch.dtype | None = None,
+) -> LazyTensors:
+    """``merge_lora``'s tensors made when read: an export writes a 7 B model's merged layers one
+    at a time instead of holding a second copy of every LoRA target (13 GB in bf16)."""
+    plain, layers = split_lora(state, scaling, fan_in_fan_out)
+    view = LazyTensors(plain)
     for module, layer in layers.items():
-        weight = merged.get(f"{module}.weight")
+        weight = plain.get(f"{module}.weight")
         if weight is None:
             raise LoraFormatError(f"LoRA layer `{module}` has no base weight `{module}.weight`")
-        new = layer.merged(weight)
-        merged[f"{module}.weight"] = new if dtype is None else new.to(dtype)
-        bias = layer.merged_bias(merged.get(f"{module}.bias"))
-        if bias is not None:
-            merged[f"{module}.bias"] = bias if dtype is None else bias.to(dtype)
-    return merged
+        merged_dtype = dtype or torch.promote_types(weight.dtype, torch.float32)
+        view.set(
+            f"{module}.weight",
+            TensorInfo(merged_dtype, tuple(weight.shape)),
+            lambda w=weight, lay=layer, d=merged_dtype: lay.merged(w).to(d),
+        )
+        bias = plain.get(f"{module}.bias")
+        if layer.bias is not None and bias is None:
+            raise LoraFormatError("a LoRA bias (lora_B.bias) needs a base bias to add to")
+        if bias is not None and (layer.bias is not None or dtype is not None):
+            bias_dtype = dtype or torch.promote_types(bias.dtype, torch.float32)
+            view.set(
+                f"{module}.bias",
+                TensorInfo(bias_dtype, tuple(bias.shape)),
+                lambda b=bias, lay=layer, d=bias_dtype: lay.merged_bias(b).to(d),
+            )
+    return view
 
 
 def adapter_scaling(config: Mapping[str, Any]) -> Callable[[str, int], float]:

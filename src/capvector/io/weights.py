@@ -45,6 +45,7 @@ from capvector.io.names import (  # noqa: F401 (re-exported: the vector modules'
     VECTOR_WEIGHTS,
     CheckpointMetadata,
 )
+from capvector.io.tensors import TensorInfo, tensor_info
 
 DEFAULT_MAX_SHARD_SIZE = 2 * 10**9
 """2 GB, counted like transformers' ``max_shard_size="2GB"``."""
@@ -108,23 +109,6 @@ def parse_dtype(name: str) -> torch.dtype:
 def compute_dtype(*dtypes: torch.dtype) -> torch.dtype:
     """Arithmetic runs in float32, or float64 when an input is float64."""
     return torch.float64 if torch.float64 in dtypes else torch.float32
-
-
-@dataclass(frozen=True)
-class TensorInfo:
-    dtype: torch.dtype
-    shape: tuple[int, ...]
-
-    @property
-    def numel(self) -> int:
-        n = 1
-        for s in self.shape:
-            n *= s
-        return n
-
-    @property
-    def nbytes(self) -> int:
-        return self.numel * self.dtype.itemsize
 
 
 class Scratch:
@@ -675,8 +659,9 @@ class SafetensorsWriter:
 def write_safetensors(path: Path, tensors: Mapping[str, Tensor]) -> None:
     """One safetensors file of ``tensors``, written tensor by tensor (``SafetensorsWriter``):
     ``safetensors.torch.save_file`` first copies every tensor into one bytes object, which doubles
-    a full-size export's memory (6.7 GB more for ``pi05-3b`` in bf16)."""
-    infos = [(k, TensorInfo(t.dtype, tuple(t.shape))) for k, t in tensors.items()]
+    a full-size export's memory (6.7 GB more for ``pi05-3b`` in bf16). ``LazyTensors`` are made
+    one at a time, as they are written."""
+    infos = [(k, tensor_info(tensors, k)) for k in tensors]
     layout = ShardLayout([(path.name, infos)], None)
     writer = SafetensorsWriter(path.parent, layout)
     try:

@@ -490,7 +490,7 @@ def trace_step(
     return store[0], float(live.peak)
 
 
-def _tiny_tokenizer(preset: str) -> dict[str, Any]:
+def stand_in_tokenizer(preset: str) -> dict[str, Any]:
     """A tokenizer for a meta forward pass: a full-size preset's comes with its checkpoint, so it
     borrows its family's tiny-preset one; a preset built from weight packages (the mini) gets its
     own from the packages' folder (a meta build reads no packages itself)."""
@@ -535,7 +535,7 @@ def make_objective(name: str) -> Objective:
 def meta_backbone(preset: str, lora_rank: int | None, **overrides: Any) -> VLABackbone:
     """``preset`` with its weights on the meta device, trainable as LoRA of ``lora_rank`` or fully."""
     with on_meta():
-        backbone = build_backbone(preset, **_tiny_tokenizer(preset), **overrides)
+        backbone = build_backbone(preset, **stand_in_tokenizer(preset), **overrides)
         set_trainable(backbone, lora_settings(lora_rank))
     return backbone
 

@@ -19,7 +19,7 @@ import re
 from collections.abc import Collection, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import torch
 from torch import Tensor
@@ -74,28 +74,54 @@ class LoraFactors:
         return bool(torch.isfinite(self.lora_a).all() and torch.isfinite(self.lora_b).all())
 
 
+SvdMethod = Literal["exact", "randomized"]
+RANDOMIZED_OVERSAMPLING = 10
+"""Extra columns of the randomized range finder (Halko, Martinsson & Tropp 2011, §4.2's p)."""
+RANDOMIZED_POWER_ITERATIONS = 2
+
+
 def svd_factors(
-    delta: Tensor, rank: int | None = None, energy: float | None = None
+    delta: Tensor,
+    rank: int | None = None,
+    energy: float | None = None,
+    method: SvdMethod = "exact",
 ) -> tuple[LoraFactors, float]:
     """Truncated SVD ``delta ≈ B @ A`` by a fixed ``rank`` or a retained ``energy`` fraction.
+
+    ``exact`` is mergekit's full SVD. ``randomized`` (fixed ``rank`` only: the energy rule needs
+    every singular value) finds the top ``rank`` by a randomized range finder with
+    ``RANDOMIZED_OVERSAMPLING`` extra columns and ``RANDOMIZED_POWER_ITERATIONS`` power iterations
+    (``torch.svd_lowrank``, seeded, so an extraction repeats bit for bit). It is our deviation for
+    full-size models: an exact SVD of one 4,096 × 11,008 weight takes about 90 s on a CPU core,
+    hours for a 7 B language model, where the range finder takes under a second; θ_aux − θ_sft
+    of two LoRA fits has rank ≤ 2r plus rounding noise, the case it is accurate for.
 
     Returns the factors (float32) and the retained fraction of ‖delta‖_F² (1.0 for a zero delta,
     which is stored at rank 1 with zero factors because peft has no rank-0 layers).
     """
     if (rank is None) == (energy is None):
         raise ValueError("pass exactly one of rank and energy")
-    u, s, vh = torch.linalg.svd(delta.float(), full_matrices=False)
-    power = s.double() ** 2
-    total = float(power.sum())
-    if total == 0.0:
-        k, retained = 1, 1.0
+    if method == "randomized" and rank is None:
+        raise ValueError("the randomized SVD takes a fixed rank, not an energy fraction")
+    if method == "randomized":
+        total = float(delta.double().square().sum())  # ‖delta‖_F²: not every σ is computed
+        q = min(rank + RANDOMIZED_OVERSAMPLING, *delta.shape)  # type: ignore[operator]
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(0)
+            u, s, v = torch.svd_lowrank(delta.float(), q=q, niter=RANDOMIZED_POWER_ITERATIONS)
+        vh = v.T
     else:
-        cumulative = power.cumsum(0) / total
-        if rank is not None:
-            k = min(rank, s.numel())
-        else:
-            k = min(int((cumulative < energy).sum()) + 1, s.numel())
-        retained = float(cumulative[k - 1])
+        u, s, vh = torch.linalg.svd(delta.float(), full_matrices=False)
+        total = float((s.double() ** 2).sum())
+    if total == 0.0:
+        rows, cols = delta.shape
+        return LoraFactors(torch.zeros(rows, 1), torch.zeros(1, cols)), 1.0
+    cumulative = (s.double() ** 2).cumsum(0) / total
+    if rank is not None:
+        k = min(rank, s.numel())
+    else:
+        k = min(int((cumulative < energy).sum()) + 1, s.numel())
+    retained = min(float(cumulative[k - 1]), 1.0)
     root = s[:k].sqrt()
     return LoraFactors(u[:, :k] * root, root[:, None] * vh[:k]), retained
 

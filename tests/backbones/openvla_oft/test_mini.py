@@ -207,12 +207,12 @@ def test_export_holds_only_what_differs_from_the_packages_and_loads_back(
 
 def test_backbone_info_names_the_weights_and_plans_memory_with_gemmas_tokenizer(capsys) -> None:
     from capvector.backbones.packaged import gemma3_270m_tokenizer_folder
-    from capvector.profiling.memory import _tiny_tokenizer
+    from capvector.profiling.memory import stand_in_tokenizer
     from capvector.workflows.backbone_info import backbone_info_main
 
     # The planner's traced step tokenizes its prompt with the packages' own Gemma tokenizer (a
     # meta build reads no packages itself), not a byte-level stand-in.
-    assert _tiny_tokenizer(PRESET) == {"tokenizer": str(gemma3_270m_tokenizer_folder())}
+    assert stand_in_tokenizer(PRESET) == {"tokenizer": str(gemma3_270m_tokenizer_folder())}
     assert backbone_info_main([PRESET, "--memory", "--batch", "1"]) == 0
     out = capsys.readouterr().out
     for source in (GEMMA3_270M, EFFICIENTNET_LITE0):
