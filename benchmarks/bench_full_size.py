@@ -1,4 +1,5 @@
-"""Full-size presets, executed: two real training steps at batch 1 per preset, against the planner.
+"""Full-size presets, executed: two real training steps per preset (batch 1 unless asked), against the
+planner.
 
 Each preset runs in a process of its own (``--run``), built with random weights (no download) as
 ``capvector fit`` builds it: frozen weights in bf16 (``model.frozen_dtype``, built so:
@@ -89,6 +90,7 @@ def run_one(
     strategy: str = "auto",
     devices: int = 1,
     overrides: dict[str, Any] | None = None,
+    batch_size: int = 1,
 ) -> dict[str, Any] | None:
     """Two steps of ``preset`` in this process; the row for the JSON. With ``export``, the model is
     exported there afterwards (in the base's dtype, as ``ExportOnFitEnd`` writes it). ``lr``
@@ -135,7 +137,7 @@ def run_one(
         torch.manual_seed(0)
         aux = variant.startswith("aux")
         dm = RobotDataModule(
-            train_files=[str(demos)], batch_size=1, augment=False, load_depth=aux,
+            train_files=[str(demos)], batch_size=batch_size, augment=False, load_depth=aux,
             load_annotations=aux,
         )  # fmt: skip
         baseline = high_water()
@@ -189,6 +191,7 @@ def run_one(
     return {
         "preset": preset,
         "variant": variant,
+        "batch_size": batch_size,
         "parameters": sum(p.numel() for p in params.values()),
         "stored_gib": stored / GIB,
         "losses": record.losses,
@@ -233,7 +236,7 @@ def strategy_of(name: str, devices: int) -> Any:
     )
 
 
-def plan(preset: str, variant: str) -> dict[str, Any]:
+def plan(preset: str, variant: str, batch_size: int = 1) -> dict[str, Any]:
     """The planner's CPU estimate for ``run_one``'s settings. In a process of its own, after the
     run's: its meta trace takes minutes at full size, and the run's memory is gone by then."""
     from capvector.profiling.memory import estimate_memory
@@ -241,7 +244,7 @@ def plan(preset: str, variant: str) -> dict[str, Any]:
 
     checkpointing = variant.endswith("+ckpt")
     settings = TrainingSettings(
-        batch=1, precision="bf16-mixed", strategy="ddp", lora_rank=32, frozen_dtype="bfloat16",
+        batch=batch_size, precision="bf16-mixed", strategy="ddp", lora_rank=32, frozen_dtype="bfloat16",
         attention="math", activation_checkpointing=checkpointing,
         objectives=("spatial", "reasoning") if variant.startswith("aux") else (),
     )  # fmt: skip
@@ -272,27 +275,29 @@ def main() -> None:
     parser.add_argument("--strategy", default="auto", choices=("auto", "ddp", "fsdp2"))
     parser.add_argument("--devices", type=int, default=1, help="CPU processes (with --strategy)")
     parser.add_argument("--overrides", type=json.loads, help="preset config changes (JSON)")
+    parser.add_argument("--batch-size", type=int, default=1, help="per-process batch")
     parser.add_argument("--run", nargs=2, metavar=("PRESET", "VARIANT"), help=argparse.SUPPRESS)
     parser.add_argument("--plan", nargs=2, metavar=("PRESET", "VARIANT"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.plan:
-        print(json.dumps(plan(*args.plan)))
+        print(json.dumps(plan(*args.plan, batch_size=args.batch_size)))
         return
     if args.run:
         export = None if args.export is None else str(args.export / "-".join(args.run))
         row = run_one(
             *args.run, vector=args.vector, export=export, lr=args.lr, steps=args.steps,
             strategy=args.strategy, devices=args.devices, overrides=args.overrides,
+            batch_size=args.batch_size,
         )  # fmt: skip
         if row is not None:  # rank 0
             print(json.dumps(row))
         return
     rows: list[dict[str, Any]] = json.loads(args.out.read_text()) if args.out.is_file() else []
-    done = {(r["preset"], r["variant"]) for r in rows}
+    done = {(r["preset"], r["variant"], r.get("batch_size", 1)) for r in rows}
     for preset in args.presets:
         for variant in args.variants:
-            if (preset, variant) in done:
-                print(f"{preset} {variant}: already in {args.out}, skipped")
+            if (preset, variant, args.batch_size) in done:
+                print(f"{preset} {variant} batch {args.batch_size}: in {args.out}, skipped")
                 continue
             extra = [*(["--vector", args.vector] if args.vector else [])]
             extra += ["--export", str(args.export)] if args.export else []
@@ -301,6 +306,7 @@ def main() -> None:
             if args.devices > 1:
                 extra += ["--strategy", args.strategy, "--devices", str(args.devices)]
             extra += ["--overrides", json.dumps(args.overrides)] if args.overrides else []
+            extra += ["--batch-size", str(args.batch_size)] if args.batch_size != 1 else []
             out = subprocess.run(
                 [sys.executable, __file__, "--run", preset, variant, *extra],
                 capture_output=True, text=True,
@@ -313,7 +319,8 @@ def main() -> None:
             # The planner plans the preset itself, on one device: no figure for the others.
             if not args.overrides and args.devices == 1 and args.steps:
                 planned = subprocess.run(
-                    [sys.executable, __file__, "--plan", preset, variant], capture_output=True,
+                    [sys.executable, __file__, "--plan", preset, variant,
+                     "--batch-size", str(args.batch_size)], capture_output=True,
                     text=True, env={**os.environ, "OMP_NUM_THREADS": str(args.threads)},
                 )  # fmt: skip
                 if planned.returncode == 0:

@@ -47,7 +47,7 @@ from capvector.io.names import (
     SUCCESS_BY_TASK,
     CheckpointMetadata,
 )
-from capvector.io.tensors import LazyTensors, TensorInfo, tensor_info
+from capvector.io.tensors import LazyTensors, TensorInfo, all_finite, tensor_info
 from capvector.io.weights import dtype_name, parse_dtype
 from capvector.objectives.base import Objective, compute_losses
 from capvector.policy import VLAPolicy
@@ -536,7 +536,7 @@ def _finite_export_tensor(
     tensor = state[name].to(dtype)
     # A policy that answers NaN must not leave here (float16 can overflow too). Raised while the
     # export writes into its temporary folder, which is then removed: nothing is left behind.
-    if tensor.is_floating_point() and not tensor.isfinite().all():
+    if tensor.is_floating_point() and not all_finite(tensor):
         raise CapVectorError(
             f"not exporting to {folder}: `{name}` holds NaN or inf in {dtype_name(dtype)}; train "
             "from a finite checkpoint (a fit stops at its first non-finite loss), or export in "

@@ -73,3 +73,10 @@ def tensor_info(tensors: Mapping[str, Tensor], key: str) -> TensorInfo:
     if isinstance(tensors, LazyTensors):
         return tensors.info(key)
     return TensorInfo.of(tensors[key])
+
+
+def all_finite(tensor: Tensor, chunk_elements: int = 1 << 22) -> bool:
+    """``tensor.isfinite().all()`` a piece at a time: on the whole tensor its temporaries are
+    several times the tensor's size (``pi05-3b``'s 257 k × 2,048 bf16 embedding: ≈ 2.4 GB more
+    in an export, measured)."""
+    return all(bool(piece.isfinite().all()) for piece in tensor.reshape(-1).split(chunk_elements))
