@@ -74,6 +74,11 @@ def test_shipped_cards_hold_hub_ids_only_as_base_model() -> None:
     assets = Path(__file__).resolve().parents[1] / "assets"
     # A card is the README beside weights (assets/mini_study's README is a study's, not a model's).
     cards = sorted(r for r in assets.rglob("README.md") if any(r.parent.glob("*.safetensors")))
-    assert len(cards) == 4  # θ_pre, the capability vector and its two task vectors
+    # θ_pre, the capability vector and its two task vectors; and the mini study's exports so far
+    vector = assets / "capability_vector"
+    shipped = [assets / "theta_pre", vector, vector / "task_vector_aux", vector / "task_vector_sft"]
+    assert set(shipped) <= {card.parent for card in cards}, cards
+    study = [c for c in cards if c.parent not in shipped]
+    assert all(c.is_relative_to(assets / "mini_study" / "run_folder") for c in study), study
     for card in cards:
         read_model_card(card.parent)
