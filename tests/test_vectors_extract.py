@@ -332,6 +332,35 @@ def test_randomized_svd_finds_the_exact_top_rank_of_a_low_rank_delta_with_noise(
     assert torch.equal(again.lora_a, fast.lora_a) and torch.equal(again.lora_b, fast.lora_b)
     with pytest.raises(ValueError, match="fixed rank"):
         svd_factors(delta, energy=0.9, method="randomized")
+    zero, kept = svd_factors(torch.zeros(96, 200), rank=6, method="randomized")
+    assert kept == 1.0 and zero.rank == 1 and not zero.lora_a.any() and not zero.lora_b.any()
+
+
+def test_the_randomized_svd_holds_little_beside_a_large_delta() -> None:
+    """Its ‖delta‖² is summed block by block: it used to square a whole float64 copy, 4× the
+    float32 delta (8 GiB on Pi0.5's embedding). A fresh interpreter's high-water mark; the old
+    code grows by 4× the delta here, the range finder itself by a few columns."""
+    import subprocess
+    import sys
+
+    script = (
+        "import resource, torch\n"
+        "from capvector.vectors.lowrank import svd_factors\n"
+        "d = torch.randn(32768, 32) @ torch.randn(32, 2048)\n"  # 0.25 GiB
+        "base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss\n"
+        "svd_factors(d, rank=32, method='randomized')\n"
+        "print((resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base) * 1024 / d.nbytes)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
+    assert float(out.stdout) < 0.5
+
+
+def test_squared_norm_sums_blocks_in_float64() -> None:
+    from capvector.vectors.lowrank import squared_norm
+
+    delta = torch.randn(1000, 37, generator=torch.Generator().manual_seed(0))
+    whole = float(delta.double().square().sum())
+    assert squared_norm(delta, rows=64) == pytest.approx(whole, rel=1e-12)
 
 
 def test_extract_with_the_randomized_svd_records_it_and_loads_in_peft(

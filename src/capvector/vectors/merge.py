@@ -471,26 +471,44 @@ def apply_vector_(
     changed = []
     with torch.no_grad():
         for key, (name, tensor) in resolved.items():
-            _add_in_place(tensor, vec.delta(key), scale, precision, key)
+            if vec.norm_sq(key) == 0.0:
+                # θ + 0 is θ bit for bit. A vector between two LoRA fits names every tensor; its
+                # zeros (Pi0.5's 257 k-token embedding among them) would cost whole float32 copies.
+                continue
+            _add_in_place(tensor, vec, key, scale, precision)
             changed.append(name)
     return changed
 
 
 def _add_in_place(
-    tensor: Tensor, delta: Tensor, scale: float, precision: MergePrecision | None, key: str
+    tensor: Tensor,
+    vec: CapabilityVector,
+    key: str,
+    scale: float,
+    precision: MergePrecision | None,
 ) -> None:
     from torch.distributed.tensor import DTensor, distribute_tensor
 
-    local = tensor
     if isinstance(tensor, DTensor):
         # src_data_rank=None: each rank slices its shard from its own copy, no scatter.
         delta = distribute_tensor(
-            delta.to(tensor.to_local().device),
+            vec.delta(key).to(tensor.to_local().device),
             tensor.device_mesh,
             tensor.placements,
             src_data_rank=None,
         ).to_local()
-        local = tensor.to_local()  # this rank's shard: the precision is measured per rank
+        _add_block(tensor.to_local(), delta, scale, precision, key)  # per rank: its shard
+        return
+    # A block of rows at a time, as `merge` streams files: the float32 delta of a large tensor
+    # and the precision check's copies of it would otherwise be several times its size at once.
+    for rows in row_chunks(TensorInfo.of(tensor)):
+        block = tensor if rows is None else tensor[rows]
+        _add_block(block, vec.delta(key, rows), scale, precision, key)
+
+
+def _add_block(
+    local: Tensor, delta: Tensor, scale: float, precision: MergePrecision | None, key: str
+) -> None:
     merged = add_scaled(local, [(delta, scale)])
     if precision is not None:
         precision.add(key, local, merged, scale * delta.float().to(local.device))
