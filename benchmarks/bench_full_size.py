@@ -22,6 +22,7 @@ skipped, so an interrupted run resumes preset by preset.
 
     python benchmarks/bench_full_size.py --presets pi05-3b [--variants sft aux ...] [--out FILE]
         [--vector DIR] [--export DIR] [--threads N] [--steps N]
+    python benchmarks/bench_full_size.py --table docs/results/full_size.json ...  # the summary
 """
 
 from __future__ import annotations
@@ -57,7 +58,7 @@ def high_water() -> int:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 
 
-def callbacks_of(variant: str, vector: str | None) -> list[Any]:
+def callbacks_of(variant: str, vector: str | None, float32_weights: bool = True) -> list[Any]:
     """The recipe's callbacks of ``variant`` beyond plain SFT's ``StepCost``."""
     from capvector.callbacks import (
         AuxiliaryObjective,
@@ -76,7 +77,10 @@ def callbacks_of(variant: str, vector: str | None) -> list[Any]:
     if kind == "capvector":
         if vector is None:
             raise SystemExit("the capvector variants need --vector DIR (a vector of this preset)")
-        return [MergeCapabilityVector(vector), OrthogonalRegularization(vector, mode="lora")]
+        return [
+            MergeCapabilityVector(vector, float32_weights=float32_weights),
+            OrthogonalRegularization(vector, mode="lora"),
+        ]
     return []
 
 
@@ -91,6 +95,7 @@ def run_one(
     devices: int = 1,
     overrides: dict[str, Any] | None = None,
     batch_size: int = 1,
+    float32_weights: bool = True,
 ) -> dict[str, Any] | None:
     """Two steps of ``preset`` in this process; the row for the JSON. With ``export``, the model is
     exported there afterwards (in the base's dtype, as ``ExportOnFitEnd`` writes it). ``lr``
@@ -157,7 +162,7 @@ def run_one(
             max_steps=steps, accelerator="cpu", precision="bf16-mixed", logger=False,
             enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
             enable_checkpointing=False, default_root_dir=tmp,
-            callbacks=[StepCost(), *callbacks_of(variant, vector), record],
+            callbacks=[StepCost(), *callbacks_of(variant, vector, float32_weights), record],
             gradient_clip_val=None if strategy == "fsdp2" else 1.0,  # FSDP2 clips by norm only
             strategy=strategy_of(strategy, devices), devices=devices,
         )  # fmt: skip
@@ -219,6 +224,7 @@ def run_one(
         "objectives": sorted(module.objectives),
         "lr": module.optimizer_settings.lr,
         "vector": vector,
+        **({"float32_weights": float32_weights} if vector else {}),
         **exported,
         "torch": torch.__version__,
         "threads": torch.get_num_threads(),
@@ -236,7 +242,13 @@ def strategy_of(name: str, devices: int) -> Any:
     )
 
 
-def plan(preset: str, variant: str, batch_size: int = 1) -> dict[str, Any]:
+def plan(
+    preset: str,
+    variant: str,
+    batch_size: int = 1,
+    vector: str | None = None,
+    float32_weights: bool = True,
+) -> dict[str, Any]:
     """The planner's CPU estimate for ``run_one``'s settings. In a process of its own, after the
     run's: its meta trace takes minutes at full size, and the run's memory is gone by then."""
     from capvector.profiling.memory import estimate_memory
@@ -247,6 +259,8 @@ def plan(preset: str, variant: str, batch_size: int = 1) -> dict[str, Any]:
         batch=batch_size, precision="bf16-mixed", strategy="ddp", lora_rank=32, frozen_dtype="bfloat16",
         attention="math", activation_checkpointing=checkpointing,
         objectives=("spatial", "reasoning") if variant.startswith("aux") else (),
+        vector=vector if variant.startswith("capvector") else None,
+        vector_float32_weights=float32_weights,
     )  # fmt: skip
     planned = estimate_memory(preset, settings, device="cpu")
     activations = planned.activations_checkpointed if checkpointing else planned.activations
@@ -255,11 +269,42 @@ def plan(preset: str, variant: str, batch_size: int = 1) -> dict[str, Any]:
         "parameters": planned.parameters, "gradients": planned.gradients,
         "optimizer": planned.optimizer, "activations": activations, "working": working,
         "objectives": planned.objectives_checkpointed if checkpointing else planned.objectives,
+        "vector": planned.vector,
     }  # fmt: skip
     return {
         "planner_cpu_gib": planned.total / GIB,
         "planner_cpu_terms_gib": {k: v / GIB for k, v in terms.items()},
     }
+
+
+def write_rows(rows: list[dict[str, Any]], out: Path) -> None:
+    tmp = out.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(rows, indent=2) + "\n")
+    tmp.replace(out)
+
+
+def table(files: list[Path]) -> str:
+    """One markdown row per single-process run in ``files`` (``--out`` JSONs), preset by preset:
+    the summary docs/performance.md shows."""
+    rows = [r for f in files for r in json.loads(f.read_text()) if "devices" not in r]
+    rows.sort(key=lambda r: (FULL_SIZE.index(r["preset"]), r.get("batch_size") or 1,
+                             VARIANTS.index(r["variant"])))  # fmt: skip
+    lines = [
+        "| preset | variant | batch | losses | step s | peak above baseline | planner (CPU) "
+        "| measured / planned | threads | lr |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        planned = r.get("planner_cpu_gib")
+        peak = r["peak_rss_above_baseline_gib"]
+        lines.append(
+            f"| `{r['preset']}` | `{r['variant']}` | {r.get('batch_size') or 1} "
+            f"| {', '.join(f'{x:.3f}' for x in r['losses'])} "
+            f"| {', '.join(f'{x:.0f}' for x in r['step_seconds'])} | {peak:.2f} GiB "
+            f"| {f'{planned:.2f} GiB' if planned else '—'} "
+            f"| {f'{peak / planned:.2f}' if planned else '—'} | {r['threads']} | {r['lr']:g} |"
+        )
+    return "\n".join(lines)
 
 
 def main() -> None:
@@ -276,23 +321,48 @@ def main() -> None:
     parser.add_argument("--devices", type=int, default=1, help="CPU processes (with --strategy)")
     parser.add_argument("--overrides", type=json.loads, help="preset config changes (JSON)")
     parser.add_argument("--batch-size", type=int, default=1, help="per-process batch")
+    parser.add_argument(
+        "--float32-weights", action=argparse.BooleanOptionalAction, default=True,
+        help="capvector variants: keep the weights c changes in float32 (MergeCapabilityVector's)",
+    )  # fmt: skip
+    parser.add_argument("--table", nargs="+", type=Path, help="print these JSONs' summary table")
+    parser.add_argument(
+        "--replan", action="store_true",
+        help="only recompute the planner's figures of --out's rows of --presets and --variants",
+    )  # fmt: skip
     parser.add_argument("--run", nargs=2, metavar=("PRESET", "VARIANT"), help=argparse.SUPPRESS)
     parser.add_argument("--plan", nargs=2, metavar=("PRESET", "VARIANT"), help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.table:
+        print(table(args.table))
+        return
     if args.plan:
-        print(json.dumps(plan(*args.plan, batch_size=args.batch_size)))
+        print(json.dumps(plan(*args.plan, args.batch_size, args.vector, args.float32_weights)))
         return
     if args.run:
         export = None if args.export is None else str(args.export / "-".join(args.run))
         row = run_one(
             *args.run, vector=args.vector, export=export, lr=args.lr, steps=args.steps,
             strategy=args.strategy, devices=args.devices, overrides=args.overrides,
-            batch_size=args.batch_size,
+            batch_size=args.batch_size, float32_weights=args.float32_weights,
         )  # fmt: skip
         if row is not None:  # rank 0
             print(json.dumps(row))
         return
     rows: list[dict[str, Any]] = json.loads(args.out.read_text()) if args.out.is_file() else []
+    if args.replan:
+        for row in rows:
+            if (
+                row["preset"] in args.presets
+                and row["variant"] in args.variants
+                and "devices" not in row
+            ):
+                row.update(plan(
+                    row["preset"], row["variant"], row.get("batch_size") or 1, row.get("vector"),
+                    row.get("float32_weights", True),
+                ))  # fmt: skip
+                write_rows(rows, args.out)
+        return
     done = {(r["preset"], r["variant"], r.get("batch_size", 1)) for r in rows}
     for preset in args.presets:
         for variant in args.variants:
@@ -307,6 +377,7 @@ def main() -> None:
                 extra += ["--strategy", args.strategy, "--devices", str(args.devices)]
             extra += ["--overrides", json.dumps(args.overrides)] if args.overrides else []
             extra += ["--batch-size", str(args.batch_size)] if args.batch_size != 1 else []
+            extra += [] if args.float32_weights else ["--no-float32-weights"]
             out = subprocess.run(
                 [sys.executable, __file__, "--run", preset, variant, *extra],
                 capture_output=True, text=True,
@@ -319,8 +390,8 @@ def main() -> None:
             # The planner plans the preset itself, on one device: no figure for the others.
             if not args.overrides and args.devices == 1 and args.steps:
                 planned = subprocess.run(
-                    [sys.executable, __file__, "--plan", preset, variant,
-                     "--batch-size", str(args.batch_size)], capture_output=True,
+                    [sys.executable, __file__, "--plan", preset, variant, *extra],
+                    capture_output=True,
                     text=True, env={**os.environ, "OMP_NUM_THREADS": str(args.threads)},
                 )  # fmt: skip
                 if planned.returncode == 0:
@@ -332,9 +403,7 @@ def main() -> None:
                  *extra, "--threads", str(args.threads)]
             )  # fmt: skip
             rows.append(row)
-            tmp = args.out.with_suffix(".json.tmp")
-            tmp.write_text(json.dumps(rows, indent=2) + "\n")
-            tmp.replace(args.out)
+            write_rows(rows, args.out)
             print(json.dumps(row))
 
 

@@ -305,3 +305,67 @@ def test_bf16_frozen_weights_with_full_fine_tuning_of_a_subset(setup: dict, tmp_
         for n, p in module.backbone.named_parameters()
         if n.startswith("action_head.")
     )
+
+
+@pytest.mark.parametrize("float32_weights", [True, False])
+def test_a_lora_fit_keeps_in_float32_only_the_frozen_weights_the_vector_changes(
+    setup: dict, tmp_path: Path, float32_weights: bool
+) -> None:
+    """A vector between two LoRA fits names every tensor but changes only the LoRA targets: only
+    those stay float32 beside bf16 frozen weights (or none, ``float32_weights=False``), and the
+    planner's vector term is what the fit holds beyond a fit without the vector."""
+    from capvector.profiling.memory import keep_in_float32, vector_copy_bytes
+    from capvector.training.lora import LoraSettings
+    from capvector.vectors import load_vector
+
+    dm = RobotDataModule(train_files=[str(setup["data"])], batch_size=4)
+
+    def lora_module() -> VLAModule:
+        return VLAModule(
+            pretrained=str(setup["initial"]), data_spec=dm.spec, frozen_dtype="bfloat16",
+            lora=LoraSettings(r=4, alpha=8),
+        )  # fmt: skip
+
+    sft = lora_module()
+    sft.export(tmp_path / "sft")
+    targets = [n for n, m in sft.backbone.named_modules() if hasattr(m, "lora_A")][:3]
+    with torch.no_grad():  # θ_aux: three LoRA targets' base weights moved, nothing else
+        for name in targets:
+            weight = sft.backbone.get_submodule(name).base_layer.weight
+            weight.add_(0.05 * torch.randn_like(weight))
+    sft.export(tmp_path / "aux")
+    extract(aux=tmp_path / "aux", sft=tmp_path / "sft", out=tmp_path / "vector")
+    vector = str(tmp_path / "vector")
+    changed = {f"{name}.weight" for name in targets}
+
+    plain, merged = lora_module(), lora_module()
+    cpu_trainer(1, tmp_path / "plain", precision="bf16-mixed").fit(plain, dm)
+    callbacks = [
+        MergeCapabilityVector(vector, float32_weights=float32_weights),
+        OrthogonalRegularization(vector, mode="lora"),
+    ]
+    trainer = cpu_trainer(1, tmp_path / "merged", callbacks=callbacks, precision="bf16-mixed")
+    trainer.fit(merged, dm)
+
+    def canonical(name: str) -> str:
+        return name.replace("base_model.model.", "").replace(".base_layer", "")
+
+    in_float32 = {
+        canonical(n) for n, p in merged.backbone.named_parameters()
+        if not p.requires_grad and p.dtype == torch.float32
+    }  # fmt: skip
+    assert in_float32 == (changed if float32_weights else set())
+
+    def stored(module: VLAModule) -> int:
+        return sum(p.numel() * p.element_size() for p in module.backbone.parameters())
+
+    held = stored(merged) - stored(plain) + sum(
+        b.numel() * b.element_size() for b in callbacks[1].loss.buffers()
+        if b.dtype == torch.float32
+    )  # fmt: skip
+    # The planner's term, from the backbone as training stores it without the vector (`plain`'s),
+    # which it then holds as the merged fit does.
+    loaded = load_vector(vector)
+    kept = keep_in_float32(plain.backbone, loaded) if float32_weights else 0
+    assert kept + vector_copy_bytes(loaded) == held
+    assert stored(plain) == stored(merged)

@@ -41,7 +41,7 @@ from typing import Any
 
 import torch
 import torch.nn.functional as F
-from torch import Tensor
+from torch import Tensor, nn
 from torch.overrides import TorchFunctionMode
 from torch.utils import _pytree as pytree
 from torch.utils._python_dispatch import TorchDispatchMode, _disable_current_modes
@@ -58,6 +58,8 @@ from capvector.training.lora import (
     cast_frozen_parameters,
     set_trainable,
 )
+from capvector.vectors.merge import match_tensors
+from capvector.vectors.vector import CapabilityVector, VectorFolder
 
 STRATEGIES = ("ddp", "fsdp2", "deepspeed_zero2", "deepspeed_zero3")
 PRECISIONS = ("32-true", "bf16-mixed", "bf16-true")
@@ -92,6 +94,11 @@ class MemoryEstimate:
     (the alignment projector) with AdamW's two moments. 0 without objectives, never negative."""
     objectives_checkpointed: float = 0.0
     """The same with the backbone's blocks checkpointed (the text pass is checkpointed too)."""
+    vector: float = 0.0
+    """What a capability vector merged at fit start adds: the frozen weights it changes kept in
+    float32 beyond their frozen dtype (``keep_in_float32``; the trace runs with them so, so that
+    autocast's bf16 copies of them are in the activations) and the orthogonality loss's float32
+    copy of c (``vector_copy_bytes``). 0 without one."""
 
     @property
     def total(self) -> float:
@@ -99,7 +106,7 @@ class MemoryEstimate:
 
     @property
     def _states(self) -> float:
-        return self.parameters + self.gradients + self.optimizer
+        return self.parameters + self.vector + self.gradients + self.optimizer
 
     @property
     def total_plain(self) -> float:
@@ -118,6 +125,7 @@ class MemoryEstimate:
         rows: list[tuple[str, float]] = [
             ("parameters", self.parameters),
             ("  of which train", self.trainable_parameters),
+            ("capability vector", self.vector),
             ("gradients", self.gradients),
             ("optimizer (AdamW)", self.optimizer),
             ("activations", self.activations),
@@ -558,6 +566,8 @@ def estimate_memory(
     names = tuple(settings.objectives)  # the CLI gives a list
     for name in names:  # an unknown name fails before minutes of tracing
         OBJECTIVES.get(name)
+    vector = None if settings.vector is None else VectorFolder(settings.vector).load()
+    kept = 0
     traces, with_objectives = [], []
     for checkpointed in (False, True):
         for attach in (False, True) if names else (False,):
@@ -567,6 +577,8 @@ def estimate_memory(
                 objective.bind(backbone)  # builds projectors
                 objective.to("meta")  # gradients must stay on one device
             set_storage_dtypes(backbone, precision, dtype)
+            if vector is not None and settings.vector_float32_weights:
+                kept = keep_in_float32(backbone, vector)
             batch = synthetic_batch(backbone, settings.batch, "cpu", objectives=bool(names))
             try:
                 trace = trace_step(
@@ -590,7 +602,7 @@ def estimate_memory(
     params = list(backbone.parameters())
     total = sum(p.numel() * p.element_size() for p in params)
     trainable = sum(p.numel() * p.element_size() for p in params if p.requires_grad)
-    param_bytes = total / (devices if shard_params else 1)
+    param_bytes = (total - kept) / (devices if shard_params else 1)
     if shard_params and devices > 1:
         # FSDP2 all-gathers one unit at a time (plus one prefetched): add the two largest units.
         units = sorted(
@@ -619,7 +631,28 @@ def estimate_memory(
         trainable_parameters=trainable / (devices if shard_params else 1),
         objectives=extra[0],
         objectives_checkpointed=extra[1],
-    )
+        vector=0.0 if vector is None else (
+            (kept + vector_copy_bytes(vector)) / (devices if shard_params else 1)
+        ),
+    )  # fmt: skip
+
+
+def keep_in_float32(backbone: nn.Module, vector: CapabilityVector) -> int:
+    """Store the frozen weights ``vector`` changes in float32, as ``MergeCapabilityVector`` has a
+    fit keep them (its ``float32_weights``) beside frozen weights in a lower precision; the bytes
+    that adds."""
+    added = 0
+    for _, param in match_tensors(backbone, vector.changed_keys()).values():
+        if not param.requires_grad and param.element_size() < 4:
+            added += param.numel() * (4 - param.element_size())
+            param.data = param.data.float()
+    return added
+
+
+def vector_copy_bytes(vector: CapabilityVector) -> int:
+    """``OrthogonalRegularization``'s copy of c in LoRA mode: float32 factors and dense tensors."""
+    factors = sum(f.lora_a.numel() + f.lora_b.numel() for f in vector.lowrank.values())
+    return 4 * (factors + sum(t.numel() for t in vector.dense.values()))
 
 
 def _beyond(peak: float, counted: float) -> float:

@@ -24,6 +24,10 @@ class TrainingSettings:
             figures are always reported)
         objectives: auxiliary objectives attached, by name (spatial, reasoning: aux_sft.yaml's
             pair, with their defaults); their cost is a term of its own
+        vector: a capability vector folder merged at fit start (MergeCapabilityVector) with
+            OrthogonalRegularization in LoRA mode; its cost is a term of its own
+        vector_float32_weights: MergeCapabilityVector's ``float32_weights``: the frozen weights
+            the vector changes stay float32
     """
 
     batch: int = 8
@@ -35,3 +39,5 @@ class TrainingSettings:
     attention: str = "efficient"
     activation_checkpointing: bool = False
     objectives: tuple[str, ...] = ()
+    vector: str | None = None
+    vector_float32_weights: bool = True

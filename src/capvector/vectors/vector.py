@@ -325,9 +325,16 @@ class CapabilityVector:
     def shape(self, key: str) -> tuple[int, ...]:
         return self.lowrank[key].shape if key in self.lowrank else tuple(self.dense[key].shape)
 
-    def delta(self, key: str) -> Tensor:
-        """The dense delta (float32 for low-rank entries)."""
-        return self.lowrank[key].rows() if key in self.lowrank else self.dense[key]
+    def delta(self, key: str, rows: slice | None = None) -> Tensor:
+        """The dense delta (float32 for low-rank entries), or its ``rows``."""
+        if key in self.lowrank:
+            return self.lowrank[key].rows(rows)
+        return self.dense[key] if rows is None else self.dense[key][rows]
+
+    def changed_keys(self) -> list[str]:
+        """The keys whose delta is not zero: the tensors a merge changes. A vector between two
+        LoRA fits names every tensor, but only the LoRA targets (and what trained in full) differ."""
+        return [key for key in self.keys() if self.norm_sq(key) > 0.0]
 
     def norm_sq(self, key: str) -> float:
         if key in self.lowrank:

@@ -192,7 +192,7 @@ def score_scale(
     precision = MergePrecision()
     apply_vector_(module.backbone, loaded, scale, precision, allow_large_scale)
     # Before configure_model casts frozen weights (model.frozen_dtype): λc stays float32.
-    module.float32_parameters.update(loaded.keys())
+    module.float32_parameters.update(loaded.changed_keys())
     trainer_settings = {**built.trainer}
     if finetune_steps:
         finetune(module, datamodule, trainer_settings, vector, finetune_steps, orth_weight)
