@@ -356,11 +356,12 @@ def test_the_randomized_svd_holds_little_beside_a_large_delta() -> None:
 
 
 def test_squared_norm_sums_blocks_in_float64() -> None:
-    from capvector.vectors.lowrank import squared_norm
+    from capvector.io.tensors import squared_norm
 
     delta = torch.randn(1000, 37, generator=torch.Generator().manual_seed(0))
     whole = float(delta.double().square().sum())
-    assert squared_norm(delta, rows=64) == pytest.approx(whole, rel=1e-12)
+    assert squared_norm(delta, chunk_elements=640) == pytest.approx(whole, rel=1e-12)
+    assert squared_norm(torch.tensor(3.0)) == 9.0
 
 
 def test_extract_with_the_randomized_svd_records_it_and_loads_in_peft(

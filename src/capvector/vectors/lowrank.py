@@ -25,6 +25,7 @@ import torch
 from torch import Tensor
 
 from capvector.io.lora_layers import LoraFormatError, adapter_scaling, split_lora
+from capvector.io.tensors import squared_norm
 from capvector.io.weights import (
     ADAPTER_CONFIG,
     ADAPTER_WEIGHTS,
@@ -125,13 +126,6 @@ def svd_factors(
     retained = min(float(cumulative[k - 1]), 1.0)
     root = s[:k].sqrt()
     return LoraFactors(u[:, :k] * root, root[:, None] * vh[:k]), retained
-
-
-def squared_norm(delta: Tensor, rows: int = 4096) -> float:
-    """‖delta‖_F² accumulated in float64, ``rows`` rows at a time: a whole float64 copy and its
-    square would be four times the float32 delta (8 GiB for Pi0.5's 257,152 × 2,048 embedding;
-    the LoRA-form extraction of ``pi05-3b`` peaked at 10.5 GiB RSS with them)."""
-    return sum(float(block.double().square().sum()) for block in delta.split(rows))
 
 
 def _zero_factors(rows: int, cols: int) -> tuple[LoraFactors, float]:

@@ -468,12 +468,13 @@ def apply_vector_(
     check_scale(scale, allow_large_scale=allow_large_scale)
     vec = load_vector(vector)
     resolved = _resolve(target, vec)
+    # θ + 0 is θ bit for bit: a vector between two LoRA fits names every tensor, and its zeros
+    # (Pi0.5's 257 k-token embedding among them) would cost whole float32 copies for nothing.
+    nonzero = set(vec.changed_keys())
     changed = []
     with torch.no_grad():
         for key, (name, tensor) in resolved.items():
-            if vec.norm_sq(key) == 0.0:
-                # θ + 0 is θ bit for bit. A vector between two LoRA fits names every tensor; its
-                # zeros (Pi0.5's 257 k-token embedding among them) would cost whole float32 copies.
+            if key not in nonzero:
                 continue
             _add_in_place(tensor, vec, key, scale, precision)
             changed.append(name)

@@ -31,6 +31,7 @@ from torch import Tensor
 
 from capvector.io.hub import hub_id, local_folder
 from capvector.io.modelcard import render_model_card, write_model_card
+from capvector.io.tensors import squared_norm
 from capvector.io.weights import (
     ADAPTER_CONFIG,
     EXPORT_CONFIG,
@@ -339,7 +340,7 @@ class CapabilityVector:
     def norm_sq(self, key: str) -> float:
         if key in self.lowrank:
             return self.lowrank[key].norm_sq()
-        return float(torch.linalg.vector_norm(self.dense[key].double()) ** 2)
+        return squared_norm(self.dense[key])
 
     def check(self) -> None:
         """Raise ``CapVectorError`` naming every non-floating or non-finite tensor."""
