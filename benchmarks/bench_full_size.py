@@ -297,8 +297,9 @@ def table(files: list[Path]) -> str:
     for r in rows:
         planned = r.get("planner_cpu_gib")
         peak = r["peak_rss_above_baseline_gib"]
+        bf16_merge = " (c merged into bf16)" if r.get("float32_weights") is False else ""
         lines.append(
-            f"| `{r['preset']}` | `{r['variant']}` | {r.get('batch_size') or 1} "
+            f"| `{r['preset']}` | `{r['variant']}`{bf16_merge} | {r.get('batch_size') or 1} "
             f"| {', '.join(f'{x:.3f}' for x in r['losses'])} "
             f"| {', '.join(f'{x:.0f}' for x in r['step_seconds'])} | {peak:.2f} GiB "
             f"| {f'{planned:.2f} GiB' if planned else '—'} "
