@@ -12,6 +12,7 @@ import csv
 import json
 import os
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -191,3 +192,42 @@ def test_one_upstream_episode_is_laid_out_and_moves_as_the_ports(
     ])  # fmt: skip
     err = capsys.readouterr().err
     assert code == 2 and "vertical field of view of 35.0°, LIBERO's scene has 45.0°" in err, err
+
+
+def test_collect_pairs_the_episodes_every_policy_ran_on_both_stacks(tmp_path: Path) -> None:
+    """upstream_study_table.py --collect reads per-policy files and one task's chunks alike: an
+    episode enters only when every policy ran it on both stacks (the plans' pairing), a re-run
+    keeps the first run, and the count of re-runs with another outcome is said."""
+
+    def evaluated(stack: str, name: str, task: int, outcomes: list[bool]) -> None:
+        episodes = [{"task": task, "trial": i, "success": ok, "steps": 100 + i}
+                    for i, ok in enumerate(outcomes)]  # fmt: skip
+        row = {"task": f"{SUITE}/{task}", "stack": stack, "renderer": "r", "per_episode": episodes}
+        (tmp_path / "results" / stack).mkdir(parents=True, exist_ok=True)
+        (tmp_path / "results" / stack / f"{name}.json").write_text(json.dumps([row]))
+
+    for policy in ("steps16k_sft_s0", "spatial_only_s0"):
+        fit = tmp_path / "study" / policy / "fit" / "version_0"
+        fit.mkdir(parents=True)
+        fit.joinpath("episodes.csv").write_text(
+            "step,task,seed,success\n" + "".join(f"16000,{SUITE}/{t},{i},1\n" for t in (5, 6) for i in range(3))
+        )  # fmt: skip
+        for stack in ("port", "upstream"):
+            evaluated(stack, policy, 5, [True])  # the subset: state 0
+            evaluated(stack, f"{policy}.task5", 5, [stack == "port", False, True])  # chunk
+    evaluated("port", "steps16k_sft_s0.task6", 6, [True, True, True])  # one stack, one policy
+    evaluated("upstream", "steps16k_sft_s0.task6", 6, [True, True, True])
+    out = tmp_path / "episodes.csv"
+    tool = Path(__file__).parents[1] / "tools" / "libero" / "upstream_study_table.py"
+    said = subprocess.run(
+        [sys.executable, str(tool), "--collect", str(tmp_path / "results"), str(tmp_path / "study"),
+         "--out", str(out)], capture_output=True, text=True, check=True,
+    ).stdout  # fmt: skip
+    with out.open() as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["policy"], r["task"], r["trial"]) for r in rows] == [
+        (p, "5", str(i)) for p in ("steps16k_sft_s0", "spatial_only_s0") for i in range(3)
+    ]  # task 6 ran for one policy only: out
+    assert {r["upstream"] for r in rows if r["trial"] == "0"} == {"1"}  # the first run kept
+    assert "3 episodes of each of 2 policies; 3 run on both stacks by only some" in said
+    assert "4 re-runs, 2 with another outcome" in said  # state 0 of task 5 upstream, each policy

@@ -1,14 +1,17 @@
 """The LIBERO study's final policies on upstream LIBERO against the port, episode by episode
 (docs/results.md, "Lever 6's final policies on upstream LIBERO")::
 
-    # collect: the evaluate JSONs of each stack (one file per policy, named by its stage) and the
-    # study's own outcomes at step 16,000 (its fits' episodes.csv) into one CSV
+    # collect: the evaluate JSONs of each stack (RESULTS/<stack>/<policy>.json, or one task's
+    # chunk <policy>.task<k>.json) and the study's own outcomes at step 16,000 (its fits'
+    # episodes.csv) into one CSV
     python tools/libero/upstream_study_table.py --collect RUNS/results RUNS/libero_study \\
         --out docs/results/libero_upstream/episodes.csv
     # tables (and paired bootstrap intervals) from the committed CSV
     PYTHONPATH=src python tools/libero/upstream_study_table.py docs/results/libero_upstream/episodes.csv
 
-A policy enters the CSV only when its every episode ran on both stacks (the plan's pairing).
+An episode (task, initial state) enters the CSV only when every policy ran it on both stacks (the
+plans' pairing). An episode run twice on a stack (the chunks start again at initial state 0) keeps
+its first run, from the file that sorts first; --collect prints how many re-runs came out otherwise.
 """
 
 from __future__ import annotations
@@ -32,27 +35,48 @@ COLUMNS = ["policy", "arm", "task", "trial", "study", "port", "upstream", "port_
            "upstream_steps", "port_stack", "port_renderer", "upstream_stack", "upstream_renderer"]  # fmt: skip
 
 
-def collect(results: Path, study: Path) -> list[dict]:
-    rows = []
-    files = (results / "upstream").glob("*.json")
-    for upstream_file in sorted(files, key=lambda f: (f.stem[-1], "spatial" in f.stem)):  # plan
-        policy = upstream_file.stem
-        port_file = results / "port" / upstream_file.name
-        if not port_file.is_file():
-            continue  # not run on both stacks
-        ran = {}
-        for stack, path in (("port", port_file), ("upstream", upstream_file)):
+def policy_of(path: Path) -> str:
+    """``<policy>.json`` holds a policy's episodes, ``<policy>.task<k>.json`` one task's."""
+    return path.name.split(".")[0]
+
+
+def plan_order(policy: str) -> tuple[str, bool]:
+    return policy[-1], "spatial" in policy  # seed by seed, plain SFT first (the plans' order)
+
+
+def collect(results: Path, study: Path) -> tuple[list[dict], str]:
+    """The CSV's rows and a line saying what went in (and how many re-runs differed)."""
+    ran: dict[str, dict[tuple[int, int], dict[str, tuple[dict, dict]]]] = {}
+    reruns = differing = 0
+    for stack in ("port", "upstream"):
+        for path in sorted((results / stack).glob("*.json")):  # <policy>.json before its chunks
             for row in json.loads(path.read_text()):
                 for e in row["per_episode"]:
-                    ran.setdefault((e["task"], e["trial"]), {})[stack] = (e, row)
+                    by_stack = ran.setdefault(policy_of(path), {}).setdefault(
+                        (e["task"], e["trial"]), {}
+                    )
+                    if stack in by_stack:
+                        reruns += 1
+                        differing += by_stack[stack][0]["success"] != e["success"]
+                    else:
+                        by_stack[stack] = (e, row)
+    both_stacks = {p: {k for k, by_stack in ran[p].items() if len(by_stack) == 2} for p in ran}
+    policies = sorted((p for p in ran if both_stacks[p]), key=plan_order)  # not run on both: out
+    both = [both_stacks[p] for p in policies]
+    episodes = sorted(set.intersection(*both)) if both else []
+    rows = []
+    for policy in policies:
         with (study / policy / "fit" / "version_0" / "episodes.csv").open() as f:
             studied = {
                 (int(r["task"].split("/")[1]), int(r["seed"])): r["success"]
                 for r in csv.DictReader(f)
                 if int(r["step"]) == STEP
             }  # the last row of an episode counts, as capvector report reads it
-        for (task, trial), by_stack in sorted(ran.items()):
-            (p, prow), (u, urow) = by_stack["port"], by_stack["upstream"]
+        for task, trial in episodes:
+            (p, prow), (u, urow) = (
+                ran[policy][task, trial]["port"],
+                ran[policy][task, trial]["upstream"],
+            )
             rows.append({
                 "policy": policy, "arm": ARMS[policy.rsplit("_s", 1)[0]], "task": task,
                 "trial": trial, "study": studied[task, trial], "port": int(p["success"]),
@@ -61,7 +85,10 @@ def collect(results: Path, study: Path) -> list[dict]:
                 "port_renderer": prow["renderer"], "upstream_stack": urow["stack"],
                 "upstream_renderer": urow["renderer"],
             })  # fmt: skip
-    return rows
+    left_out = sum(len(k) for k in both) - len(episodes) * len(policies)
+    said = (f"{len(episodes)} episodes of each of {len(policies)} policies; {left_out} run on both "
+            f"stacks by only some policies left out; {reruns} re-runs, {differing} with another outcome")  # fmt: skip
+    return rows, said
 
 
 def tables(rows: list[dict]) -> str:
@@ -113,7 +140,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, help="where --collect writes the CSV")
     args = parser.parse_args()
     if args.collect:
-        rows = collect(*args.collect)
+        rows, said = collect(*args.collect)
         buffer = io.StringIO()
         writer = csv.DictWriter(buffer, COLUMNS, lineterminator="\n")
         writer.writeheader()
@@ -122,7 +149,7 @@ def main() -> None:
         tmp = args.out.with_suffix(".tmp")
         tmp.write_text(buffer.getvalue())
         tmp.replace(args.out)  # atomically
-        print(f"{len(rows)} episodes of {len({r['policy'] for r in rows})} policies: {args.out}")
+        print(f"{said}: {args.out}")
         return
     with args.csv.open() as f:
         print(tables(list(csv.DictReader(f))))
