@@ -11,8 +11,10 @@ from capvector.eval.comparison import (
     PairedBootstrap,
     area_under_curve,
     arm_from_episodes,
+    bootstrap_p_value,
     compare,
     format_difference,
+    holm,
     interval,
 )
 
@@ -75,3 +77,32 @@ def test_arms_must_share_points_and_evaluation_seeds() -> None:
         arm_from_episodes("x", [*per_seed, {0: {1: True, 2: False}, 300: {1: True}}])
     with pytest.raises(CapVectorError, match="no arm named \\['z'\\]"):
         compare([built], ["z"])
+
+
+def test_holm_holds_the_ith_smallest_p_to_alpha_over_m_minus_i_with_a_running_maximum() -> None:
+    """Holm (1979) on bootstrap p-values: raw 0.04 and 0.03 (2 % and 1.5 % of resampled
+    differences at or below 0) adjust to 0.06 both, the larger by the running maximum; the
+    smaller p's rank asks for a 97.5 % interval, the larger's for 95 %."""
+    first = np.concatenate([-np.ones(20), np.ones(980)])  # p = 2 × 0.02
+    second = np.concatenate([-np.ones(15), np.ones(985)])  # p = 2 × 0.015
+    assert bootstrap_p_value(first) == pytest.approx(0.04)
+    a, b = holm([first, second])
+    assert (a["p"], b["p"]) == (pytest.approx(0.06), pytest.approx(0.06))
+    assert (a["level"], b["level"]) == (pytest.approx(0.95), pytest.approx(0.975))
+    assert a["ci"] == interval(first, 0.95) and b["ci"] == interval(second, 0.975)
+    (alone,) = holm([first])  # a family of one is not adjusted
+    assert alone["p"] == pytest.approx(0.04) and alone["level"] == pytest.approx(0.95)
+
+
+def test_compare_adjusts_the_arms_compared_with_one_reference() -> None:
+    """Two arms against plain SFT: a certain gain (p = 0) and no difference (p = 1); one arm
+    alone against a reference gets no Holm entry."""
+    seeds = list(range(20))
+    sft = ArmOutcomes("plain SFT", [100], seeds, np.zeros((2, 1, 20)))
+    better = ArmOutcomes("better", [100], seeds, np.ones((2, 1, 20)))
+    same = ArmOutcomes("same", [100], seeds, np.zeros((2, 1, 20)))
+    rows = compare([sft, better, same], ["plain SFT"], resamples=500)
+    holms = {r["arm"]: r["points"][100]["holm"] for r in rows}
+    assert holms["better"] == {"p": 0.0, "level": pytest.approx(0.975), "ci": pytest.approx([1, 1])}
+    assert holms["same"] == {"p": 1.0, "level": pytest.approx(0.95), "ci": pytest.approx([0, 0])}
+    assert "holm" not in compare([sft, better], ["plain SFT"], resamples=500)[0]["points"][100]

@@ -100,10 +100,34 @@ class PairedBootstrap:
         return per_seed[np.arange(resamples)[:, None], drawn].mean(axis=1)
 
 
-def interval(samples: np.ndarray) -> list[float]:
-    """95% percentile interval."""
-    low, high = np.percentile(samples, [2.5, 97.5])
+def interval(samples: np.ndarray, level: float = 0.95) -> list[float]:
+    """Percentile interval (95% unless ``level`` says otherwise)."""
+    tail = round(50 * (1 - level), 9)  # 2.5 exactly at 95%, as the committed reports were made
+    low, high = np.percentile(samples, [tail, 100 - tail])
     return [float(low), float(high)]
+
+
+def bootstrap_p_value(samples: np.ndarray) -> float:
+    """Two-sided bootstrap p-value of "no difference": twice the smaller share of resampled
+    differences on either side of 0 (ties count on both sides), at most 1."""
+    return float(min(1.0, 2 * min(np.mean(samples <= 0), np.mean(samples >= 0))))
+
+
+def holm(samples: Sequence[np.ndarray], alpha: float = 0.05) -> list[dict]:
+    """Holm's step-down adjustment for a family of differences (every arm against one reference
+    at one point; Holm 1979): the i-th smallest of m p-values is held to alpha / (m - i), and its
+    adjusted p-value is the running maximum of (m - i) p. Per difference, in the order given:
+    ``p`` (adjusted), ``level`` (the confidence its Holm rank asks for) and ``ci`` (the percentile
+    interval at that level); a difference is detected at family-wise alpha when ``p`` < alpha."""
+    m = len(samples)
+    raw = [bootstrap_p_value(s) for s in samples]
+    out: list[dict] = [{} for _ in samples]
+    adjusted = 0.0
+    for rank, i in enumerate(sorted(range(m), key=lambda i: raw[i])):
+        adjusted = max(adjusted, min(1.0, (m - rank) * raw[i]))
+        level = 1 - alpha / (m - rank)
+        out[i] = {"p": adjusted, "level": level, "ci": interval(samples[i], level)}
+    return out
 
 
 def compare(
@@ -113,7 +137,9 @@ def compare(
     seed: int = 0,
 ) -> list[dict]:
     """Every arm against each label in ``against``: the difference in success at every point
-    (and, for training steps, in the area under the curve), with its 95% bootstrap interval."""
+    (and, for training steps, in the area under the curve), with its 95% bootstrap interval; and,
+    where two or more arms are compared with one reference, Holm's adjustment over them at each
+    point (``holm``: the family is those arms against that reference at that point)."""
     by_label = {a.label: a for a in arms}
     missing = [label for label in against if label not in by_label]
     if missing:
@@ -124,6 +150,7 @@ def compare(
     rows = []
     for reference in against:
         ref = by_label[reference]
+        family: list[tuple[dict, np.ndarray]] = []
         for arm in arms:
             if arm.label == reference:
                 continue
@@ -134,6 +161,7 @@ def compare(
                 )
             row: dict = {"arm": arm.label, "against": reference, "points": {}}
             difference = samples[arm.label] - samples[reference]
+            family.append((row, difference))
             point_estimate = arm.rates() - ref.rates()
             for p, point in enumerate(arm.points):
                 row["points"][point] = {
@@ -151,6 +179,11 @@ def compare(
                     "ci95": interval(auc - auc_ref),
                 }
             rows.append(row)
+        if len(family) > 1:
+            for p, point in enumerate(arms[0].points):
+                adjusted = holm([difference[:, p] for _, difference in family])
+                for (row, _), entry in zip(family, adjusted, strict=True):
+                    row["points"][point]["holm"] = entry
     return rows
 
 

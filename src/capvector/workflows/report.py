@@ -320,7 +320,26 @@ def format_comparison(
         if "auc" in d:
             cells.append(format_difference(d["auc"]))
         lines.append("| " + " | ".join(cells) + " |")
+    if not zero_shot:  # the family-wise reading is of the final step (zero-shot variants: none)
+        lines += format_holm(differences, points[-1], name(points[-1]))
     return "\n".join(lines)
+
+
+def format_holm(differences: list[dict], point: Any, name: str) -> list[str]:
+    """At the last point, Holm's adjustment over the arms compared with each reference (rows
+    only where a reference has two or more): the family-wise reading beside the 95% intervals."""
+    adjusted = [d for d in differences if "holm" in d["points"][point]]
+    if not adjusted:
+        return []
+    lines = ["", f"Holm's adjustment at {name}, over the arms compared with each reference "
+             "(family-wise 5%; detected where the adjusted p is below 0.05):", "",
+             "| difference | adjusted p | interval at the Holm level |", "|---|---|---|"]  # fmt: skip
+    for d in adjusted:
+        h = d["points"][point]["holm"]
+        low, high = (100 * x for x in h["ci"])
+        lines.append(f"| {d['arm']} − {d['against']} | {h['p']:.3f} | "
+                     f"({low:+.0f}, {high:+.0f}) at {h['level']:.1%} |")  # fmt: skip
+    return lines
 
 
 def format_per_task(arms: list[ArmOutcomes]) -> str | None:
