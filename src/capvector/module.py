@@ -6,6 +6,7 @@ import csv
 import dataclasses
 import inspect
 import math
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -13,6 +14,7 @@ from typing import Any, TypeVar
 
 import lightning as L
 import torch
+from lightning.pytorch.utilities import rank_zero_info
 from torch import Tensor, nn
 from torchmetrics import SumMetric
 
@@ -308,6 +310,19 @@ class VLAModule(L.LightningModule):
             f"step {step}: loss term {where} is not finite; stopped before training on it. Look "
             "for NaN/inf in the data (e.g. depth or proprio) or lower the learning rate"
         )
+
+    def on_fit_start(self) -> None:
+        """Lightning warns of every module in eval mode at the start of training; a module that
+        sets ``keeps_eval_mode`` stays so on purpose (the mini's frozen BatchNorm tower). When those
+        are all there are, that warning (with their exact count) is replaced by one info line."""
+        in_eval = [name for name, module in self.named_modules() if not module.training]
+        kept = [name for name, m in self.named_modules() if getattr(m, "keeps_eval_mode", False)]
+        if in_eval and all(any(n == k or n.startswith(k + ".") for k in kept) for n in in_eval):
+            warnings.filterwarnings("ignore", rf"Found {len(in_eval)} module\(s\) in eval mode")
+            rank_zero_info(
+                f"{len(in_eval)} modules stay in eval mode on purpose, by design of "
+                f"{', '.join(kept)} (keeps_eval_mode: frozen normalisation statistics)"
+            )
 
     def setup(self, stage: str) -> None:
         datamodule = (

@@ -53,6 +53,7 @@ def fit(root: Path, data: Path, *extra: str) -> int:
         env=env, timeout=1800,
     )  # fmt: skip
     assert completed.returncode in (0, 3), completed.stderr[-3000:]
+    (root / "said.txt").write_text(completed.stdout + completed.stderr)
     return completed.returncode
 
 
@@ -85,6 +86,14 @@ def test_a_stopped_and_resumed_fit_follows_the_uninterrupted_one(runs: tuple[Pat
     b = load_file(stopped / "fit/version_0/export/model.safetensors")
     assert a.keys() == b.keys()
     assert [k for k in a if not torch.equal(a[k], b[k])] == []
+
+
+def test_the_tower_kept_in_eval_mode_is_said_once_not_warned(runs: tuple[Path, Path]) -> None:
+    """The mini's BatchNorm tower stays in eval mode by design (EfficientNetVision): Lightning's
+    warning of modules in eval mode at the start of training is replaced by one info line."""
+    said = (runs[0] / "said.txt").read_text()
+    assert "module(s) in eval mode at the start of training" not in said
+    assert said.count("modules stay in eval mode on purpose") == 1
 
 
 def test_checkpoint_and_export_hold_only_what_trains(runs: tuple[Path, Path]) -> None:

@@ -201,6 +201,7 @@ class EfficientNetVision(nn.Module):
             raise BackboneError(f"image_size {config.image_size} is not a multiple of 32")
         self.model = timm.create_model("tf_efficientnet_lite0", pretrained=False, num_classes=0)
         self.model.eval()  # frozen running statistics, see the class docstring
+        self.model.keeps_eval_mode = True  # expected at fit start (VLAModule.on_fit_start)
         self.grid = config.image_size // 32
 
     def train(self, mode: bool = True) -> EfficientNetVision:
