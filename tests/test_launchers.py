@@ -270,3 +270,21 @@ def test_a_stopped_recipe_stops_its_fit_and_a_rerun_names_one_still_running(
     finally:  # a failed check leaves no fit running on (SIGTERM: heard where SIGINT is ignored)
         if (left := running_pid(stage)) is not None:
             os.kill(left, signal.SIGTERM)
+
+
+@pytest.mark.sim
+def test_a_stage_without_gpus_can_open_robosuites_egl_renderer(tmp_path: Path) -> None:
+    """A stage given no GPU sees ``CUDA_VISIBLE_DEVICES=""``, which robosuite's EGL context (what
+    LIBERO's official renderer opens) parses as device ids and fails on; the stage's environment
+    points it at the first EGL device, where robosuite opens a display."""
+    launcher = LocalLauncher(jobs=2, threads=1, gpus=[])  # jobs > 1: the stage writes log.txt
+    opened = (
+        "import os; os.environ.setdefault('MUJOCO_GL', 'egl');"
+        "from robosuite.renderers.context.egl_context import create_initialized_egl_device_display;"
+        "from mujoco.egl import egl_ext as EGL;"
+        "print(create_initialized_egl_device_display(-1) != EGL.EGL_NO_DISPLAY)"
+    )
+    stage = launcher.start("r", tmp_path / "r", lambda: [sys.executable, "-c", opened],
+                           Resources(), fit=False)  # fmt: skip
+    assert stage.wait() == 0, (tmp_path / "r/log.txt").read_text()[-2000:]
+    assert (tmp_path / "r/log.txt").read_text().split()[-1] == "True"

@@ -127,6 +127,10 @@ def stage_environment(threads: int, cores: int, gpus: list[str] | None = None) -
     env = {**os.environ, **fixed, STAGE_CORES: str(cores)}
     if gpus is not None:
         env["CUDA_VISIBLE_DEVICES"] = ",".join(gpus)
+        if not gpus:  # robosuite's EGL context parses an empty CUDA_VISIBLE_DEVICES as device ids
+            # and fails (int('')), so LIBERO's official renderer could not start: it draws on the
+            # first EGL device instead (Mesa's software one on a machine without GPUs)
+            env.setdefault("MUJOCO_EGL_DEVICE_ID", "0")
     return env
 
 
