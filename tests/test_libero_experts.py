@@ -297,6 +297,19 @@ def test_evaluate_from_demos_names_its_start_states(
     assert episode["from_demos"] == str(demo_file.parent) and episode["steps"] == 2
 
 
+def test_expert_success_on_a_task_no_expert_serves_says_so_in_one_line() -> None:
+    """LIBERO-Goal 0 (open a drawer) is not a placement: named with --tasks it is bad input, one
+    line as from every command (no traceback); without --tasks such tasks are left out."""
+    done = subprocess.run(
+        [sys.executable, "-m", "capvector.workflows.expert_success", "--suite", "libero_goal",
+         "--tasks", "0", "--trials", "1", "--no-progress"], capture_output=True, text=True,
+    )  # fmt: skip
+    assert done.returncode == 2, done.stderr[-2000:]
+    said = done.stderr.strip().splitlines()[-1]
+    assert said.startswith("python -m capvector.workflows.expert_success: error: no scripted")
+    assert "Traceback" not in done.stderr
+
+
 def test_expert_success_records_every_trial_with_its_commit() -> None:
     """What `expert_success --out` writes (docs/results/libero_experts_*.json): the trials in
     init-state order and the commit of the code that ran them."""

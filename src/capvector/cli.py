@@ -87,15 +87,30 @@ def _run(args: list[str], from_shell: bool) -> int:
         tool: Callable[[list[str]], int] = getattr(importlib.import_module(module), function)
         with _terminate_as_exit():
             return int(tool(rest) or 0)
-    except KeyboardInterrupt:  # outputs are written atomically: an interrupted one is not there
-        print(f"capvector {command}: interrupted", file=sys.stderr)
+    except (KeyboardInterrupt, Exception) as exc:
+        return _failed(f"capvector {command}", exc)
+
+
+def run_module_tool(name: str, tool: Callable[[], int | None]) -> int:
+    """A tool run as ``python -m capvector.workflows.NAME`` (outside the command table) with the
+    commands' error path: its bad input is one line after ``name``, not a traceback."""
+    try:
+        with _terminate_as_exit():
+            return int(tool() or 0)
+    except (KeyboardInterrupt, Exception) as exc:
+        return _failed(name, exc)
+
+
+def _failed(name: str, exc: BaseException) -> int:
+    """The exit code of a command that raised ``exc``, said in one line; a bug is raised again."""
+    if isinstance(exc, KeyboardInterrupt):  # outputs are written atomically: none is half there
+        print(f"{name}: interrupted", file=sys.stderr)
         return 130
-    except Exception as exc:
-        error, code = _reported(exc)
-        if error is None:
-            raise
-        print(f"capvector {command}: error: {error}", file=sys.stderr)
-        return code
+    error, code = _reported(exc)
+    if error is None:
+        raise exc
+    print(f"{name}: error: {error}", file=sys.stderr)
+    return code
 
 
 def recipe_main(argv: list[str]) -> int:

@@ -27,7 +27,8 @@ def expert_success(
 
     Args:
         suite: libero_spatial, libero_object, libero_goal, ...
-        tasks: task ids (default: every task of the suite)
+        tasks: task ids (default: every task whose goal is one placement; the others are left
+            out, and said)
         trials: initial states per task, the first N of the official 50
         progress: show the progress bar
         out: also write every trial (success, steps) as JSON here, atomically, with the commit
@@ -97,5 +98,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     return run_tool(expert_success, argv, "python -m capvector.workflows.expert_success")
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+if __name__ == "__main__":  # one error path: bad input is one line, as from a command
+    from capvector.cli import run_module_tool
+
+    sys.exit(run_module_tool("python -m capvector.workflows.expert_success", main))

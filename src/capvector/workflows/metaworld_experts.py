@@ -75,5 +75,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     return run_tool(metaworld_experts, argv, "python -m capvector.workflows.metaworld_experts")
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+if __name__ == "__main__":  # one error path: bad input is one line, as from a command
+    from capvector.cli import run_module_tool
+
+    sys.exit(run_module_tool("python -m capvector.workflows.metaworld_experts", main))
