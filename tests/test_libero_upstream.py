@@ -112,31 +112,42 @@ def test_a_table_says_which_stack_and_renderer_made_its_rows() -> None:
     assert pooled_row([port, upstream], "all").stack is None  # pooled across stacks: no one stack
 
 
-COMMITTED = Path(__file__).parents[1] / "docs" / "results" / "libero_upstream"
+RESULTS = Path(__file__).parents[1] / "docs" / "results"
 
 
-def test_the_committed_upstream_table_is_its_evaluations() -> None:
-    """docs/results.md's port-vs-upstream table is computed from episodes.csv; every outcome and
-    step count there is the one the committed `capvector evaluate --json` of its stack wrote,
-    and those name their stacks (tools/libero/upstream_study_table.py --collect made it)."""
-    with (COMMITTED / "episodes.csv").open() as f:
+@pytest.mark.parametrize(
+    ("folder", "policies", "trials"),
+    [("libero_upstream", 3, {"0"}), ("libero_upstream_all", 6, None)],  # the subset; every state
+)
+def test_the_committed_upstream_tables_are_their_evaluations(
+    folder: str, policies: int, trials: set[str] | None
+) -> None:
+    """docs/results.md's port-vs-upstream tables are computed from each folder's episodes.csv;
+    every outcome and step count there is the one the committed `capvector evaluate --json` of
+    its stack wrote (a policy's file, or one task's chunk; the first run of an episode, as
+    --collect keeps it), and those name their stacks (upstream_study_table.py --collect)."""
+    committed = RESULTS / folder
+    with (committed / "episodes.csv").open() as f:
         rows = list(csv.DictReader(f))
-    assert len(rows) == 15 and {r["trial"] for r in rows} == {"0"}  # the declared subset
+    assert len({r["policy"] for r in rows}) == policies
+    assert trials is None or {r["trial"] for r in rows} == trials
     for stack in ("port", "upstream"):
-        runs = {
-            path.stem: json.loads(path.read_text()) for path in (COMMITTED / stack).glob("*.json")
-        }
-        assert set(runs) == {r["policy"] for r in rows}
+        ran: dict[tuple[str, int, int], tuple[dict, dict]] = {}
+        labels = set()
+        for path in sorted((committed / stack).glob("*.json")):
+            for row in json.loads(path.read_text()):
+                labels.add((row["stack"], row["renderer"]))
+                for e in row["per_episode"]:
+                    ran.setdefault((path.name.split(".")[0], e["task"], e["trial"]), (e, row))
+        assert {policy for policy, _, _ in ran} == {r["policy"] for r in rows}
         for r in rows:
-            (row,) = [x for x in runs[r["policy"]] if x["task"] == f"{SUITE}/{r['task']}"]
-            (episode,) = row["per_episode"]
+            episode, row = ran[r["policy"], int(r["task"]), int(r["trial"])]
             assert (int(episode["success"]), episode["steps"]) == (
                 int(r[stack]),
                 int(r[f"{stack}_steps"]),
             )
             assert (row["stack"], row["renderer"]) == (r[f"{stack}_stack"], r[f"{stack}_renderer"])
-        stacks = {(x["stack"], x["renderer"]) for run in runs.values() for x in run}
-        assert stacks == ({(UPSTREAM, "official")} if stack == "upstream" else {(PORT, "fast")})
+        assert labels == ({(UPSTREAM, "official")} if stack == "upstream" else {(PORT, "fast")})
 
 
 @pytest.fixture(scope="module")
