@@ -617,8 +617,8 @@ def evaluate_expert(
             if every_task:
                 try:
                     place_goal(env)
-                except CapVectorError as served_by_none:
-                    print(f"{suite} task {task_id}: left out: {served_by_none}", file=sys.stderr)
+                except CapVectorError as not_a_placement:
+                    print(f"{suite} task {task_id}: left out: {not_a_placement}", file=sys.stderr)
                     bar.total -= trials
                     continue
             states = initial_states(suite, task_id)[:trials]
