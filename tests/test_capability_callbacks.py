@@ -366,6 +366,6 @@ def test_a_lora_fit_keeps_in_float32_only_the_frozen_weights_the_vector_changes(
     # The planner's term, from the backbone as training stores it without the vector (`plain`'s),
     # which it then holds as the merged fit does.
     loaded = load_vector(vector)
-    kept = keep_in_float32(plain.backbone, loaded) if float32_weights else 0
+    kept = keep_in_float32(plain.backbone, loaded.changed_keys()) if float32_weights else 0
     assert kept + vector_copy_bytes(loaded) == held
     assert stored(plain) == stored(merged)

@@ -567,6 +567,7 @@ def estimate_memory(
     for name in names:  # an unknown name fails before minutes of tracing
         OBJECTIVES.get(name)
     vector = None if settings.vector is None else VectorFolder(settings.vector).load()
+    changed = [] if vector is None else vector.changed_keys()  # once: a pass over c's tensors
     kept = 0
     traces, with_objectives = [], []
     for checkpointed in (False, True):
@@ -578,7 +579,7 @@ def estimate_memory(
                 objective.to("meta")  # gradients must stay on one device
             set_storage_dtypes(backbone, precision, dtype)
             if vector is not None and settings.vector_float32_weights:
-                kept = keep_in_float32(backbone, vector)
+                kept = keep_in_float32(backbone, changed)
             batch = synthetic_batch(backbone, settings.batch, "cpu", objectives=bool(names))
             try:
                 trace = trace_step(
@@ -637,12 +638,12 @@ def estimate_memory(
     )  # fmt: skip
 
 
-def keep_in_float32(backbone: nn.Module, vector: CapabilityVector) -> int:
-    """Store the frozen weights ``vector`` changes in float32, as ``MergeCapabilityVector`` has a
-    fit keep them (its ``float32_weights``) beside frozen weights in a lower precision; the bytes
-    that adds."""
+def keep_in_float32(backbone: nn.Module, changed: list[str]) -> int:
+    """Store the frozen weights a vector changes (its ``changed_keys``) in float32, as
+    ``MergeCapabilityVector`` has a fit keep them (its ``float32_weights``) beside frozen weights
+    in a lower precision; the bytes that adds."""
     added = 0
-    for _, param in match_tensors(backbone, vector.changed_keys()).values():
+    for _, param in match_tensors(backbone, changed).values():
         if not param.requires_grad and param.element_size() < 4:
             added += param.numel() * (4 - param.element_size())
             param.data = param.data.float()
