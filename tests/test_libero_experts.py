@@ -27,7 +27,13 @@ from capvector.envs.libero.demos import (
     is_official_state,
 )
 from capvector.envs.libero.episode import POLICY_GRIPPER, build_libero_env, start_trial
-from capvector.envs.libero.experts import FIXTURE_SEED_START, PlaceGoal, place_goal, run_trial
+from capvector.envs.libero.experts import (
+    FIXTURE_SEED_START,
+    PlaceGoal,
+    check_served,
+    place_goal,
+    run_trial,
+)
 from capvector.envs.libero.render import fast_rendering_default
 from capvector.envs.libero.spec import LiberoEpisodeSpec
 from capvector.errors import CapVectorError
@@ -100,6 +106,32 @@ def test_goals_that_are_not_one_placement_are_refused() -> None:
     try:
         with pytest.raises(CapVectorError, match=r"no scripted LIBERO expert for the goal .*open"):
             place_goal(env)
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize(
+    ("suite", "task_id", "refused"),
+    [
+        ("libero_goal", 3, "wooden_cabinet_1_top_region is inside a closed drawer"),
+        ("libero_goal", 5, "plate_1 is wider than the gripper opens"),  # "push the plate"
+        ("libero_object", 0, None),  # the basket's region rides on its free joint: not a drawer
+    ],
+)
+def test_placements_the_expert_cannot_make_are_refused_before_the_first_step(
+    suite: str, task_id: int, refused: str | None
+) -> None:
+    """One placement goal is not enough: LIBERO-Goal 3 wants the bowl in a drawer that starts
+    closed, and Goal 5's plate is to be pushed. `expert_success` without --tasks leaves them out
+    on this check rather than run 50 trials that cannot succeed."""
+    env = libero.make_libero_env(suite, task_id, render=False, hard_reset=False)
+    try:
+        start = libero.initial_states(suite, task_id)[0]
+        if refused is None:
+            check_served(env, start, FIXTURE_SEED_START)
+        else:
+            with pytest.raises(CapVectorError, match=refused):
+                check_served(env, start, FIXTURE_SEED_START)
     finally:
         env.close()
 

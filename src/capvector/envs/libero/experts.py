@@ -39,6 +39,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import mujoco
 import numpy as np
 from robosuite.utils import transform_utils as T
 
@@ -65,6 +66,9 @@ m it cannot; a rim up in a drawer is in reach farther out. (Across, in y, the ar
 PLACE_REACH = 0.75
 """How far (m) from the shoulder the hand can let a bowl go: stretched out to a plate at y = 0.2
 it stalls 0.785 m out, drifting 3 cm forward of the plate's centre as it goes down."""
+DRAWER_JOINTS = (mujoco.mjtJoint.mjJNT_SLIDE, mujoco.mjtJoint.mjJNT_HINGE)
+"""Joints that open a region (a drawer's slide, a door's hinge)."""
+
 FIXTURE_SEED_START = 1_000_000
 """Trial i's fixtures are placed from seed FIXTURE_SEED_START + i, as in ``capvector evaluate``
 (``capvector.envs.base.EVAL_SEED_START``)."""
@@ -237,8 +241,29 @@ class LiberoPlaceExpert:
         self._axis0 = _heading(g.finger_axis())
         self._others = [n for n in g.inner.objects_dict if n != self.goal.obj]
         self._release_at: np.ndarray | None = None  # where the hand stays as it lets go
+        self._check_target_open()
         self._plan_grasp()
         self._enter("approach")
+
+    def _check_target_open(self) -> None:
+        """Refuse a target region inside a drawer that is not open (LIBERO-Goal 3: "open the top
+        drawer and put the bowl inside" has one ``In`` goal): the expert places from above and
+        does not open it first. "Open" is LIBERO's own predicate on the region's slide and hinge
+        joints (its ``Close`` is false at a drawer's closed stop, so it cannot be used)."""
+        if not self.goal.target_is_site:
+            return
+        inner, model = self.geometry.inner, self.geometry.model
+        site_joints = inner.object_sites_dict[self.goal.target].joints or []
+        joints = [j for j in site_joints if model.jnt_type[model.joint(j).id] in DRAWER_JOINTS]
+        if not joints:  # a fixed region, or the free joint of a basket that carries it
+            return
+        parent = inner.get_object(inner.object_states_dict[self.goal.target].parent_name)
+        qpos = [inner.sim.data.qpos[inner.sim.model.get_joint_qpos_addr(j)] for j in joints]
+        if not any(parent.is_open(q) for q in qpos):
+            raise CapVectorError(
+                f"{self.goal.target} is inside a closed drawer: the expert places from above and "
+                "does not open it first"
+            )
 
     def _plan_grasp(self) -> None:
         """Choose the grasp yaw and point from the object's geometry as it lies now."""
@@ -557,20 +582,7 @@ def run_trial(
     step acts on) (demo recording). ``fixture_seed`` seeds numpy's global RNG for the reset,
     from which LIBERO places the fixtures (cabinets, stoves; restored after).
     """
-    from capvector.envs.libero.env import NUM_WAIT_STEPS, WAIT_ACTION
-
-    if init_state is not None:
-        saved = np.random.get_state()
-        if fixture_seed is not None:
-            np.random.seed(fixture_seed)
-            env.seed(fixture_seed)
-        try:
-            env.reset()
-        finally:
-            np.random.set_state(saved)
-        env.set_init_state(init_state)
-    for _ in range(NUM_WAIT_STEPS):
-        obs, _, _, _ = env.step(WAIT_ACTION.tolist())  # objects settle, as in the evaluation
+    obs = _settle(env, init_state, fixture_seed)
     expert = LiberoPlaceExpert(env)
     for t in range(max_steps):
         step = expert.act(obs)
@@ -580,6 +592,30 @@ def run_trial(
         if done:
             return TrialResult(True, t + 1)
     return TrialResult(False, max_steps)
+
+
+def check_served(env: Any, init_state: np.ndarray, fixture_seed: int) -> None:
+    """Raise CapVectorError, saying why, if the expert cannot serve the task from this initial
+    state: its goal is not one placement, the object is wider than the gripper opens, or the
+    target is inside a closed drawer."""
+    _settle(env, init_state, fixture_seed)
+    LiberoPlaceExpert(env)
+
+
+def _settle(env: Any, init_state: np.ndarray | None, fixture_seed: int | None) -> dict:
+    """A trial's start: ``reset`` and ``set_init_state`` (unless ``init_state`` is None), then
+    LIBERO's wait steps; the last observation."""
+    from capvector.envs.libero.env import NUM_WAIT_STEPS, WAIT_ACTION, seeded_reset
+
+    if init_state is not None:
+        if fixture_seed is None:
+            env.reset()
+        else:
+            seeded_reset(env, fixture_seed)
+        env.set_init_state(init_state)
+    for _ in range(NUM_WAIT_STEPS):
+        obs, _, _, _ = env.step(WAIT_ACTION.tolist())  # objects settle, as in the evaluation
+    return obs
 
 
 def evaluate_expert(
@@ -592,8 +628,8 @@ def evaluate_expert(
 ) -> dict[int, list[TrialResult]]:
     """The expert on the first ``trials`` official initial states of each task;
     ``on_task(task_id, results)`` is called as each task finishes. Without ``tasks``, every task
-    whose goal is one placement (what the experts do); the others are left out, said on stderr
-    (named in ``tasks``, such a task is an error)."""
+    the expert serves from its first initial state (:func:`check_served`); the others are left
+    out, said on stderr (named in ``tasks``, such a task is an error)."""
     from tqdm import tqdm
 
     from capvector.envs.libero.env import (
@@ -614,14 +650,14 @@ def evaluate_expert(
         # set_init_state, in a tenth of the time), trial i's fixtures from seed 1,000,000 + i
         env = make_libero_env(suite, task_id, render=False, hard_reset=False)
         try:
+            states = initial_states(suite, task_id)[:trials]
             if every_task:
                 try:
-                    place_goal(env)
-                except CapVectorError as not_a_placement:
-                    print(f"{suite} task {task_id}: left out: {not_a_placement}", file=sys.stderr)
+                    check_served(env, states[0], FIXTURE_SEED_START)
+                except CapVectorError as not_served:
+                    print(f"{suite} task {task_id}: left out: {not_served}", file=sys.stderr)
                     bar.total -= trials
                     continue
-            states = initial_states(suite, task_id)[:trials]
             results[task_id] = []
             for trial, state in enumerate(states):
                 seed = FIXTURE_SEED_START + trial
