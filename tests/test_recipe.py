@@ -326,3 +326,42 @@ def test_only_runs_the_named_stages_and_what_they_wait_for(tmp_path: Path) -> No
     assert "[recipe 1/3] d_s0 (fit): done earlier, skipped" in completed.stdout
     assert "[recipe 3/3] e (report) started; 0 more to run" in completed.stdout
     assert " a (" not in completed.stdout
+
+
+def test_a_finished_stage_whose_output_a_stage_to_run_reads_is_gone_runs_again(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A study carried to a new machine without its demos: the demo stage's marker says done, but
+    a fit still to run reads its folder, so it records them again rather than the fit failing."""
+    stages = [
+        {"name": "a", "command": "backbone-info", "args": ["openvla-oft-tiny"]},
+        {"name": "b", "command": "backbone-info", "args": ["openvla-oft-tiny", "${out.a.dir}/demos"]},
+    ]  # fmt: skip
+    path = tmp_path / "recipe.yaml"
+    path.write_text(json.dumps({"run_dir": str(tmp_path / "run"), "stages": stages}))
+    (tmp_path / "run" / "a").mkdir(parents=True)
+    write_done(tmp_path / "run" / "a", ["python", "-m", "capvector.cli", "backbone-info"],
+               began=time.time() - 60)  # finished on another machine  # fmt: skip
+    done = tmp_path / "run" / "a" / ".done"
+
+    run(path, status=True)
+    gone = f"{tmp_path / 'run' / 'a' / 'demos'}, which b reads, is gone: runs again"
+    assert capsys.readouterr().out.splitlines() == [
+        f"{tmp_path / 'run'}: 0 of 2 stages done",
+        f"  a  done in 60 s, but {gone}",
+        "  b  not started; waits for a",
+    ]
+    run(path, dry_run=True)
+    assert f"[recipe 1/2] a (backbone-info): done earlier, but {gone}" in capsys.readouterr().out
+    assert done.is_file()  # a dry run changes nothing
+    run(path, only=["a"], dry_run=True)  # no stage to run reads it: nothing to record again
+    assert "a (backbone-info): done earlier, skipped" in capsys.readouterr().out
+
+    with pytest.raises(CapVectorError, match=r"stage\(s\) \['b'\] failed"):  # its extra argument
+        run(path)
+    assert f"a (backbone-info): done earlier, but {gone}" in capsys.readouterr().out
+    assert json.loads(done.read_text())["runs"] == 2  # a ran again before b started
+
+    (tmp_path / "run" / "a" / "demos").mkdir()  # its output there: a is done again
+    run(path, dry_run=True)
+    assert "a (backbone-info): done earlier, skipped" in capsys.readouterr().out

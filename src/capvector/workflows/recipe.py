@@ -75,6 +75,8 @@ from capvector.workflows.launchers import (
 
 OUT_REFERENCE = re.compile(r"\$\{out\.([A-Za-z0-9_]+)\.([A-Za-z0-9_]*)")
 """``${out.<stage>.<output>`` (groups: the stage, the output)."""
+OUT_PATH = re.compile(r"\$\{out\.([A-Za-z0-9_]+)\.([A-Za-z0-9_]+)\}([^\s,\[\]{}\"'$]*)")
+"""``${out.<stage>.<output>}`` and the path it continues into (``/demos``): what a stage reads."""
 FIT_VERSION = "version_0"
 DEFAULT_THREADS = 1
 """Torch threads per stage: two 1-thread trainings of a tiny preset outrun one 2-thread training
@@ -318,6 +320,19 @@ def dependencies(raw: Any, index: int) -> set[str]:
     return set(after) | (named - {names[index]})
 
 
+def inputs(raw: Any, index: int, run_dir: Path) -> list[tuple[str, Path]]:
+    """The other stages' outputs that stage ``index`` reads, as (stage, path in ``run_dir``)."""
+    from omegaconf import OmegaConf
+
+    entry = raw.stages[index]
+    text = " ".join(map(str, OmegaConf.to_container(entry, resolve=False).get("args", [])))
+    return [
+        (stage, Path(stage_outputs(run_dir, stage)[output] + rest))
+        for stage, output, rest in OUT_PATH.findall(text)
+        if stage != str(entry.name)
+    ]
+
+
 def check_order(waits_for: dict[str, set[str]], path: str | Path) -> None:
     """Fail when stages wait for each other in a cycle (a stage naming a later stage's outputs,
     which waits for it in turn), naming the cycle, before any stage runs."""
@@ -408,7 +423,8 @@ def run(
     if only:
         scheduler.keep_only(only)
     if status:
-        print_status(run_dir, [scheduler.resolve(n) for n in scheduler.names], waits_for)
+        stages = [scheduler.resolve(n) for n in scheduler.names]
+        print_status(run_dir, stages, waits_for, scheduler.stale)
         return []
     return scheduler.run()
 
@@ -473,18 +489,36 @@ class Scheduler:
     """The stages' output is this process's (locally, one job at a time): no ``where`` lines."""
     stages: dict[str, Stage] = field(default_factory=dict)
     """Resolved, each right before it runs (it may use what earlier stages produced)."""
+    stale: dict[str, str] = field(default_factory=dict)
+    """Finished stages that run again, each with why: a stage still to run reads an output of
+    theirs that is gone (a study carried to a new machine without its demos)."""
     finished: set[str] = field(default_factory=set)
     running: dict[str, Started] = field(default_factory=dict)
     failed: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.index = {str(s.name): i for i, s in enumerate(self.raw.stages)}
+        self.find_stale()
 
     def resolve(self, name: str) -> Stage:
         return resolve_stage(self.raw, self.index[name], self.run_dir, self.recipe)
 
     def done_earlier(self, name: str) -> bool:
-        return (self.run_dir / name / DONE).is_file()
+        return (self.run_dir / name / DONE).is_file() and name not in self.stale
+
+    def find_stale(self) -> bool:
+        """Add to ``stale`` every finished stage whose output a stage still to run reads and is
+        gone, then what those read in turn; whether any was added."""
+        pending = [n for n in self.names if not self.done_earlier(n)]
+        found = False
+        while pending:
+            reader = pending.pop(0)  # the first in the recipe's order is the one named
+            for stage, path in inputs(self.raw, self.index[reader], self.run_dir):
+                if self.done_earlier(stage) and not path.exists():
+                    self.stale[stage] = f"{path}, which {reader} reads, is gone"
+                    pending.append(stage)
+                    found = True
+        return found
 
     def check(self) -> None:
         """Every stage's interpolations resolve and the runner can give it what it asks for: a typo
@@ -493,10 +527,16 @@ class Scheduler:
             self.runner.check(name, self.resolve(name).resources)
 
     def keep_only(self, targets: list[str]) -> None:
-        """Only ``targets`` and what they wait for (``required_stages``)."""
-        done = {n for n in self.names if self.done_earlier(n)}
-        required = required_stages(self.waits_for, targets, done)
-        self.names = [n for n in self.names if n in required]
+        """Only ``targets`` and what they wait for (``required_stages``), found again while a
+        stage to run makes a finished one stale (then what it waits for is needed again)."""
+        every = self.names
+        self.stale.clear()  # what only stages outside ``targets`` read is not needed
+        while True:
+            done = {n for n in every if self.done_earlier(n)}
+            required = required_stages(self.waits_for, targets, done)
+            self.names = [n for n in every if n in required]
+            if not self.find_stale():
+                return
 
     def run(self) -> list[dict]:
         if not self.dry_run:  # before anything starts: an earlier run's stage may still be running
@@ -540,6 +580,11 @@ class Scheduler:
                 print(f"{self.label(name)}: done earlier, skipped", flush=True)
                 self.finished.add(name)
             elif self.runner.has_room(self.stages[name].resources):
+                if name in self.stale:
+                    print(f"{self.label(name)}: done earlier, but {self.stale[name]}: runs again",
+                          flush=True)  # fmt: skip
+                    if not self.dry_run:  # a rerun stopped halfway must not count as done
+                        self.stages[name].done_marker.unlink()
                 self.start(name)
 
     def label(self, name: str) -> str:
@@ -594,15 +639,19 @@ class Scheduler:
             print(f"capvector recipe: stopped waiting for {left}")
 
 
-def print_status(run_dir: Path, stages: list[Stage], waits_for: dict[str, set[str]]) -> None:
+def print_status(
+    run_dir: Path, stages: list[Stage], waits_for: dict[str, set[str]], stale: dict[str, str]
+) -> None:
     """One line per stage: what its folder says (``stage_status``), and for a stage not started,
-    the stages it still waits for."""
-    done = {s.name for s in stages if s.done_marker.is_file()}
+    the stages it still waits for; a finished stage in ``stale`` says why it runs again."""
+    done = {s.name for s in stages if s.done_marker.is_file() and s.name not in stale}
     print(f"{run_dir}: {len(done)} of {len(stages)} stages done")
     width = max((len(s.name) for s in stages), default=0)
     for stage in stages:
         line = stage_status(stage)
-        waiting = sorted(n for n in waits_for[stage.name] if not (run_dir / n / DONE).is_file())
+        if stage.name in stale:
+            line += f", but {stale[stage.name]}: runs again"
+        waiting = sorted(n for n in waits_for[stage.name] if n not in done)
         if line == "not started" and waiting:
             line += f"; waits for {', '.join(waiting)}"
         print(f"  {stage.name:<{width}}  {line}")
