@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import json
 import shutil
+import warnings
 from pathlib import Path
 
 import lightning as L
@@ -17,6 +18,7 @@ from safetensors.torch import load_file, save_file
 from capvector.callbacks import MergeCapabilityVector, OrthogonalRegularization
 from capvector.data.datamodule import RobotDataModule
 from capvector.errors import CapVectorError
+from capvector.eval.device import native_bf16_cpu
 from capvector.module import VLAModule
 from capvector.vectors import extract, merge
 from conftest import cpu_trainer, run_fit_script, write_demo_file
@@ -295,7 +297,11 @@ def test_bf16_frozen_weights_with_full_fine_tuning_of_a_subset(setup: dict, tmp_
     frozen = {n for n, p in module.backbone.named_parameters() if not p.requires_grad}
     assert any(n.startswith("vision_backbone.") for n in frozen)  # and the unused LM head
     trainer = cpu_trainer(2, precision="bf16-mixed")
-    trainer.fit(module, dm)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        trainer.fit(module, dm)
+    emulated = [w for w in caught if "CPU without bf16 hardware" in str(w.message)]
+    assert len(emulated) == (0 if native_bf16_cpu() else 1)  # said once, where it is emulated
     for name, param in module.backbone.named_parameters():
         assert param.dtype == (torch.bfloat16 if name in frozen else torch.float32), name
         if name in frozen:  # stored in bf16, otherwise untouched

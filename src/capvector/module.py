@@ -33,6 +33,7 @@ from capvector.data.spec import DataSpec
 from capvector.envs.base import Spec
 from capvector.envs.registry import suite_of
 from capvector.errors import CapVectorError
+from capvector.eval.device import native_bf16_cpu
 from capvector.eval.metrics import SuccessRate
 from capvector.eval.results import metric_key
 from capvector.io.hub import local_folder
@@ -227,6 +228,7 @@ class VLAModule(L.LightningModule):
         activation checkpointing. Runs after callbacks attached their objectives in ``setup``."""
         if self._parallelized:
             return
+        self._warn_emulated_bf16()
         if self.frozen_dtype != torch.float32:
             self._check_autocast()
             cast_frozen_parameters(self.backbone, self.frozen_dtype, keep=self.float32_parameters)
@@ -240,6 +242,19 @@ class VLAModule(L.LightningModule):
             self.activation_checkpointing,
         )
         self._parallelized = True
+
+    def _warn_emulated_bf16(self) -> None:
+        """bf16 on a CPU that emulates it is slower than float32, not faster: say so at the start."""
+        if self._trainer is None or "bf16" not in str(self.trainer.precision):
+            return
+        if self.trainer.strategy.root_device.type == "cpu" and not native_bf16_cpu():
+            warnings.warn(
+                f"trainer.precision={self.trainer.precision} on a CPU without bf16 hardware (no "
+                "AVX512-BF16 or AMX): torch emulates it, and openvla-oft-mini's training step took "
+                "2.7x its float32 step on such a CPU (benchmarks/bench_mini.py). For speed, train "
+                "with --trainer.precision=32-true --model.frozen_dtype=float32 (other numerics)",
+                stacklevel=2,
+            )
 
     def _check_autocast(self) -> None:
         precision = str(self.trainer.precision) if self._trainer is not None else None
