@@ -6,7 +6,7 @@
     # episodes.csv) into one CSV
     python tools/libero/upstream_study_table.py --collect RUNS/results RUNS/libero_study \\
         --out docs/results/libero_upstream/episodes.csv
-    # tables (and paired bootstrap intervals) from the committed CSV
+    # tables (and paired bootstrap intervals) from the committed CSV; --tasks: those tasks only
     PYTHONPATH=src python tools/libero/upstream_study_table.py docs/results/libero_upstream/episodes.csv
 
 An episode (task, initial state) enters the CSV only when every policy ran it on both stacks (the
@@ -138,6 +138,7 @@ def main() -> None:
     parser.add_argument("csv", nargs="?", type=Path, help="the collected CSV to tabulate")
     parser.add_argument("--collect", nargs=2, type=Path, metavar=("RESULTS", "STUDY"))
     parser.add_argument("--out", type=Path, help="where --collect writes the CSV")
+    parser.add_argument("--tasks", nargs="+", type=int, help="tabulate these tasks' episodes only")
     args = parser.parse_args()
     if args.collect:
         rows, said = collect(*args.collect)
@@ -152,7 +153,10 @@ def main() -> None:
         print(f"{said}: {args.out}")
         return
     with args.csv.open() as f:
-        print(tables(list(csv.DictReader(f))))
+        rows = [r for r in csv.DictReader(f) if args.tasks is None or int(r["task"]) in args.tasks]
+    if not rows:
+        parser.error(f"{args.csv} has no episode of tasks {args.tasks}")
+    print(tables(rows))
 
 
 if __name__ == "__main__":
