@@ -259,6 +259,15 @@ def write_untrained_libero_export(folder: Path) -> Path:
     return folder
 
 
+LONGEST_FILES = [
+    "test_install.py", "test_capability_distributed.py", "test_launchers.py", "test_slurm.py",
+    "test_libero_experts.py", "test_loggers.py", "test_recipe.py", "test_determinism.py",
+    "test_validation_loop.py", "test_distributed.py", "test_libero_render.py", "test_docs.py",
+    "test_materialize.py",
+]  # fmt: skip
+"""The test files that took longest in `make test` (its ``--durations`` list, 2026-12-07)."""
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Opt-in tests run only when ``-m`` names their marker, not in a plain or a ``-m "not sim"``
     run: the install tests build a fresh environment (minutes; `make test` adds them with
@@ -272,3 +281,8 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     if len(kept) < len(items):
         config.hook.pytest_deselected(items=[i for i in items if i not in kept])
         items[:] = kept
+    # `make test`'s `--dist loadfile` hands files to its two workers in this order: the longest
+    # first, so that none of them starts last and runs alone at the end (a stable sort: the
+    # tests of a file keep their order).
+    first = {name: rank for rank, name in enumerate(LONGEST_FILES)}
+    items.sort(key=lambda item: first.get(item.path.name, len(first)))
