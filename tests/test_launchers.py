@@ -101,9 +101,12 @@ def test_jobs_2_on_two_gpus_gives_each_stage_its_own(tmp_path: Path) -> None:
     assert all(len(m["gpus"]) == 1 and m["cores"] == max(1, usable_cpus() // 2) for m in markers)
 
 
-def test_local_stages_see_their_gpus_and_wait_for_free_ones(tmp_path: Path) -> None:
+def test_local_stages_see_their_gpus_and_wait_for_free_ones(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.delenv("LP_NUM_THREADS", raising=False)  # a user's own choice would be kept
     launcher = LocalLauncher(jobs=2, threads=1, gpus=["GPU-a", "GPU-b", "GPU-c"])
-    show = "import os, time; time.sleep(0.5); print(os.environ['CUDA_VISIBLE_DEVICES'], os.environ['CAPVECTOR_CORES'], os.environ['OMP_NUM_THREADS'])"  # noqa: E501
+    show = "import os, time; time.sleep(0.5); print(os.environ['CUDA_VISIBLE_DEVICES'], os.environ['CAPVECTOR_CORES'], os.environ['OMP_NUM_THREADS'], os.environ['LP_NUM_THREADS'])"  # noqa: E501
     command = [sys.executable, "-c", show]
     one, two = Resources(gpus=1), Resources(gpus=2)
     first = launcher.start("a", tmp_path / "a", lambda: command, two, fit=False)
@@ -112,8 +115,9 @@ def test_local_stages_see_their_gpus_and_wait_for_free_ones(tmp_path: Path) -> N
     assert not launcher.has_room(Resources(gpus=0))  # jobs: 2 are running
     assert first.wait() == 0 and second.wait() == 0
     cores = max(1, usable_cpus() // 2)
-    assert (tmp_path / "a/log.txt").read_text().split() == ["GPU-a,GPU-b", str(cores), "1"]
-    assert (tmp_path / "b/log.txt").read_text().split() == ["GPU-c", str(cores), "1"]
+    shown = {stage: (tmp_path / stage / "log.txt").read_text().split() for stage in "ab"}
+    assert shown == {"a": ["GPU-a,GPU-b", str(cores), "1", str(cores)],
+                     "b": ["GPU-c", str(cores), "1", str(cores)]}  # fmt: skip
     assert launcher.has_room(Resources(gpus=3))  # all returned
     with pytest.raises(CapVectorError, match="asks for 4 GPUs; this machine shows 3"):
         launcher.check("big", Resources(gpus=4))

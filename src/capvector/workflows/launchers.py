@@ -125,6 +125,9 @@ def stage_environment(threads: int, cores: int, gpus: list[str] | None = None) -
     sees them) as its ``CUDA_VISIBLE_DEVICES`` when given."""
     fixed = {"OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
     env = {**os.environ, **fixed, STAGE_CORES: str(cores)}
+    # Mesa's software renderer (llvmpipe: EGL on a machine without GPUs) starts one rasterizer
+    # thread per CPU of the machine in every stage unless told; a stage renders on its own cores
+    env.setdefault("LP_NUM_THREADS", str(cores))
     if gpus is not None:
         env["CUDA_VISIBLE_DEVICES"] = ",".join(gpus)
         if not gpus:  # robosuite's EGL context parses an empty CUDA_VISIBLE_DEVICES as device ids
