@@ -242,3 +242,9 @@ def test_collect_pairs_the_episodes_every_policy_ran_on_both_stacks(tmp_path: Pa
     assert {r["upstream"] for r in rows if r["trial"] == "0"} == {"1"}  # the first run kept
     assert "3 episodes of each of 2 policies; 3 run on both stacks by only some" in said
     assert "4 re-runs, 2 with another outcome" in said  # state 0 of task 5 upstream, each policy
+
+    figure = tmp_path / "success_by_stack.png"
+    table = subprocess.run([sys.executable, str(tool), str(out), "--plot", str(figure)],
+                           capture_output=True, text=True, check=True).stdout  # fmt: skip
+    assert "| plain SFT | 1 × 3 | 100% (3/3" in table  # the study's episodes.csv: all succeeded
+    assert figure.read_bytes().startswith(b"\x89PNG") and not list(tmp_path.glob("*.tmp"))

@@ -8,6 +8,8 @@
         --out docs/results/libero_upstream/episodes.csv
     # tables (and paired bootstrap intervals) from the committed CSV; --tasks: those tasks only
     PYTHONPATH=src python tools/libero/upstream_study_table.py docs/results/libero_upstream/episodes.csv
+    # and a figure: success per task on each stack, one panel per arm (Wilson 95% intervals)
+    PYTHONPATH=src python tools/libero/upstream_study_table.py EPISODES.csv --plot success_by_stack.png
 
 An episode (task, initial state) enters the CSV only when every policy ran it on both stacks (the
 plans' pairing). An episode run twice on a stack (the chunks start again at initial state 0) keeps
@@ -133,12 +135,55 @@ def tables(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
+def plot(rows: list[dict], out: Path) -> None:
+    """Success per task (and over them) on each stack, one panel per arm, with Wilson 95%
+    intervals: where the stacks part is easier seen than read from the tables."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from capvector.eval.results import wilson_interval
+
+    arms = [a for a in ARMS.values() if any(r["arm"] == a for r in rows)]
+    tasks = sorted({int(r["task"]) for r in rows})
+    groups = [(f"task {t}", [r for r in rows if int(r["task"]) == t]) for t in tasks]
+    groups.append(("all", rows))
+    width = 0.8 / len(STACKS)
+    fig, axes = plt.subplots(1, len(arms), figsize=(5 * len(arms), 3.6), sharey=True, squeeze=False)
+    for ax, arm in zip(axes[0], arms, strict=True):
+        for i, stack in enumerate(STACKS):
+            rates, low, high = [], [], []
+            for _, group in groups:
+                outcomes = [int(r[stack]) for r in group if r["arm"] == arm]
+                rate = sum(outcomes) / len(outcomes)
+                lo, hi = wilson_interval(sum(outcomes), len(outcomes))
+                rates.append(100 * rate)
+                low.append(100 * (rate - lo))
+                high.append(100 * (hi - rate))
+            x = np.arange(len(groups)) + (i - (len(STACKS) - 1) / 2) * width
+            ax.bar(x, rates, width, yerr=[low, high], capsize=2, label=STACKS[stack].split(" (")[0])
+        n = sum(r["arm"] == arm for r in rows) // len(tasks)
+        ax.set_title(f"{arm} ({n} episodes per task and stack)", fontsize=10)
+        ax.set_xticks(np.arange(len(groups)), [name for name, _ in groups])
+        ax.set_ylim(0, 100)
+        ax.grid(axis="y", alpha=0.3)
+    axes[0][0].set_ylabel("success (%), Wilson 95%")
+    axes[0][-1].legend(fontsize=8, loc="upper right")
+    fig.tight_layout()
+    tmp = out.with_name(out.name + ".tmp")
+    fig.savefig(tmp, format="png", dpi=110)
+    plt.close(fig)
+    tmp.replace(out)  # atomically
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("csv", nargs="?", type=Path, help="the collected CSV to tabulate")
     parser.add_argument("--collect", nargs=2, type=Path, metavar=("RESULTS", "STUDY"))
     parser.add_argument("--out", type=Path, help="where --collect writes the CSV")
     parser.add_argument("--tasks", nargs="+", type=int, help="tabulate these tasks' episodes only")
+    parser.add_argument("--plot", type=Path, help="also draw success per task and stack (PNG)")
     args = parser.parse_args()
     if args.collect:
         rows, said = collect(*args.collect)
@@ -157,6 +202,9 @@ def main() -> None:
     if not rows:
         parser.error(f"{args.csv} has no episode of tasks {args.tasks}")
     print(tables(rows))
+    if args.plot:
+        plot(rows, args.plot)
+        print(f"figure: {args.plot}")
 
 
 if __name__ == "__main__":
