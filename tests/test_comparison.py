@@ -13,6 +13,7 @@ from capvector.eval.comparison import (
     arm_from_episodes,
     bootstrap_p_value,
     compare,
+    exact,
     format_difference,
     holm,
     interval,
@@ -33,6 +34,26 @@ def test_certain_outcomes_give_exact_differences_and_intervals() -> None:
     assert row["points"][600] == {"difference": 1.0, "ci95": pytest.approx([1.0, 1.0])}
     assert row["auc"]["difference"] == pytest.approx(1.0)
     assert format_difference(row["points"][600]) == "**+100 pts (+100, +100)**"
+
+
+def test_float_rounding_does_not_decide_which_side_of_0_a_difference_is_on() -> None:
+    # Averaged 0/1 outcomes: a resampled difference that is 0 comes out ±1e-17 in floats, which
+    # made an interval touching 0 bold ("detected") or not (the LIBERO upstream tables did both).
+    rng = np.random.default_rng(0)
+    a, b = arm("a", rng.random((3, 1, 50)) < 0.4), arm("b", rng.random((3, 1, 50)) < 0.4)
+    bootstrap = PairedBootstrap(SEEDS, 500, 0)
+    raw = bootstrap.rates(b) - bootstrap.rates(a)
+    assert ((raw != 0) & (np.abs(raw) < 1e-12)).any()  # the noise is there
+    assert ((exact(raw) == 0) == (np.abs(raw) < 1e-12)).all()
+    # An end that is not 0 keeps a decimal where it would round to 0; one that is 0 is not bold.
+    assert (
+        format_difference({"difference": 0.087, "ci95": [0.0033, 0.17]}) == "**+9 pts (+0.3, +17)**"
+    )
+    assert format_difference({"difference": 0.08, "ci95": [0.0, 0.16]}) == "+8 pts (+0, +16)"
+    assert (
+        format_difference({"difference": -0.09, "ci95": [-0.19, -0.004]})
+        == "**-9 pts (-19, -0.4)**"
+    )
 
 
 def test_pairing_by_evaluation_seed_narrows_the_interval() -> None:
