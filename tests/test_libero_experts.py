@@ -8,6 +8,7 @@ states is in docs/evaluation.md (``python -m capvector.workflows.expert_success`
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -242,6 +243,37 @@ def test_a_failed_task_stops_the_workers_and_leaves_no_file(
     assert code == 2
     assert "raise --max-attempts" in capsys.readouterr().err
     assert list(out.iterdir()) == []
+
+
+def test_a_demo_worker_stopped_inside_a_finalizer_ends_and_leaves_no_file(tmp_path: Path) -> None:
+    """The pool stops its workers with SIGTERM. One that lands while a finalizer runs (robosuite's
+    renderers have ``__del__``) once had its SystemExit ignored, and the idle worker kept the pool
+    waiting forever (make test hung 50 minutes on the test above). The worker now ends anyway, and
+    what it was writing goes with it."""
+    child = f"""
+import time
+from pathlib import Path
+from capvector.envs.libero import demos
+from capvector.io.outputs import atomic_write_file
+out = Path({str(tmp_path)!r})
+demos._start_worker(None, out)
+class Renderer:
+    def __del__(self):
+        print("finalizing", flush=True)
+        time.sleep(30)
+with atomic_write_file(out / "demo.hdf5") as tmp:
+    tmp.write_bytes(b"half a demo")
+    renderer = Renderer()
+    del renderer
+    print("survived", flush=True)
+    time.sleep(30)
+"""
+    worker = subprocess.Popen([sys.executable, "-c", child], stdout=subprocess.PIPE, text=True)
+    assert worker.stdout is not None and worker.stdout.readline() == "finalizing\n"
+    worker.send_signal(signal.SIGTERM)
+    rest = worker.communicate(timeout=20)[0]  # raising SystemExit: "survived", then 30 s more
+    assert worker.returncode == 128 + signal.SIGTERM and "survived" not in rest
+    assert list(tmp_path.iterdir()) == []  # neither the temporary nor the writer's lock
 
 
 def test_evaluation_gives_the_policy_what_training_read_at_the_same_state(demo_file: Path) -> None:

@@ -8,6 +8,7 @@ Writers that run at once or are killed are real ``capvector merge`` processes.
 
 from __future__ import annotations
 
+import os
 import re
 import signal
 import subprocess
@@ -25,7 +26,12 @@ import torch
 from capvector.backbones import build_backbone
 from capvector.cli import main
 from capvector.errors import CapVectorError
-from capvector.io.outputs import MARKER, atomic_directory, atomic_write_bytes
+from capvector.io.outputs import (
+    MARKER,
+    atomic_directory,
+    atomic_write_bytes,
+    remove_writer_leftovers,
+)
 from capvector.vectors import extract
 from conftest import write_demo_file
 from test_cli_errors import fit_args, tree_digest
@@ -376,3 +382,18 @@ def test_write_safetensors_is_what_safetensors_reads(tmp_path: Path) -> None:
     assert read.keys() == tensors.keys()
     for key, tensor in tensors.items():
         assert read[key].dtype == tensor.dtype and torch.equal(read[key], tensor), key
+
+
+def test_a_writers_leftovers_go_and_another_writers_stay(tmp_path: Path) -> None:
+    """What a process ended on the spot leaves (its temporaries, a file or a folder, and its lock
+    files) is removed by its pid; another live writer's are not touched."""
+    mine, other = 4242, os.getpid()
+    for pid in (mine, other):
+        (tmp_path / f".a.hdf5.tmp-{pid}-x1y2.hdf5").write_bytes(b"half")
+        (tmp_path / f".run.tmp-{pid}-abc").mkdir()
+        (tmp_path / f".{pid}.lock").write_text(str(pid))
+    (tmp_path / "a.hdf5").write_bytes(b"a finished file")
+    remove_writer_leftovers(tmp_path, mine)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        ["a.hdf5", f".a.hdf5.tmp-{other}-x1y2.hdf5", f".run.tmp-{other}-abc", f".{other}.lock"]
+    )

@@ -29,7 +29,7 @@ import re
 import shutil
 import tempfile
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
 from capvector.errors import CapVectorError
@@ -407,6 +407,21 @@ def _sweep_dead_writers(target: Path) -> None:
         ]
     for path in stale:
         _remove(path)
+
+
+def remove_writer_leftovers(directory: Path, pid: int) -> None:
+    """Remove what process ``pid``'s writers hold in ``directory``: their temporaries and their
+    lock files. For a process that ends on the spot (``os._exit``) instead of leaving its
+    ``atomic_write_*`` blocks, which would have removed them."""
+    pattern = re.compile(r"\.(.+)\.tmp-" + str(pid) + r"-\w+(?:\.\w+)?")
+    with os.scandir(directory) as entries:
+        temporaries = [e.path for e in entries if pattern.fullmatch(e.name)]
+    for path in temporaries:
+        _remove(Path(path))
+    for lock in directory.glob(".*.lock"):
+        with suppress(OSError):
+            if lock.read_text().strip() == str(pid):
+                lock.unlink()
 
 
 def _alive(pid: int) -> bool:

@@ -47,7 +47,6 @@ import multiprocessing as mp
 import os
 import queue
 import signal
-import sys
 import typing
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -76,7 +75,7 @@ from capvector.envs.libero.experts import LiberoPlaceExpert, place_goal, run_tri
 from capvector.envs.recording import SKIP, Demo, record_file
 from capvector.envs.robosuite.env import camera_intrinsics
 from capvector.errors import CapVectorError, unknown_name
-from capvector.io.outputs import check_output
+from capvector.io.outputs import check_output, remove_writer_leftovers
 
 LIBERO_IMAGE_SIZE = 128
 """The released datasets' image size (``create_dataset.py``: ``camera_heights=128``)."""
@@ -413,12 +412,20 @@ class _QueueBar:
 _worker_bar: _QueueBar | None = None
 
 
-def _start_worker(messages: Any) -> None:
+def _start_worker(messages: Any, out_dir: Path) -> None:
     global _worker_bar
     _worker_bar = _QueueBar(messages)
-    # the pool stops its workers with SIGTERM when a task fails: exit through Python, so a task
-    # being written removes its temporary file instead of leaving it in the demo folder
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
+
+    def stop(*_: Any) -> None:
+        # The pool stops its workers with SIGTERM when a task fails, and waits for each. Raising
+        # SystemExit here was not enough: a handler that runs inside a finalizer (__del__ of the
+        # env's renderer, say) has its exception ignored, and the idle worker it missed kept the
+        # pool, the command and a test waiting forever. So remove what this worker was writing
+        # and end on the spot: no file is left half-written in the demo folder either way.
+        remove_writer_leftovers(out_dir, os.getpid())
+        os._exit(128 + signal.SIGTERM)
+
+    signal.signal(signal.SIGTERM, stop)
 
 
 def _record_task_in_worker(**task_args: Any) -> TaskDemos:
@@ -433,7 +440,8 @@ def _record_in_workers(
     terminates them; their files are written atomically, so none is left half-written)."""
     context = mp.get_context("spawn")
     messages = context.Queue()
-    with context.Pool(workers, initializer=_start_worker, initargs=(messages,)) as pool:
+    out_dir = task_args["out_dir"]
+    with context.Pool(workers, initializer=_start_worker, initargs=(messages, out_dir)) as pool:
         pending = [
             pool.apply_async(_record_task_in_worker, kwds={"task_id": t, **task_args})
             for t in task_ids
