@@ -312,3 +312,30 @@ def test_language_model_logits_label_only_the_answer_and_are_causal(preset: str)
     start = int((first_labels[0] != IGNORE_INDEX).nonzero()[0])
     torch.testing.assert_close(first[0, :start], second[0, :start])
     assert not torch.allclose(first[0, start], second[0, start])  # position start sees "l" / "r"
+
+
+@each_preset
+def test_answer_logits_give_the_next_token_loss_of_every_position(preset: str) -> None:
+    """The reasoning loss projects only answer positions onto the vocabulary: the same loss, and
+    the same gradients, as scoring every position's logits with -100 where no answer token follows."""
+    model = build(preset)
+    batch = make_batch(model, actions=False)
+    prompts, answers = ["Where?", "Which cube?"], ["left", "the red one"]
+    params = [p for p in model.parameters() if p.requires_grad]
+    torch.manual_seed(0)  # dropout, if a preset has any, draws the same in both passes
+    logits, labels = model.language_model_logits(batch, prompts, answers)
+    every = torch.nn.functional.cross_entropy(
+        logits[:, :-1].flatten(0, 1), labels[:, 1:].flatten(), ignore_index=IGNORE_INDEX
+    )
+    every_grads = torch.autograd.grad(every, params, allow_unused=True)
+    torch.manual_seed(0)
+    answer_logits, targets = model.answer_logits(batch, prompts, answers)
+    assert targets.shape == (int((labels[:, 1:] != IGNORE_INDEX).sum()),)
+    assert answer_logits.shape == (*targets.shape, logits.shape[-1])
+    scored = torch.nn.functional.cross_entropy(answer_logits, targets)
+    torch.testing.assert_close(scored, every)
+    scored_grads = torch.autograd.grad(scored, params, allow_unused=True)
+    for param, a, b in zip(params, every_grads, scored_grads, strict=True):
+        assert (a is None) == (b is None), param.shape
+        if a is not None:
+            torch.testing.assert_close(b, a, atol=1e-6, rtol=1e-4)

@@ -48,6 +48,9 @@ from capvector.io.tensors import LazyTensors, tensor_info
 from capvector.io.weights import write_safetensors
 from capvector.registry import Registry
 
+IGNORE_INDEX = -100
+"""Label of the positions a text loss skips (``torch.nn.functional.cross_entropy``'s default)."""
+
 EMBEDDING_PARAMETERS = "embedding_parameters"
 
 
@@ -218,16 +221,39 @@ class VLABackbone(nn.Module, ABC):
         (Spatial Forcing aligns OFT's layer 24 of 32; Pi0.5 overrides it with pi0's 12 of 18)."""
         return round(0.75 * self.num_layers)
 
+    def text_pass(
+        self, batch: Batch, prompts: list[str], answers: list[str]
+    ) -> tuple[Tensor, Tensor]:
+        """(B, S, H) final hidden states of a causal pass over the observation, ``prompts`` and
+        ``answers``, and (B, S) token ids at their own positions, -100 everywhere but on the
+        answer tokens (position i's hidden state predicts the label at i + 1).
+
+        Used by multimodal-reasoning co-training; families with a language head override it and
+        ``language_head``.
+        """
+        raise BackboneError(f"{type(self).__name__} has no language-model head for text objectives")
+
+    def language_head(self, hidden: Tensor) -> Tensor:
+        """Vocabulary logits of final hidden states (``text_pass``'s), any leading shape."""
+        raise BackboneError(f"{type(self).__name__} has no language-model head for text objectives")
+
     def language_model_logits(
         self, batch: Batch, prompts: list[str], answers: list[str]
     ) -> tuple[Tensor, Tensor]:
-        """(B, S, V) logits of a causal pass over the observation, ``prompts`` and ``answers``, and
-        (B, S) token ids at their own positions, -100 everywhere but on the answer tokens (the
-        logits at position i predict the label at i + 1).
+        """(B, S, V) logits at every position of ``text_pass`` and its (B, S) labels."""
+        hidden, labels = self.text_pass(batch, prompts, answers)
+        return self.language_head(hidden), labels
 
-        Used by multimodal-reasoning co-training; families with a language head override it.
+    def answer_logits(
+        self, batch: Batch, prompts: list[str], answers: list[str]
+    ) -> tuple[Tensor, Tensor]:
+        """(N, V) logits of the N positions whose next token is an answer label, and those (N,)
+        labels: the next-token loss of ``language_model_logits`` without projecting every visual
+        and prompt position onto the vocabulary (Gemma's 262 k: most of the mini's text pass).
         """
-        raise BackboneError(f"{type(self).__name__} has no language-model head for text objectives")
+        hidden, labels = self.text_pass(batch, prompts, answers)
+        scored = labels[:, 1:] != IGNORE_INDEX
+        return self.language_head(hidden[:, :-1][scored]), labels[:, 1:][scored]
 
     _tokenizer: Any = None
     missing_tokenizer_hint: ClassVar[str] = (

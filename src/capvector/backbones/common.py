@@ -17,9 +17,6 @@ from torch import Tensor, nn
 from capvector.backbones.base import BackboneError
 from capvector.io.loading import read_json
 
-IGNORE_INDEX = -100
-"""Label of the positions a text loss skips (``torch.nn.functional.cross_entropy``'s default)."""
-
 
 def right_pad(
     rows: Sequence[Sequence[int]], value: int, device: torch.device

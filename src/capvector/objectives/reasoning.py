@@ -64,7 +64,7 @@ class ReasoningCoTraining(Objective):
             self.prompt_template.format(instruction=instruction, question=self.question)
             for instruction in batch["instruction"]
         ]
-        logits, labels = backbone.language_model_logits(batch, prompts, list(batch["annotation"]))
-        return F.cross_entropy(
-            logits[:, :-1].flatten(0, 1).float(), labels[:, 1:].flatten(), ignore_index=-100
-        )
+        # Only the answer positions reach the vocabulary projection (the same loss as scoring
+        # every position with label -100 elsewhere, without the (B, S, V) logits).
+        logits, labels = backbone.answer_logits(batch, prompts, list(batch["annotation"]))
+        return F.cross_entropy(logits.float(), labels)

@@ -24,6 +24,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from capvector.backbones.base import (
+    IGNORE_INDEX,
     BackboneError,
     ImportOption,
     OutputRequest,
@@ -32,7 +33,7 @@ from capvector.backbones.base import (
     keep_hidden_states,
     register_family,
 )
-from capvector.backbones.common import IGNORE_INDEX, MLPResNet, check_cameras, right_pad
+from capvector.backbones.common import MLPResNet, check_cameras, right_pad
 from capvector.backbones.materialize import float32_until_attached
 from capvector.backbones.openvla_oft.configuration import LlamaSpec, OpenVLAOFTConfig, ViTConfig
 from capvector.data.batch import Batch
@@ -482,7 +483,7 @@ class OpenVLAOFT(VLABackbone):
         loss = None
         if "actions" in batch:
             loss = F.l1_loss(actions, batch["actions"].to(actions.dtype))
-        logits = self.language_model.lm_head(last) if request.lm_logits else None
+        logits = self.language_head(last) if request.lm_logits else None
         grid = self.vision_backbone.grid
         return VLAOutput(
             actions=actions,
@@ -550,7 +551,10 @@ class OpenVLAOFT(VLABackbone):
         n_prefix = prefix_tokens.shape[1]
         return embeds, valid, slot_pos + n_prefix, n_prefix
 
-    def language_model_logits(
+    def language_head(self, hidden: Tensor) -> Tensor:
+        return self.language_model.lm_head(hidden)
+
+    def text_pass(
         self, batch: Batch, prompts: list[str], answers: list[str]
     ) -> tuple[Tensor, Tensor]:
         """A causal pass over ``[BOS] [visual] [proprio] prompt answer [</s>]``.
@@ -600,7 +604,7 @@ class OpenVLAOFT(VLABackbone):
             position_ids=positions,
             use_cache=False,
         )
-        return self.language_model.lm_head(hidden.last_hidden_state), labels
+        return hidden.last_hidden_state, labels
 
     def _tokenize(
         self, instructions: list[str], device: torch.device

@@ -40,6 +40,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from capvector.backbones.base import (
+    IGNORE_INDEX,
     BackboneError,
     ImportOption,
     OutputRequest,
@@ -49,7 +50,6 @@ from capvector.backbones.base import (
     register_family,
 )
 from capvector.backbones.common import (
-    IGNORE_INDEX,
     check_cameras,
     discretize_state,
     right_pad,
@@ -615,8 +615,8 @@ class Pi05(VLABackbone):
             actions = self.integrate(cache, self._noise(prefix))[..., : self.config.action_dim]
             actions = actions.contiguous()
         logits = None
-        if request.lm_logits:  # tied embedding, as PaliGemma's lm_head
-            logits = F.linear(prefix_out, self.language_model.embed_tokens.weight)
+        if request.lm_logits:
+            logits = self.language_head(prefix_out)
         return VLAOutput(
             actions=actions,
             loss=loss,
@@ -869,15 +869,19 @@ class Pi05(VLABackbone):
         """Spatial Forcing aligns pi0's layer 12 of 18: two thirds of the depth."""
         return max(1, round(2 * self.num_layers / 3))
 
-    def language_model_logits(
+    def language_head(self, hidden: Tensor) -> Tensor:
+        return F.linear(hidden, self.language_model.embed_tokens.weight)  # tied, as PaliGemma's
+
+    def text_pass(
         self, batch: Batch, prompts: list[str], answers: list[str]
     ) -> tuple[Tensor, Tensor]:
         """PaliGemma's own prefix-LM pass through the VLM stream only (the expert is not run).
 
         ``[images] [BOS prompt]`` form one bidirectional block and every answer token (then EOS)
         starts its own block, i.e. causal: the layout of PaliGemma and of openpi's FAST postfix
-        (``tokenizer.py`` ``FASTTokenizer``). Logits use the tied embedding; labels are the answer
-        ids at their own positions and IGNORE_INDEX elsewhere.
+        (``tokenizer.py`` ``FASTTokenizer``). Hidden states after the final norm (``language_head``
+        projects them on the tied embedding); labels are the answer ids at their own positions and
+        IGNORE_INDEX elsewhere.
         """
         tok = self.require_tokenizer()
         visual, visual_valid = self.embed_images(batch)
@@ -901,11 +905,10 @@ class Pi05(VLABackbone):
         out, _, _ = self._joint_layers(
             embeds, None, None, make_attention_mask(valid, ar), positions_from_valid(valid)
         )
-        logits = F.linear(self.language_model.norm(out), self.language_model.embed_tokens.weight)
         labels = torch.cat(
             [torch.full_like(visual_valid, IGNORE_INDEX, dtype=torch.long), text_labels], dim=1
         )
-        return logits, labels
+        return self.language_model.norm(out), labels
 
     # -- the joint transformer -----------------------------------------------------------------
 

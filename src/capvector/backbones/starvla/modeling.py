@@ -42,6 +42,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from capvector.backbones.base import (
+    IGNORE_INDEX,
     BackboneError,
     ImportOption,
     OutputRequest,
@@ -52,7 +53,7 @@ from capvector.backbones.base import (
     preset_config,
     register_family,
 )
-from capvector.backbones.common import IGNORE_INDEX, check_cameras, discretize_state
+from capvector.backbones.common import check_cameras, discretize_state
 from capvector.backbones.starvla.configuration import (
     QWEN_VERSIONS,
     STATE_MODES,
@@ -286,7 +287,7 @@ class StarVLA(VLABackbone):
                     loss, actions = head.loss(cond, target, state, seeds), None
             else:
                 loss, actions = None, head.sample(cond, state)
-        logits = self.vlm.lm_head(encoding.normed_last) if request.lm_logits else None
+        logits = self.language_head(encoding.normed_last) if request.lm_logits else None
         return VLAOutput(
             actions=actions,
             loss=loss,
@@ -414,7 +415,10 @@ class StarVLA(VLABackbone):
         rows, cols = self.visual_grid
         return chat.replace(IMAGE_PAD, IMAGE_PAD * (rows * cols))
 
-    def language_model_logits(
+    def language_head(self, hidden: Tensor) -> Tensor:
+        return self.vlm.lm_head(hidden)
+
+    def text_pass(
         self, batch: Batch, prompts: list[str], answers: list[str]
     ) -> tuple[Tensor, Tensor]:
         """Qwen's own LM head over a user turn (cameras + prompt) and an assistant turn (answer),
@@ -444,7 +448,7 @@ class StarVLA(VLABackbone):
         for i, row in enumerate(rows):
             mask[i, length - len(row) :] = True
         out = self._run_vlm(ids, mask, images)
-        return self.vlm.lm_head(out.last_hidden_state), labels
+        return out.last_hidden_state, labels
 
     def _run_vlm(
         self, ids: Tensor, mask: Tensor, images: Tensor, attention: Tensor | None = None
