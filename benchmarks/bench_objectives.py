@@ -5,7 +5,7 @@ process, so machine load hits them alike; the table gives each arm's median and 
 SFT.
 
     python benchmarks/bench_objectives.py --data DEMOS [--pretrained EXPORT] [--cameras ...]
-        [--proprio-keys ...] [--batch 16] [--rounds 5] [--steps 4]
+        [--proprio-keys ...] [--batch 16] [--rounds 5] [--steps 4] [--arms NAME ...]
 
 For LIBERO's layout: ``--cameras agentview robot0_eye_in_hand --proprio-keys ee_states
 gripper_states`` (configs/recipes/libero_train.yaml).
@@ -20,7 +20,11 @@ from collections.abc import Callable
 from pathlib import Path
 
 import torch
+import torch.nn.functional as F
+from torch import Tensor
 
+from capvector.backbones.base import IGNORE_INDEX, VLABackbone, VLAOutput
+from capvector.data.batch import Batch
 from capvector.data.datamodule import RobotDataModule, noise_seeds
 from capvector.module import VLAModule
 from capvector.objectives import GeometricTeacher, Objective, ReasoningCoTraining, SpatialAlignment
@@ -33,11 +37,26 @@ def spatial() -> Objective:
     )
 
 
+class ReasoningEveryPosition(ReasoningCoTraining):
+    """Reasoning co-training as it was before ``answer_logits``: every position of the text pass
+    projected onto the vocabulary, then all but the answer positions ignored. The same loss: the
+    baseline of that change."""
+
+    def forward(self, batch: Batch, output: VLAOutput, backbone: VLABackbone) -> Tensor:
+        logits, labels = backbone.language_model_logits(*self.text_inputs(batch))
+        return F.cross_entropy(
+            logits[:, :-1].flatten(0, 1).float(), labels[:, 1:].flatten(), ignore_index=IGNORE_INDEX
+        )
+
+
 ARMS: dict[str, Callable[[], list[Objective]]] = {
     "plain SFT": lambda: [],
     "+ spatial alignment": lambda: [spatial()],
     "+ reasoning, every sample": lambda: [ReasoningCoTraining(weight=0.1)],
     "+ reasoning, 4 samples": lambda: [ReasoningCoTraining(weight=0.1, samples=4)],
+    "+ reasoning, 4 samples, every position projected": lambda: [
+        ReasoningEveryPosition(weight=0.1, samples=4)
+    ],
     "aux_sft.yaml (spatial + reasoning on 4)": lambda: [
         spatial(),
         ReasoningCoTraining(weight=0.1, samples=4),
@@ -79,6 +98,10 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--steps", type=int, default=4)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument(
+        "--arms", nargs="+", choices=list(ARMS), default=list(ARMS),
+        help="the arms to time (plain SFT always runs: the baseline)",
+    )  # fmt: skip
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     more = {"proprio_keys": args.proprio_keys} if args.proprio_keys else {}
@@ -88,7 +111,8 @@ def main() -> None:
     )  # fmt: skip
     batch = next(iter(data.train_dataloader()))
     batch["noise_seed"] = noise_seeds(batch["index"], 0, seed=0)  # as the fit's batches carry
-    steps = {name: step_function(args, data, batch, make()) for name, make in ARMS.items()}
+    names = ["plain SFT", *(name for name in args.arms if name != "plain SFT")]
+    steps = {name: step_function(args, data, batch, ARMS[name]()) for name in names}
     for step in steps.values():  # warm-up (allocator, lazy init)
         step()
     seconds: dict[str, list[float]] = {name: [] for name in steps}

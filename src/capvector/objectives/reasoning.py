@@ -53,6 +53,13 @@ class ReasoningCoTraining(Objective):
                 param.requires_grad_(True)
 
     def forward(self, batch: Batch, output: VLAOutput, backbone: VLABackbone) -> Tensor:
+        # Only the answer positions reach the vocabulary projection (the same loss as scoring
+        # every position with label -100 elsewhere, without the (B, S, V) logits).
+        logits, labels = backbone.answer_logits(*self.text_inputs(batch))
+        return F.cross_entropy(logits.float(), labels)
+
+    def text_inputs(self, batch: Batch) -> tuple[Batch, list[str], list[str]]:
+        """The scored samples of ``batch``, their prompts and their answers (annotations)."""
         if "annotation" not in batch:
             raise CapVectorError(
                 "reasoning co-training needs per-step text annotations: set data.load_annotations=true "
@@ -64,7 +71,4 @@ class ReasoningCoTraining(Objective):
             self.prompt_template.format(instruction=instruction, question=self.question)
             for instruction in batch["instruction"]
         ]
-        # Only the answer positions reach the vocabulary projection (the same loss as scoring
-        # every position with label -100 elsewhere, without the (B, S, V) logits).
-        logits, labels = backbone.answer_logits(batch, prompts, list(batch["annotation"]))
-        return F.cross_entropy(logits.float(), labels)
+        return batch, prompts, list(batch["annotation"])
