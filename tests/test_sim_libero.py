@@ -169,7 +169,11 @@ CONTACT_FREE_STEPS = 40
 STATE_DIMS = {"libero_spatial": 92, "libero_object": 110, "libero_goal": 79, "libero_10": 123}
 
 
-@pytest.fixture(scope="module", params=REFEREE_TASKS, ids=lambda p: f"{p[0]}-{p[1]}")
+def task_id(task: tuple[str, int]) -> str:
+    return f"{task[0]}-{task[1]}"
+
+
+@pytest.fixture(scope="module", params=REFEREE_TASKS, ids=task_id)
 def libero_env(request: pytest.FixtureRequest):
     """One state-only env at a time (each holds ~1 GB): pytest groups the tests by task."""
     suite, task_id = request.param
@@ -347,14 +351,13 @@ def check_settled(suite: str, task_id: int, errors: dict[str, np.ndarray]) -> No
 
 
 @pytest.mark.sim
+@pytest.mark.parametrize("libero_env", sorted(SETTLE_SAMPLE), ids=task_id, indirect=True)
 def test_settled_scene_matches_robosuite_14(libero_env) -> None:
     """What a policy first sees: every object within 2 mm of robosuite 1.4's after the 10 wait
     steps from an official init state (tests/fixtures/libero_settle/PROVENANCE.md), except the
     listed ones, each within its measured bound; one init state per referee task
     (:data:`SETTLE_SAMPLE`)."""
     suite, task_id, env = libero_env
-    if (suite, task_id) not in SETTLE_SAMPLE:
-        pytest.skip(f"{suite} has no settle referee (LIBERO-Spatial, -Object, -Goal have)")
     check_settled(
         suite, task_id, settle_errors(env, suite, task_id, [SETTLE_SAMPLE[suite, task_id]])
     )
@@ -422,12 +425,11 @@ def check_demo_replay(episode: dict[str, Any], out: dict[str, Any]) -> None:
 
 
 @pytest.mark.sim
+@pytest.mark.parametrize("libero_env", sorted(DEMO_SAMPLE), ids=task_id, indirect=True)
 def test_replayed_demo_agrees_with_robosuite_14(libero_env) -> None:
     """A scripted-expert demo recorded in the port, replayed open loop from its placement here
     and in robosuite 1.4 (tests/fixtures/libero_demo_replay/PROVENANCE.md): the same outcome."""
     suite, task_id, env = libero_env
-    if (suite, task_id) not in DEMO_SAMPLE:
-        pytest.skip(f"{suite} task {task_id} has no demo in the sample")
     (episode,) = [
         e for e in DEMO_EPISODES if e["key"] == f"{suite}/{task_id}/{DEMO_SAMPLE[suite, task_id]}"
     ]
