@@ -341,6 +341,10 @@ def _temporary_prefix(target: Path) -> str:
     return f".{target.name}.tmp-{os.getpid()}-"
 
 
+_TEMPORARY = re.compile(r"\.(?P<name>.+)\.tmp-(?P<pid>\d+)-\w+(?:\.\w+)?")
+"""A temporary's file name: ``_temporary_prefix``, then mkstemp's random part and a suffix."""
+
+
 @contextmanager
 def _writer_lock(target: Path, what: str) -> Iterator[None]:
     """Hold ``.NAME.lock`` (flock) beside ``target`` while it is written: a second writer of the same
@@ -398,12 +402,13 @@ def _lock(path: Path, target: Path, what: str) -> int | None:
 
 def _sweep_dead_writers(target: Path) -> None:
     """Remove ``target``'s temporaries whose writer process no longer exists."""
-    pattern = re.compile(re.escape(f".{target.name}.tmp-") + r"(\d+)-\w+(?:\.\w+)?")
     with os.scandir(target.parent) as entries:
         stale = [
             Path(e.path)
             for e in entries
-            if (match := pattern.fullmatch(e.name)) and not _alive(int(match[1]))
+            if (match := _TEMPORARY.fullmatch(e.name))
+            and match["name"] == target.name
+            and not _alive(int(match["pid"]))
         ]
     for path in stale:
         _remove(path)
@@ -413,9 +418,12 @@ def remove_writer_leftovers(directory: Path, pid: int) -> None:
     """Remove what process ``pid``'s writers hold in ``directory``: their temporaries and their
     lock files. For a process that ends on the spot (``os._exit``) instead of leaving its
     ``atomic_write_*`` blocks, which would have removed them."""
-    pattern = re.compile(r"\.(.+)\.tmp-" + str(pid) + r"-\w+(?:\.\w+)?")
     with os.scandir(directory) as entries:
-        temporaries = [e.path for e in entries if pattern.fullmatch(e.name)]
+        temporaries = [
+            e.path
+            for e in entries
+            if (match := _TEMPORARY.fullmatch(e.name)) and match["pid"] == str(pid)
+        ]
     for path in temporaries:
         _remove(Path(path))
     for lock in directory.glob(".*.lock"):
