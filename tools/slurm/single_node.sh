@@ -17,17 +17,32 @@ action=$1
 dir=$(mkdir -p "$2" && cd "$2" && pwd)
 
 stop() {
-    for name in slurmd slurmctld munged; do
-        if [[ -f "$dir/$name.pid" ]]; then
-            kill "$(cat "$dir/$name.pid")" 2>/dev/null || true
+    # The jobs first: slurmd leaves running jobs alone when it stops (a restart must not kill
+    # them), and a job left so outlives the cluster. Waited for up to KillWait (10 s) and more.
+    local pid jobs
+    if [[ -f "$dir/slurmctld.pid" ]] && kill -0 "$(cat "$dir/slurmctld.pid")" 2>/dev/null; then
+        jobs=$(SLURM_CONF="$dir/slurm.conf" squeue -h -o %A 2>/dev/null || true)
+        if [[ -n "$jobs" ]]; then
+            # shellcheck disable=SC2086  # one job id per word
+            SLURM_CONF="$dir/slurm.conf" scancel $jobs 2>/dev/null || true
+            for _ in $(seq 200); do
+                [[ -z "$(SLURM_CONF="$dir/slurm.conf" squeue -h -o %A 2>/dev/null)" ]] && break
+                sleep 0.1
+            done
         fi
-    done
-    for name in slurmd slurmctld munged; do  # wait until they are gone (ports, sockets freed)
+    fi
+    # Then one daemon at a time, slurmd first: a job step ending during the stop reports to
+    # slurmctld through munge, and with munged gone first it hangs on, keeping slurmd alive with it.
+    for name in slurmd slurmctld munged; do
         pid=$(cat "$dir/$name.pid" 2>/dev/null || true)
-        for _ in $(seq 50); do
-            [[ -n "$pid" ]] && kill -0 "$pid" 2>/dev/null || break
-            sleep 0.1
-        done
+        if [[ -n "$pid" ]]; then
+            kill "$pid" 2>/dev/null || true
+            for _ in $(seq 50); do  # wait until it is gone (ports, sockets freed)
+                kill -0 "$pid" 2>/dev/null || break
+                sleep 0.1
+            done
+            if kill -0 "$pid" 2>/dev/null; then kill -KILL "$pid" || true; fi  # still there after 5 s
+        fi
         rm -f "$dir/$name.pid"
     done
 }
