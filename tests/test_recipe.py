@@ -340,8 +340,8 @@ def test_a_finished_stage_whose_output_a_stage_to_run_reads_is_gone_runs_again(
     path = tmp_path / "recipe.yaml"
     path.write_text(json.dumps({"run_dir": str(tmp_path / "run"), "stages": stages}))
     (tmp_path / "run" / "a").mkdir(parents=True)
-    write_done(tmp_path / "run" / "a", ["python", "-m", "capvector.cli", "backbone-info"],
-               began=time.time() - 60)  # finished on another machine  # fmt: skip
+    write_done(tmp_path / "run" / "a", ["python", "-m", "capvector.cli", "backbone-info",
+               "openvla-oft-tiny"], began=time.time() - 60)  # finished on another machine  # fmt: skip
     done = tmp_path / "run" / "a" / ".done"
 
     run(path, status=True)
@@ -365,3 +365,37 @@ def test_a_finished_stage_whose_output_a_stage_to_run_reads_is_gone_runs_again(
     (tmp_path / "run" / "a" / "demos").mkdir()  # its output there: a is done again
     run(path, dry_run=True)
     assert "a (backbone-info): done earlier, skipped" in capsys.readouterr().out
+
+
+def test_a_finished_stage_that_ran_with_other_arguments_is_skipped_and_says_what_changed(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An edited recipe never runs a finished stage again on its own, but says what changed since
+    it ran. What the recipe adds to a fit (its folder, loggers, the checkpoint it resumed from) and
+    the run folder spelled another way (relative then, absolute now) are not changes."""
+    monkeypatch.chdir(tmp_path)
+
+    def recipe(run_dir: str, steps: int) -> Path:
+        args = [f"--trainer.max_steps={steps}", "--data.train_files=[${run_dir}/demos, x.hdf5]"]
+        stages = [{"name": "sft", "command": "fit", "args": args}]
+        path = tmp_path / "recipe.yaml"
+        path.write_text(json.dumps({"run_dir": run_dir, "stages": stages}))
+        return path
+
+    (ran,) = load_recipe(recipe("run", steps=100))[1]
+    ran.directory.mkdir(parents=True)
+    resumed = [*command_line(ran), f"--ckpt_path={ran.directory}/fit/last.ckpt"]
+    write_done(ran.directory, resumed, began=time.time() - 60)
+
+    path = recipe(str(tmp_path / "run"), steps=200)
+    changed = "it ran with other arguments than the recipe's now (then --trainer.max_steps=100, "
+    changed += "now --trainer.max_steps=200)"
+    run(path, status=True)
+    assert capsys.readouterr().out.splitlines()[1] == f"  sft  done in 60 s; {changed}"
+    run(path, dry_run=True)
+    delete = f"delete {tmp_path / 'run' / 'sft'} to run it with these"
+    assert f"sft (fit): done earlier, skipped; {changed}: {delete}\n" in capsys.readouterr().out
+    assert ran.done_marker.is_file()
+
+    run(recipe(str(tmp_path / "run"), steps=100), dry_run=True)  # as it ran: nothing to say
+    assert capsys.readouterr().out.endswith("sft (fit): done earlier, skipped\n")

@@ -150,10 +150,11 @@ def record_run(directory: Path, began: float) -> dict[str, float]:
 
 
 def write_done(directory: Path, command: list[str], began: float, **facts: Any) -> None:
-    """The ``.done`` marker: what ran, how long (this run, and all its runs), where. Records the
-    run first (``record_run``)."""
+    """The ``.done`` marker: what ran, in which run folder (``recipe.arguments_changed`` reads
+    both), how long (this run, and all its runs), where. Records the run first (``record_run``)."""
     totals = record_run(directory, began)
-    marker = {"command": command[2:], **facts, "seconds": round(time.time() - began, 1),
+    marker = {"command": command[2:], "run_dir": str(directory.parent), **facts,
+              "seconds": round(time.time() - began, 1),
               "runs": totals["runs"], "seconds_all_runs": round(totals["seconds"], 1),
               "finished": time.ctime()}  # fmt: skip
     atomic_write_bytes(directory / DONE, json.dumps(marker, indent=2).encode())

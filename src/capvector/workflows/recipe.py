@@ -3,7 +3,8 @@
 A recipe YAML names a run folder and stages; each stage is one command (``demos``, ``fit``,
 ``extract``, ``merge``, ``evaluate``, ...) with its arguments, exactly as typed on a shell. Stages
 run in order, each in its own process, with their outputs under ``<run_dir>/<stage>/``. A finished
-stage leaves a ``.done`` marker and is skipped when the recipe is rerun; a ``fit`` stage that was
+stage leaves a ``.done`` marker and is skipped when the recipe is rerun (saying what changed when
+the recipe's arguments for it are no longer those it ran with); a ``fit`` stage that was
 interrupted resumes from its last checkpoint (the merge callback's state in that checkpoint keeps a
 capability vector from being merged twice).
 
@@ -44,6 +45,7 @@ waits for.
 from __future__ import annotations
 
 import csv
+import difflib
 import functools
 import json
 import re
@@ -577,7 +579,11 @@ class Scheduler:
             # Resolved only now, so the arguments can use what earlier stages produced.
             self.stages[name] = self.resolve(name)
             if done_earlier:
-                print(f"{self.label(name)}: done earlier, skipped", flush=True)
+                stage = self.stages[name]
+                changed = arguments_changed(stage, json.loads(stage.done_marker.read_text()))
+                if changed:
+                    changed = f"; {changed}: delete {stage.directory} to run it with these"
+                print(f"{self.label(name)}: done earlier, skipped{changed}", flush=True)
                 self.finished.add(name)
             elif self.runner.has_room(self.stages[name].resources):
                 if name in self.stale:
@@ -677,7 +683,9 @@ def stage_status(stage: Stage) -> str:
     its recent step time (validation not counted) and whether it would resume from a checkpoint,
     or not started."""
     if stage.done_marker.is_file():
-        return "done" + took(json.loads(stage.done_marker.read_text() or "{}"))
+        marker = json.loads(stage.done_marker.read_text() or "{}")
+        changed = arguments_changed(stage, marker)
+        return "done" + took(marker) + (f"; {changed}" if changed else "")
     if not stage.directory.exists():
         return "not started"
     pid = running_pid(stage.directory)
@@ -712,6 +720,40 @@ def stage_status(stage: Stage) -> str:
         else "no checkpoint yet: starts again"
     )  # fmt: skip
     return f"{state}: {logged}; {resumes}"
+
+
+def arguments_changed(stage: Stage, marker: dict) -> str:
+    """How the arguments a finished stage ran with (its ``.done`` marker) differ from the recipe's
+    now, e.g. "it ran with other arguments than the recipe's now (then --trainer.max_steps=100,
+    now --trainer.max_steps=200)"; "" when they do not. A finished stage is never run again on its
+    own, and an edited recipe would otherwise skip it in silence. Paths are compared within the run
+    folder, however it was spelled then and now; a marker written before it recorded its run
+    folder (``run_dir``) is not compared."""
+    if "run_dir" not in marker or "command" not in marker:
+        return ""
+    then = marker["command"][1:]  # after "capvector.cli"
+    if stage.command == "fit":  # what ``command_line`` adds after the stage's own arguments
+        added = [i for i, a in enumerate(then) if a.startswith("--trainer.default_root_dir=")]
+        then = then[: added[-1]] if added else then
+    then = [_moved(a, marker["run_dir"], str(stage.directory.parent)) for a in then]
+    now = [stage.command, *stage.args]
+    changes = [
+        f"then {' '.join(then[i1:i2]) or 'nothing'}, now {' '.join(now[j1:j2]) or 'nothing'}"
+        for tag, i1, i2, j1, j2 in difflib.SequenceMatcher(a=then, b=now).get_opcodes()
+        if tag != "equal"
+    ]
+    return (
+        f"it ran with other arguments than the recipe's now ({'; '.join(changes)})"
+        if changes
+        else ""
+    )
+
+
+def _moved(argument: str, old: str, new: str) -> str:
+    """``argument`` with every path inside folder ``old`` (alone, after ``=``, or in a ``[a, b]``
+    list) moved into ``new``."""
+    inside = rf"(?<![\w.~/-]){re.escape(old)}(?=/|$|[\],])"
+    return re.sub(inside, lambda _: new, argument)
 
 
 def _hours_or_minutes(seconds: float) -> str:
