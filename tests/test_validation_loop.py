@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import csv
 import json
-import subprocess
-import sys
 from importlib.metadata import version as installed
 from pathlib import Path
 
@@ -17,9 +15,9 @@ from capvector.data.episodes import EpisodeDataset, EpisodeSampler, EvalTask, ev
 from capvector.data.hdf5 import DatasetError
 from capvector.errors import CapVectorError
 from capvector.eval.results import wilson_interval
+from conftest import launch_fit_script
 
 REPO = Path(__file__).resolve().parents[1]
-SCRIPT = Path(__file__).with_name("distributed_fit.py")
 
 
 def test_episode_sampler_evens_out_ranks_without_counting_twice() -> None:
@@ -145,11 +143,7 @@ def test_ddp_validation_counts_each_episode_once(tmp_path: Path, demo_file: Path
     for devices in ("1", "2"):
         out = tmp_path / devices
         args = ["--devices", devices, "--strategy", "ddp" if devices == "2" else "auto"]
-        completed = subprocess.run(
-            [sys.executable, str(SCRIPT), "--data", str(demo_file), "--out", str(out), "--validate-episodes", "3", *args],
-            capture_output=True, text=True, timeout=600,
-        )  # fmt: skip
-        assert completed.returncode == 0, completed.stderr[-3000:]
+        launch_fit_script(out, demo_file, "--validate-episodes", "3", *args)
         results.append(json.loads((out / "validate.json").read_text()))
     single, ddp = results
     assert single["val/episodes"] == ddp["val/episodes"] == 3
