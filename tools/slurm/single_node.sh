@@ -18,7 +18,7 @@ dir=$(mkdir -p "$2" && cd "$2" && pwd)
 
 stop() {
     # The jobs first: slurmd leaves running jobs alone when it stops (a restart must not kill
-    # them), and a job left so outlives the cluster. Waited for up to KillWait (10 s) and more.
+    # them), and a job left so outlives the cluster. Waited for up to 20 s (KillWait is 10 s).
     local pid jobs
     if [[ -f "$dir/slurmctld.pid" ]] && kill -0 "$(cat "$dir/slurmctld.pid")" 2>/dev/null; then
         jobs=$(SLURM_CONF="$dir/slurm.conf" squeue -h -o %A 2>/dev/null || true)
