@@ -201,12 +201,19 @@ def test_a_sigtermed_fit_does_not_exit_as_finished(tmp_path: Path, demo_file: Pa
 def test_a_stopped_recipe_stops_its_fit_and_a_rerun_names_one_still_running(
     tmp_path: Path, demo_file: Path
 ) -> None:
-    """`kill` (SIGTERM) to the recipe alone stops its local fit with it, and so does `kill -INT`
-    when the recipe was started as a shell starts a background job (SIGINT ignored, which its
-    children inherit); a recipe killed outright leaves its fit running, and a rerun names that fit
-    instead of starting a second process that would write into the same folder."""
-    recipe = write_recipe(tmp_path / "recipe.yaml", [fit_stage(demo_file, steps=100_000)])
-    command = [sys.executable, "-m", "capvector.cli", "recipe", "--config", str(recipe)]
+    """`kill` (SIGTERM) to the recipe alone stops its local fit with it, also while the recipe
+    waits for the fit to end after another stage failed, and so does `kill -INT` when the recipe
+    was started as a shell starts a background job (SIGINT ignored, which its children inherit); a
+    recipe killed outright leaves its fit running, and a rerun names that fit instead of starting
+    a second process that would write into the same folder."""
+    fit_only = write_recipe(tmp_path / "recipe.yaml", [fit_stage(demo_file, steps=100_000)])
+    command = [sys.executable, "-m", "capvector.cli", "recipe", "--config", str(fit_only)]
+    # The same fit (the same run folder) beside a stage that fails at once, two at a time.
+    broken = {"name": "broken", "command": "backbone-info", "after": [], "args": ["no-such-preset"]}
+    with_failure = write_recipe(
+        tmp_path / "with_failure.yaml", [fit_stage(demo_file, steps=100_000), broken], jobs=2
+    )
+    after_a_failure = [*command[:-1], str(with_failure)]
     # `capvector recipe ... &` in a script: the recipe's own process, with SIGINT ignored.
     in_background = [
         sys.executable, "-c", "import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "
@@ -216,13 +223,17 @@ def test_a_stopped_recipe_stops_its_fit_and_a_rerun_names_one_still_running(
     checkpoint = stage / "fit" / "version_0" / "checkpoints" / "last.ckpt"
     log = tmp_path / "recipe.log"
 
-    def start_recipe(how: list[str] = command) -> tuple[subprocess.Popen, int]:
-        """The recipe, once its fit runs and has a checkpoint; the fit's pid (from its lock)."""
+    def start_recipe(how: list[str] = command, until: str = "") -> tuple[subprocess.Popen, int]:
+        """The recipe, once its fit runs and has a checkpoint (and its output says ``until``);
+        the fit's pid (from its lock)."""
         with log.open("w") as out:  # a file, not a pipe: a fit left running never blocks on it
             recipe_run = subprocess.Popen(how, stdout=out, stderr=subprocess.STDOUT, cwd=REPO)
         before = checkpoint.stat().st_mtime_ns if checkpoint.is_file() else None
         deadline = time.time() + 300
-        while not (checkpoint.is_file() and checkpoint.stat().st_mtime_ns != before):
+        while not (
+            checkpoint.is_file() and checkpoint.stat().st_mtime_ns != before
+            and until in log.read_text()
+        ):  # fmt: skip
             assert recipe_run.poll() is None, log.read_text()[-3000:]
             assert time.time() < deadline
             time.sleep(0.5)
@@ -230,7 +241,7 @@ def test_a_stopped_recipe_stops_its_fit_and_a_rerun_names_one_still_running(
         assert pid and pid != recipe_run.pid
         return recipe_run, pid
 
-    first, fit = start_recipe()
+    first, fit = start_recipe(after_a_failure, until="broken (backbone-info) failed")
     try:
         first.terminate()
         assert first.wait(timeout=120) == 128 + signal.SIGTERM

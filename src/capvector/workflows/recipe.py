@@ -555,11 +555,11 @@ class Scheduler:
                 if self.running:
                     time.sleep(self.runner.poll_seconds)
                     self.reap_ended()
+            for name in list(self.running):  # a stage failed: let the others finish, then stop
+                self.reap(name, self.running[name].wait())
         except BaseException:  # Ctrl-C, SIGTERM, an error: the local stages stop with the recipe
-            self.stop()
+            self.stop()  # also while it waits for the others after a failure
             raise
-        for name in list(self.running):  # a stage failed: let the others finish, then stop
-            self.reap(name, self.running[name].wait())
         if self.failed:
             raise CapVectorError(
                 f"stage(s) {self.failed} failed; fix and rerun the same command: finished stages "
