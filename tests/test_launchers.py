@@ -287,6 +287,27 @@ def test_a_stopped_recipe_stops_its_fit_and_a_rerun_names_one_still_running(
             os.kill(left, signal.SIGTERM)
 
 
+def test_a_stage_a_signal_ended_names_the_signal(tmp_path: Path) -> None:
+    """A stage the kernel killed (SIGKILL, as the out-of-memory killer does) fails with the signal
+    by name and where to look, not a bare negative exit code; its log is shown after it."""
+    launcher = LocalLauncher(jobs=2, threads=1, gpus=[])
+
+    def ended_by(sig: signal.Signals) -> str:
+        """The failure of a stage that prints a line, then gets ``sig``."""
+        script = f"import os; print('training', flush=True); os.kill(os.getpid(), {int(sig)})"
+        stage = launcher.start(sig.name, tmp_path / sig.name,
+                               lambda: [sys.executable, "-c", script], Resources(), fit=False)  # fmt: skip
+        assert stage.wait() == -sig
+        return stage.failure()
+
+    reason, log = ended_by(signal.SIGKILL).split("\n", 1)
+    assert reason == (
+        "killed by SIGKILL (most often the out-of-memory killer: `dmesg | grep -i oom`)"
+    )
+    assert "training" in log
+    assert ended_by(signal.SIGSEGV).split("\n")[0] == "killed by SIGSEGV"
+
+
 @pytest.mark.sim
 def test_a_stage_without_gpus_can_open_robosuites_egl_renderer(tmp_path: Path) -> None:
     """A stage given no GPU sees ``CUDA_VISIBLE_DEVICES=""``, which robosuite's EGL context (what

@@ -331,7 +331,23 @@ class LocalStage:
         return True
 
     def failure(self) -> str:
-        return f"exit {self.code}" + ("" if self.log is None else "\n" + log_tail(self.log))
+        assert self.code is not None
+        return exit_reason(self.code) + ("" if self.log is None else "\n" + log_tail(self.log))
+
+
+def exit_reason(code: int) -> str:
+    """``exit 2``, or the signal that ended the process (Popen's negative code), by name. Nobody
+    SIGKILLs a stage on purpose but the kernel when memory runs out, and the stage's log then ends
+    mid-line without a word: say where that shows."""
+    if code >= 0:
+        return f"exit {code}"
+    try:
+        name = signal.Signals(-code).name
+    except ValueError:
+        return f"killed by signal {-code}"
+    if -code == signal.SIGKILL:
+        return f"killed by {name} (most often the out-of-memory killer: `dmesg | grep -i oom`)"
+    return f"killed by {name}"
 
 
 LIVE_STATES = frozenset({
