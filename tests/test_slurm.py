@@ -58,7 +58,7 @@ def test_a_preempted_fit_requeues_and_resumes_from_its_checkpoint(
     """SLURM's warning signal (time limit, or preemption) reaches the fit: at the end of that
     step it saves a checkpoint and requeues the job, whose second run resumes from it and
     finishes the stage."""
-    steps = 300
+    steps = 150
     recipe = write_recipe(tmp_path / "recipe.yaml", [fit_stage(demo_file, steps=steps)],
                           launcher="slurm", resources={"time_min": 10})  # fmt: skip
     driver = subprocess.Popen(
@@ -100,7 +100,7 @@ def test_a_recipe_run_again_waits_for_its_job_still_running(
 ) -> None:
     """The recipe (on a login node) can stop while its jobs go on; run again, it waits for a
     stage's job that is still running instead of submitting a second into the same folder."""
-    recipe = write_recipe(tmp_path / "recipe.yaml", [fit_stage(demo_file, steps=300)],
+    recipe = write_recipe(tmp_path / "recipe.yaml", [fit_stage(demo_file, steps=150)],
                           launcher="slurm", resources={"time_min": 10})  # fmt: skip
     command = [sys.executable, "-m", "capvector.cli", "recipe", "--config", str(recipe)]
     first = subprocess.Popen(command, stdout=subprocess.DEVNULL, cwd=REPO)
