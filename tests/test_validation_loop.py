@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 from importlib.metadata import version as installed
 from pathlib import Path
 
@@ -76,8 +77,32 @@ def test_wilson_interval() -> None:
     assert low < 0.5 < high
 
 
+def test_progress_lines_come_once_a_while_and_at_the_end() -> None:
+    """A line once ``every`` seconds have passed since the last one (0: after every episode),
+    with the time left at the pace so far; always one at the end."""
+    from capvector.envs.base import EpisodeResult
+    from capvector.eval.rollout import ProgressLines
+
+    label = "rollout validation at step 8"
+    written: dict[float, list[str]] = {}
+    for every in (0.0, 3600.0):
+        lines = written[every] = []
+        progress = ProgressLines(3, label, lines.append, every=every)
+        for success in (True, False, True):
+            progress.update(
+                EpisodeResult(success, 10, None, None, seed=0, task="Lift", robot="Panda")
+            )
+    assert len(written[0.0]) == 3 and len(written[3600.0]) == 1
+    assert re.fullmatch(rf"{label}: 1/3 episodes, 1 succeeded, \d+ s, about \d+ s left",
+                        written[0.0][0])  # fmt: skip
+    for lines in written.values():
+        assert re.fullmatch(rf"{label}: 3/3 episodes, 2 succeeded, \d+ s", lines[-1])
+
+
 @pytest.mark.sim
-def test_fit_runs_the_rollout_validation_loop(tmp_path: Path) -> None:
+def test_fit_runs_the_rollout_validation_loop(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     demos = tmp_path / "lift.hdf5"
     assert (
         main(
@@ -128,6 +153,12 @@ def test_fit_runs_the_rollout_validation_loop(tmp_path: Path) -> None:
             float(r["val/success_rate"]) for r in csv.DictReader(f) if r["val/success_rate"]
         )
     assert rate == sum(int(e["success"]) for e in episodes) / 2
+    # The whole validation is one step (Lightning's bar sits at 0/1): its progress is logged.
+    succeeded = sum(int(e["success"]) for e in episodes)
+    progress = [m for m in caplog.messages if m.startswith("rollout validation")]
+    assert len(progress) == 1  # 2 episodes in seconds: only the final line
+    assert re.fullmatch(rf"rollout validation at step 2: 2/2 episodes, {succeeded} succeeded, \d+ s",
+                        progress[0])  # fmt: skip
     ckpt = next((version / "checkpoints").glob("*.ckpt"))
     table = tmp_path / "eval.json"
     assert main(["evaluate", "--ckpt", str(ckpt), "--episodes", "2", "--json", str(table)]) == 0

@@ -366,12 +366,18 @@ class VLAModule(L.LightningModule):
         )  # fmt: skip
 
     def _rollout(self, items: list[EpisodeItem]) -> None:
+        from capvector.eval.rollout import ProgressLines
+
         counted = [item for item in items if item.counted]  # the rest only evens out the ranks
         evaluator = self._evaluator()
+        label = f"rollout validation at step {self.global_step}"
+        if self.trainer.world_size > 1:
+            label += " (rank 0's share)"  # what rank_zero_info shows
         results = evaluator.run(
             VLAPolicy(self.backbone, self.data_spec),
             [item.spec for item in counted],
             [item.index for item in counted],
+            lines=ProgressLines(len(counted), label, rank_zero_info),
         )
         for result in results:  # the mp4s are written; the loggers people watch show them too
             if result.frames:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import os
+import time
 from collections import OrderedDict, deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -34,6 +35,7 @@ __all__ = [
     "EpisodeResult",
     "Observation",
     "Policy",
+    "ProgressLines",
     "RolloutEvaluator",
     "close_envs",
     "run_episode",
@@ -174,6 +176,41 @@ def default_workers(batch_size: int) -> int:
     return workers if workers >= 2 else 0
 
 
+class ProgressLines:
+    """A long run of episodes reported as lines, where no bar shows it: a fit's rollout
+    validation is one validation step (Lightning's bar sits at 0/1 for all of it, two hours on
+    LIBERO here), and a recipe stage's output is a file. A line once ``every`` seconds have passed
+    since the last one, and one at the end, each through ``write``."""
+
+    def __init__(
+        self, total: int, label: str, write: Callable[[str], None], every: float = 300.0
+    ) -> None:
+        self.total, self.label, self.write, self.every = total, label, write, every
+        self.done = self.succeeded = 0
+        self.began = self.last = time.monotonic()
+
+    def update(self, result: EpisodeResult) -> None:
+        self.done += 1
+        self.succeeded += int(result.success)
+        now = time.monotonic()
+        if self.done == self.total or now - self.last >= self.every:
+            self.last = now
+            self.write(self.line(now - self.began))
+
+    def line(self, elapsed: float) -> str:
+        left = ""
+        if self.done < self.total:
+            left = f", about {_minutes(elapsed / self.done * (self.total - self.done))} left"
+        return (
+            f"{self.label}: {self.done}/{self.total} episodes, {self.succeeded} succeeded, "
+            f"{_minutes(elapsed)}{left}"
+        )
+
+
+def _minutes(seconds: float) -> str:
+    return f"{seconds / 60:.0f} min" if seconds >= 60 else f"{seconds:.0f} s"
+
+
 @dataclass
 class RolloutEvaluator:
     """The one rollout loop: a policy on a list of episodes, with the settings it was trained for.
@@ -202,17 +239,26 @@ class RolloutEvaluator:
         specs: Sequence[Spec],
         indices: Sequence[int] | None = None,
         progress: bool = False,
+        lines: ProgressLines | None = None,
     ) -> list[EpisodeResult]:
         """Results in the order of ``specs``; ``indices`` are their positions in the full episode
-        list (for video selection) when ``specs`` is a part of it."""
+        list (for video selection) when ``specs`` is a part of it. ``progress``: a bar (for a
+        terminal); ``lines``: progress as log lines (where no bar shows)."""
         from tqdm import tqdm
 
         positions = list(range(len(specs)) if indices is None else indices)
         bar = tqdm(total=len(specs), desc="evaluate", unit="episode", disable=not progress)
+
+        def finished(result: EpisodeResult) -> None:
+            bar.set_postfix(task=result.task, seed=result.seed)
+            bar.update()
+            if lines is not None:
+                lines.update(result)
+
         try:
             if self.batch_size <= 1:
-                return self._run_serial(policy, specs, positions, bar)
-            return self._run_batched(policy, specs, positions, bar)
+                return self._run_serial(policy, specs, positions, finished)
+            return self._run_batched(policy, specs, positions, finished)
         finally:
             bar.close()
             if any(suite_of(spec).release_envs for spec in {type(s): s for s in specs}.values()):
@@ -241,24 +287,27 @@ class RolloutEvaluator:
         envs = _default_envs if self.envs is None else self.envs
         return start_episode(spec, envs, **self._episode_kwargs(index))
 
-    def _finish(self, result: EpisodeResult, bar: Any) -> EpisodeResult:
+    def _finish(
+        self, result: EpisodeResult, finished: Callable[[EpisodeResult], None]
+    ) -> EpisodeResult:
         if result.frames:
             self._write_video(result)
-        bar.set_postfix(task=result.task, seed=result.seed)
-        bar.update()
+        finished(result)
         return result
 
     def _run_serial(
-        self, policy: Policy, specs: Sequence[Spec], positions: list[int], bar: Any
-    ) -> list[EpisodeResult]:
+        self, policy: Policy, specs: Sequence[Spec], positions: list[int],
+        finished: Callable[[EpisodeResult], None],
+    ) -> list[EpisodeResult]:  # fmt: skip
         return [
-            self._finish(run_episode(policy, self._episode(spec, i)), bar)
+            self._finish(run_episode(policy, self._episode(spec, i)), finished)
             for i, spec in zip(positions, specs, strict=True)
         ]
 
     def _run_batched(
-        self, policy: Policy, specs: Sequence[Spec], positions: list[int], bar: Any
-    ) -> list[EpisodeResult]:
+        self, policy: Policy, specs: Sequence[Spec], positions: list[int],
+        finished: Callable[[EpisodeResult], None],
+    ) -> list[EpisodeResult]:  # fmt: skip
         """Up to ``batch_size`` episodes at once: the simulators step (in worker processes, or
         here) while the policy waits, then one policy call serves every episode's next chunk."""
         workers = default_workers(self.batch_size) if self.workers is None else self.workers
@@ -278,7 +327,7 @@ class RolloutEvaluator:
             next_commands = []
             for slot, reply in slots.handle(commands):
                 if isinstance(reply, EpisodeResult):
-                    results[running.pop(slot)] = self._finish(reply, bar)
+                    results[running.pop(slot)] = self._finish(reply, finished)
                     if pending:  # the slot takes the next episode, observed next round
                         next_commands.append(start(slot))
                 else:
