@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import re
 import subprocess
 import sys
@@ -133,6 +134,39 @@ def test_status_gives_a_fits_step_of_its_max_steps_and_its_recent_step_time(tmp_
     assert stage_status(stage).startswith(
         "started, not done: step 149 logged (0.90 s per step lately)"
     )
+
+
+def test_status_gives_a_running_fits_rollout_validation_under_way(tmp_path: Path) -> None:
+    """The metrics stop at a validation's step for all of it: `--status` adds the last progress
+    line of a validation under way from the running fit's log, and nothing once it is done or
+    when the fit is not running (it validates again when resumed)."""
+    from capvector.workflows.launchers import LOG, lock_stage
+
+    recipe = tmp_path / "recipe.yaml"
+    recipe.write_text(f"run_dir: {tmp_path}\nstages:\n  - {{name: sft, command: fit, args: []}}\n")
+    (stage,) = load_recipe(recipe)[1]
+    fit_dir = stage.directory / "fit" / "version_0"
+    fit_dir.mkdir(parents=True)
+    (fit_dir / "config.yaml").write_text("trainer:\n  max_steps: 8000\n")
+    (fit_dir / "metrics.csv").write_text("epoch,step,train/loss\n0,3999,0.5\n")
+    under_way = (
+        "rollout validation at step 4000: 36/100 episodes, 9 succeeded, 44 min, about 78 min left"
+    )
+    log = stage.directory / LOG
+    log.write_text(
+        f"Epoch 0 \r\n[info] using task orders\n{under_way.replace('36/', '12/')}\n{under_way}\n"
+    )
+    assert under_way not in stage_status(stage)  # stopped: the validation starts again
+    lock = lock_stage(stage.directory)  # as the fit's process holds it
+    try:
+        assert stage_status(stage) == (
+            f"running: step 3999 of 8000 logged; {under_way}; no checkpoint yet: starts again"
+        )
+        with log.open("a") as f:
+            f.write("rollout validation at step 4000: 100/100 episodes, 25 succeeded, 2.0 h\n")
+        assert "rollout validation" not in stage_status(stage)
+    finally:
+        os.close(lock)
 
 
 def test_a_stage_stopped_and_resumed_is_done_in_the_time_of_all_its_runs(tmp_path: Path) -> None:

@@ -48,6 +48,7 @@ from capvector.io.names import (
     MERGED_VECTORS,
     STATISTICS_FILE,
     SUCCESS_BY_TASK,
+    VALIDATION_PROGRESS,
     CheckpointMetadata,
 )
 from capvector.io.tensors import LazyTensors, TensorInfo, all_finite, tensor_info
@@ -370,7 +371,7 @@ class VLAModule(L.LightningModule):
 
         counted = [item for item in items if item.counted]  # the rest only evens out the ranks
         evaluator = self._evaluator()
-        label = f"rollout validation at step {self.global_step}"
+        label = f"{VALIDATION_PROGRESS} {self.global_step}"
         if self.trainer.world_size > 1:
             label += " (rank 0's share)"  # what rank_zero_info shows
         results = evaluator.run(

@@ -30,6 +30,9 @@ EPISODES_LOG = "episodes.csv"
 """Per-episode rollout outcomes of the validation loop, beside Lightning's ``metrics.csv``."""
 EPISODE_COLUMNS = ("step", "task", "seed", "success", "stack", "renderer")
 """``episodes.csv``'s header: each outcome with the simulator stack and renderer behind it."""
+VALIDATION_PROGRESS = "rollout validation at step"
+"""How the validation loop's progress lines begin (``ProgressLines``), which ``capvector recipe
+--status`` reads back from a running fit's log."""
 
 # A capability vector folder (capvector extract / compose), and its PEFT LoRA adapter form.
 VECTOR_FORMAT = "capvector-vector"

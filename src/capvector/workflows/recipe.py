@@ -61,15 +61,18 @@ import yaml
 
 from capvector.errors import CapVectorError, config_error, did_you_mean, unknown_name
 from capvector.eval.results import SuccessRow, format_success_table
+from capvector.io.names import VALIDATION_PROGRESS
 from capvector.tool_cli import run_tool
 from capvector.workflows.launchers import (
     DONE,
     LAUNCHERS,
+    LOG,
     REQUEUE_SIGNAL,
     LocalLauncher,
     Resources,
     Started,
     SubmititLauncher,
+    log_tail,
     make_launcher,
     running_pid,
     still_running,
@@ -715,11 +718,25 @@ def stage_status(stage: Stage) -> str:
         if total:  # past the last step (its final validation), nothing is left to train
             left = f": {_hours_or_minutes(max(0, total - max(steps)) * lately)} of steps left"
         logged += f" ({lately:.2f} s per step lately{left})"
+    if pid is not None and (validating := validation_in_progress(stage.directory / LOG)):
+        logged += f"; {validating}"
     resumes = (
         "resumes from its last checkpoint" if checkpoint.is_file()
         else "no checkpoint yet: starts again"
     )  # fmt: skip
     return f"{state}: {logged}; {resumes}"
+
+
+def validation_in_progress(log: Path) -> str:
+    """The last progress line of a rollout validation still under way in a running fit's log
+    (``capvector.eval.rollout.ProgressLines``), or "": the metrics stop at the validation's step
+    for all of it (two hours of LIBERO episodes here), which would look like a fit that hangs."""
+    lines = [line for line in log_tail(log, 20_000).splitlines() if VALIDATION_PROGRESS in line]
+    if not lines:
+        return ""
+    last = lines[-1][lines[-1].index(VALIDATION_PROGRESS) :]
+    counts = re.search(r": (\d+)/(\d+) episodes", last)
+    return last if counts and counts[1] != counts[2] else ""
 
 
 def arguments_changed(stage: Stage, marker: dict) -> str:
