@@ -17,6 +17,7 @@ from capvector.cli import main
 from capvector.errors import CapVectorError
 from capvector.workflows.launchers import record_run, write_done
 from capvector.workflows.recipe import (
+    Stage,
     command_line,
     dependencies,
     expand_seeds,
@@ -112,14 +113,21 @@ def test_recipe_runs_resumes_and_never_redoes_a_stage(tmp_path: Path, demo_file:
     assert re.search(r"  downstream  done in \d+ s\n", status)
 
 
-def test_status_gives_a_fits_step_of_its_max_steps_and_its_recent_step_time(tmp_path: Path) -> None:
-    """What `--status` says of a stopped fit, from the files Lightning and StepCost wrote."""
+def fit_stage_folder(tmp_path: Path) -> tuple[Stage, Path]:
+    """A recipe's one fit stage, and its fit's folder with the config Lightning saved there
+    (8,000 steps)."""
     recipe = tmp_path / "recipe.yaml"
     recipe.write_text(f"run_dir: {tmp_path}\nstages:\n  - {{name: sft, command: fit, args: []}}\n")
     (stage,) = load_recipe(recipe)[1]
     fit_dir = stage.directory / "fit" / "version_0"
     fit_dir.mkdir(parents=True)
     (fit_dir / "config.yaml").write_text("trainer:\n  max_steps: 8000\n")
+    return stage, fit_dir
+
+
+def test_status_gives_a_fits_step_of_its_max_steps_and_its_recent_step_time(tmp_path: Path) -> None:
+    """What `--status` says of a stopped fit, from the files Lightning and StepCost wrote."""
+    stage, fit_dir = fit_stage_folder(tmp_path)
     rows = ["epoch,perf/step_seconds,step,train/loss"]
     rows += [f"0,{seconds},{step},0.5" for step, seconds in ((49, 2.0), (99, 0.9), (149, 0.8))]
     rows += ["0,,149,"]  # a validation row: no step time
@@ -142,12 +150,7 @@ def test_status_gives_a_running_fits_rollout_validation_under_way(tmp_path: Path
     when the fit is not running (it validates again when resumed)."""
     from capvector.workflows.launchers import LOG, lock_stage
 
-    recipe = tmp_path / "recipe.yaml"
-    recipe.write_text(f"run_dir: {tmp_path}\nstages:\n  - {{name: sft, command: fit, args: []}}\n")
-    (stage,) = load_recipe(recipe)[1]
-    fit_dir = stage.directory / "fit" / "version_0"
-    fit_dir.mkdir(parents=True)
-    (fit_dir / "config.yaml").write_text("trainer:\n  max_steps: 8000\n")
+    stage, fit_dir = fit_stage_folder(tmp_path)
     (fit_dir / "metrics.csv").write_text("epoch,step,train/loss\n0,3999,0.5\n")
     under_way = (
         "rollout validation at step 4000: 36/100 episodes, 9 succeeded, 44 min, about 78 min left"
