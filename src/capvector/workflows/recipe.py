@@ -555,9 +555,10 @@ class Scheduler:
         try:
             while len(self.finished) < len(self.names) and not self.failed:
                 self.start_ready()
-                if self.running:
+                # Nothing more can start until a stage ends (room, waits): resolving the stages
+                # that wait at every poll cost a study's recipe ~10 % of a core beside its fits.
+                while self.running and not self.reap_ended():
                     time.sleep(self.runner.poll_seconds)
-                    self.reap_ended()
             for name in list(self.running):  # a stage failed: let the others finish, then stop
                 self.reap(name, self.running[name].wait())
         except BaseException:  # Ctrl-C, SIGTERM, an error: the local stages stop with the recipe
@@ -617,11 +618,15 @@ class Scheduler:
         if not self.quiet:
             print(f"  {self.running[name].where()}", flush=True)
 
-    def reap_ended(self) -> None:
+    def reap_ended(self) -> bool:
+        """Reap the stages that have ended; whether any had."""
+        ended = False
         for name in list(self.running):
             code = self.running[name].poll()
             if code is not None:
                 self.reap(name, code)
+                ended = True
+        return ended
 
     def reap(self, name: str, code: int) -> None:
         started = self.running.pop(name)
