@@ -12,10 +12,11 @@ import torch
 from capvector.cli import main
 from capvector.data.datamodule import RobotDataModule
 from capvector.errors import CapVectorError
+from capvector.eval.results import best_scale
 from capvector.module import VLAModule
 from capvector.vectors import extract
 from capvector.workflows.fit import run_lightning_cli
-from capvector.workflows.sweep import best_scale, sweep
+from capvector.workflows.sweep import sweep
 from conftest import cpu_trainer, write_demo_file
 
 

@@ -33,6 +33,15 @@ def success_cell(successes: int, episodes: int) -> str:
     return f"{successes / episodes:.0%} ({successes}/{episodes}; {low:.0%}–{high:.0%})"
 
 
+def best_scale(rows: list[dict[str, Any]]) -> float:
+    """The λ of ``capvector sweep-scale``'s rows (its ``sweep.json``) with the highest success
+    rate; ties (and sweeps without rollouts) go to the lowest held-out L1. Here, not in the sweep's
+    module, so that the recipe reads it without importing Lightning."""
+    return min(rows, key=lambda r: (-r.get("success_rate", 0.0), r.get("held_out_l1", 0.0)))[
+        "scale"
+    ]
+
+
 class _Episode(Protocol):
     success: bool
     steps: int

@@ -201,11 +201,18 @@ def log_tail(path: Path, size: int = 3000) -> str:
     return path.read_bytes()[-size:].decode(errors="replace") if path.is_file() else ""
 
 
+GPU_DEVICE_FILES = ("/dev/nvidiactl", "/dev/kfd", "/dev/dxg")
+"""What a GPU torch could use shows in /dev: NVIDIA's driver, ROCm's, WSL 2's (its CUDA)."""
+
+
 def visible_gpus() -> list[str]:
     """The GPUs this process may hand out: ``CUDA_VISIBLE_DEVICES`` (ids, UUIDs or MIG names) when
-    set, else every GPU CUDA finds."""
+    set, else every GPU CUDA finds; none without a GPU driver's device file, without importing
+    torch (~300 MB resident in a recipe that waits for days, and seconds of every start)."""
     if "CUDA_VISIBLE_DEVICES" in os.environ:
         return [g.strip() for g in os.environ["CUDA_VISIBLE_DEVICES"].split(",") if g.strip()]
+    if not any(os.path.exists(path) for path in GPU_DEVICE_FILES):
+        return []
     import torch
 
     return [str(i) for i in range(torch.cuda.device_count())]

@@ -60,7 +60,7 @@ from typing import Any
 import yaml
 
 from capvector.errors import CapVectorError, config_error, did_you_mean, unknown_name
-from capvector.eval.results import SuccessRow, format_success_table
+from capvector.eval.results import SuccessRow, best_scale, format_success_table
 from capvector.io.names import VALIDATION_PROGRESS
 from capvector.tool_cli import run_tool
 from capvector.workflows.launchers import (
@@ -116,8 +116,6 @@ def stage_outputs(run_dir: Path, name: str) -> dict[str, str]:
 
 def _best_scale(sweep_dir: str) -> str:
     """Resolver ``${best_scale:DIR}``: the best λ of a finished ``sweep-scale`` stage."""
-    from capvector.workflows.sweep import best_scale
-
     path = Path(sweep_dir) / "sweep.json"
     if not path.is_file():
         return "<best λ of " + sweep_dir + ">"  # a dry run before the sweep has run

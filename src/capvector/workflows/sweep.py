@@ -29,7 +29,7 @@ from capvector.envs.base import EVAL_SEED_START, VALIDATION_SEED_START
 from capvector.envs.registry import get_suite
 from capvector.errors import CapVectorError
 from capvector.eval.device import Precision, resolve_device, resolve_precision
-from capvector.eval.results import success_cell, wilson_interval
+from capvector.eval.results import best_scale, success_cell, wilson_interval
 from capvector.io.hub import local_folder
 from capvector.io.loading import read_json
 from capvector.io.names import DATA_SPEC_FILE
@@ -291,13 +291,6 @@ def sweep(
         rows.sort(key=lambda r: r["scale"])
         atomic_write_bytes(results_path, json.dumps(rows, indent=2).encode())  # resumable
     return [r for r in rows if r["scale"] in scales]
-
-
-def best_scale(rows: list[dict[str, Any]]) -> float:
-    """Highest success rate; ties (and sweeps without rollouts) go to the lowest held-out L1."""
-    return min(rows, key=lambda r: (-r.get("success_rate", 0.0), r.get("held_out_l1", 0.0)))[
-        "scale"
-    ]
 
 
 def format_table(rows: list[dict[str, Any]]) -> str:
