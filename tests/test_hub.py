@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -83,6 +84,9 @@ def test_evaluate_takes_a_hub_id_offline(hub_cache: Path, tmp_path: Path) -> Non
     assert done.returncode == 0, done.stderr[-3000:]
     (row,) = json.loads(out.read_text())
     assert row["episodes"] == 1 and row["per_episode"][0]["steps"] == 8
+    # Its output a pipe, not a terminal: progress lines instead of a bar's redraws.
+    assert re.search(r"^evaluating: 1/1 episodes, 0 succeeded, \d+ s$", done.stderr, re.M)
+    assert "episode/s" not in done.stderr
 
 
 def test_vectors_from_hub_ids_name_them_as_base_model_and_paths_in_the_body(

@@ -181,7 +181,10 @@ def test_one_upstream_episode_is_laid_out_and_moves_as_the_ports(
             "--max-steps", "16", "--backend", backend, "--json", str(out), *extra,
         ])  # fmt: skip
         assert code == 0
-        table = capsys.readouterr().out
+        printed = capsys.readouterr()
+        table = printed.out
+        # Where no bar shows (a recipe stage's log), the progress lines --status reads.
+        assert "evaluating: 1/1 episodes, 0 succeeded" in printed.err, printed.err[-2000:]
         (runs[backend],) = json.loads(out.read_text())
         stack = runs[backend]["stack"]
         assert f"Stack: {stack}, {runs[backend]['renderer']} renderer." in table

@@ -175,6 +175,29 @@ def test_status_gives_a_running_fits_rollout_validation_under_way(tmp_path: Path
         os.close(lock)
 
 
+def test_status_gives_a_running_evaluations_progress(tmp_path: Path) -> None:
+    """A `capvector evaluate` stage logs nothing else until its table: `--status` adds its last
+    progress line while it runs, and nothing when it is stopped or its episodes are all done."""
+    from capvector.workflows.launchers import LOG, lock_stage
+
+    recipe = tmp_path / "recipe.yaml"
+    recipe.write_text(f"run_dir: {tmp_path}\nstages:\n  - {{name: eval, command: evaluate}}\n")
+    (stage,) = load_recipe(recipe)[1]
+    stage.directory.mkdir()
+    under_way = "evaluating: 36/100 episodes, 9 succeeded, 44 min, about 78 min left"
+    log = stage.directory / LOG
+    log.write_text(f"libero_spatial/5/0: failure after 220 steps\n{under_way}\n[info] evaluating\n")
+    assert stage_status(stage) == "started, not done"
+    lock = lock_stage(stage.directory)  # as the evaluation's process holds it
+    try:
+        assert stage_status(stage) == f"running: {under_way}"
+        with log.open("a") as f:
+            f.write("evaluating: 100/100 episodes, 25 succeeded, 2.0 h\n")
+        assert stage_status(stage) == "running"
+    finally:
+        os.close(lock)
+
+
 def test_a_stage_stopped_and_resumed_is_done_in_the_time_of_all_its_runs(tmp_path: Path) -> None:
     """A fit stopped once and resumed: `--status` gives its two runs' time, not its last run's."""
     recipe = tmp_path / "recipe.yaml"

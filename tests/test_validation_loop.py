@@ -80,7 +80,6 @@ def test_wilson_interval() -> None:
 def test_progress_lines_come_once_a_while_and_at_the_end() -> None:
     """A line once ``every`` seconds have passed since the last one (0: after every episode),
     with the time left at the pace so far; always one at the end."""
-    from capvector.envs.base import EpisodeResult
     from capvector.eval.rollout import ProgressLines
 
     label = "rollout validation at step 8"
@@ -89,9 +88,7 @@ def test_progress_lines_come_once_a_while_and_at_the_end() -> None:
         lines = written[every] = []
         progress = ProgressLines(3, label, lines.append, every=every)
         for success in (True, False, True):
-            progress.update(
-                EpisodeResult(success, 10, None, None, seed=0, task="Lift", robot="Panda")
-            )
+            progress.update(success)
     assert len(written[0.0]) == 3 and len(written[3600.0]) == 1
     assert re.fullmatch(rf"{label}: 1/3 episodes, 1 succeeded, \d+ s, about \d+ s left",
                         written[0.0][0])  # fmt: skip

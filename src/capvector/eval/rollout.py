@@ -179,8 +179,9 @@ def default_workers(batch_size: int) -> int:
 class ProgressLines:
     """A long run of episodes reported as lines, where no bar shows it: a fit's rollout
     validation is one validation step (Lightning's bar sits at 0/1 for all of it, two hours on
-    LIBERO here), and a recipe stage's output is a file. A line once ``every`` seconds have passed
-    since the last one, and one at the end, each through ``write``."""
+    LIBERO here), and a recipe stage's output is a file (``capvector evaluate`` there). A line once
+    ``every`` seconds have passed since the last one, and one at the end, each through ``write``;
+    ``capvector recipe --status`` shows a running stage's last one."""
 
     def __init__(
         self, total: int, label: str, write: Callable[[str], None], every: float = 300.0
@@ -189,9 +190,10 @@ class ProgressLines:
         self.done = self.succeeded = 0
         self.began = self.last = time.monotonic()
 
-    def update(self, result: EpisodeResult) -> None:
+    def update(self, success: bool) -> None:
+        """One more episode ended, successful or not."""
         self.done += 1
-        self.succeeded += int(result.success)
+        self.succeeded += int(success)
         now = time.monotonic()
         if self.done == self.total or now - self.last >= self.every:
             self.last = now
@@ -253,7 +255,7 @@ class RolloutEvaluator:
             bar.set_postfix(task=result.task, seed=result.seed)
             bar.update()
             if lines is not None:
-                lines.update(result)
+                lines.update(result.success)
 
         try:
             if self.batch_size <= 1:

@@ -33,6 +33,9 @@ EPISODE_COLUMNS = ("step", "task", "seed", "success", "stack", "renderer")
 VALIDATION_PROGRESS = "rollout validation at step"
 """How the validation loop's progress lines begin (``ProgressLines``), which ``capvector recipe
 --status`` reads back from a running fit's log."""
+EVALUATE_PROGRESS = "evaluating"
+"""How ``capvector evaluate``'s progress lines begin where no bar shows (its output a file, e.g. a
+recipe stage's log), which ``capvector recipe --status`` reads back."""
 
 # A capability vector folder (capvector extract / compose), and its PEFT LoRA adapter form.
 VECTOR_FORMAT = "capvector-vector"

@@ -15,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import re
 import socket
 import subprocess
 import tempfile
@@ -22,10 +23,13 @@ import threading
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from capvector.errors import CapVectorError
 from capvector.eval.device import Precision, resolve_device, resolve_precision
+
+if TYPE_CHECKING:
+    from capvector.eval.rollout import ProgressLines
 
 UPSTREAM_ENV_VAR = "CAPVECTOR_LIBERO14"
 """Where the upstream environment is when ``--upstream-env`` is not given."""
@@ -36,6 +40,8 @@ INSTALL_SCRIPT = TOOLS / "install_libero14.sh"
 CLIENT = TOOLS / "eval_client.py"
 CLIENT_ERROR = "eval_client.py: error: "
 """How the client's refusals start (``ERROR`` there)."""
+CLIENT_EPISODE = re.compile(r"\w+/\d+/\d+: (success|failure) after \d+ steps")
+"""The client's line for an episode that ended: ``libero_spatial/5/3: failure after 220 steps``."""
 
 
 def upstream_python(env: str | os.PathLike[str] | None = None) -> Path:
@@ -80,9 +86,11 @@ def evaluate_upstream(
     upstream_env: str | None = None,
     device: str | None = None,
     precision: Precision | None = None,
+    lines: ProgressLines | None = None,
 ) -> list[dict[str, Any]]:
     """The rows of ``evaluate --json`` (one per task, every trial in ``per_episode``), each with
-    its ``stack`` and ``renderer``, from LIBERO on robosuite 1.4 driving ``ckpt``'s policy."""
+    its ``stack`` and ``renderer``, from LIBERO on robosuite 1.4 driving ``ckpt``'s policy;
+    ``lines`` counts the client's episodes as they end."""
     from capvector.workflows.serve import ServedPolicy  # torch; after the cheap refusals
 
     python = upstream_python(upstream_env)
@@ -103,13 +111,14 @@ def evaluate_upstream(
             if value is not None:
                 command += [flag, str(value)]
         env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
-        _run_client(command, env)
+        _run_client(command, env, lines)
         return json.loads(out.read_text())
 
 
-def _run_client(command: list[str], env: dict[str, str]) -> None:
-    """Run the client, its progress lines through to stdout (robosuite 1.4's warnings left out);
-    a client that fails is one line: its refusal, else its last words."""
+def _run_client(command: list[str], env: dict[str, str], lines: ProgressLines | None) -> None:
+    """Run the client, its lines through to stdout (robosuite 1.4's warnings left out), each of
+    its episodes counted in ``lines``; a client that fails is one line: its refusal, else its last
+    words."""
     process = subprocess.Popen(
         command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
         stdin=subprocess.DEVNULL,
@@ -124,6 +133,8 @@ def _run_client(command: list[str], env: dict[str, str]) -> None:
         if CLIENT_ERROR in line:
             refusals.append(line.split(CLIENT_ERROR, 1)[1].rstrip())
         print(line, end="", flush=True)
+        if lines is not None and (episode := CLIENT_EPISODE.match(line)):
+            lines.update(episode[1] == "success")
     if process.wait() != 0:
         if refusals:
             raise CapVectorError(f"LIBERO's client on robosuite 1.4 refused: {refusals[-1]}")

@@ -61,7 +61,7 @@ import yaml
 
 from capvector.errors import CapVectorError, config_error, did_you_mean, unknown_name
 from capvector.eval.results import SuccessRow, best_scale, format_success_table
-from capvector.io.names import VALIDATION_PROGRESS
+from capvector.io.names import EVALUATE_PROGRESS, VALIDATION_PROGRESS
 from capvector.tool_cli import run_tool
 from capvector.workflows.launchers import (
     DONE,
@@ -697,7 +697,11 @@ def stage_status(stage: Stage) -> str:
     pid = running_pid(stage.directory)
     state = "started, not done" if pid is None else f"running (pid {pid})" if pid else "running"
     if stage.command != "fit":
-        return state
+        evaluating = pid is not None and stage.command == "evaluate"
+        under_way = (
+            progress_under_way(stage.directory / LOG, EVALUATE_PROGRESS) if evaluating else ""
+        )
+        return f"{state}: {under_way}" if under_way else state
     outputs = stage_outputs(stage.directory.parent, stage.name)
     checkpoint = Path(outputs["ckpt"])
     metrics = (
@@ -721,7 +725,9 @@ def stage_status(stage: Stage) -> str:
         if total:  # past the last step (its final validation), nothing is left to train
             left = f": {_hours_or_minutes(max(0, total - max(steps)) * lately)} of steps left"
         logged += f" ({lately:.2f} s per step lately{left})"
-    if pid is not None and (validating := validation_in_progress(stage.directory / LOG)):
+    if pid is not None and (
+        validating := progress_under_way(stage.directory / LOG, VALIDATION_PROGRESS)
+    ):
         logged += f"; {validating}"
     resumes = (
         "resumes from its last checkpoint" if checkpoint.is_file()
@@ -730,16 +736,14 @@ def stage_status(stage: Stage) -> str:
     return f"{state}: {logged}; {resumes}"
 
 
-def validation_in_progress(log: Path) -> str:
-    """The last progress line of a rollout validation still under way in a running fit's log
-    (``capvector.eval.rollout.ProgressLines``), or "": the metrics stop at the validation's step
-    for all of it (two hours of LIBERO episodes here), which would look like a fit that hangs."""
-    lines = [line for line in log_tail(log, 20_000).splitlines() if VALIDATION_PROGRESS in line]
-    if not lines:
-        return ""
-    last = lines[-1][lines[-1].index(VALIDATION_PROGRESS) :]
-    counts = re.search(r": (\d+)/(\d+) episodes", last)
-    return last if counts and counts[1] != counts[2] else ""
+def progress_under_way(log: Path, label: str) -> str:
+    """The last progress line (``capvector.eval.rollout.ProgressLines``) beginning with ``label``
+    in a running stage's log while its episodes are under way, or "": a fit's metrics stop at a
+    rollout validation's step for all of it (two hours of LIBERO episodes here), which would look
+    like a fit that hangs, and `capvector evaluate` logs nothing else until its table."""
+    pattern = re.compile(rf"{re.escape(label)}[^:]*: (\d+)/(\d+) episodes.*")
+    found = [m for line in log_tail(log, 20_000).splitlines() if (m := pattern.search(line))]
+    return found[-1][0] if found and found[-1][1] != found[-1][2] else ""
 
 
 def arguments_changed(stage: Stage, marker: dict) -> str:
