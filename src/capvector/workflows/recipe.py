@@ -686,8 +686,8 @@ def took(marker: dict) -> str:
 def stage_status(stage: Stage) -> str:
     """Where a stage stands, from its folder: done (in how long), running (a local process holds
     its lock) or started and stopped, a fit's last logged step, what its remaining steps cost at
-    its recent step time (validation not counted) and whether it would resume from a checkpoint,
-    or not started."""
+    its recent step time (validation not counted), its rollout validation or a running
+    evaluation's progress and whether it would resume from a checkpoint, or not started."""
     if stage.done_marker.is_file():
         marker = json.loads(stage.done_marker.read_text() or "{}")
         changed = arguments_changed(stage, marker)
@@ -697,10 +697,9 @@ def stage_status(stage: Stage) -> str:
     pid = running_pid(stage.directory)
     state = "started, not done" if pid is None else f"running (pid {pid})" if pid else "running"
     if stage.command != "fit":
-        evaluating = pid is not None and stage.command == "evaluate"
-        under_way = (
-            progress_under_way(stage.directory / LOG, EVALUATE_PROGRESS) if evaluating else ""
-        )
+        under_way = ""
+        if pid is not None and stage.command == "evaluate":
+            under_way = progress_under_way(stage.directory / LOG, EVALUATE_PROGRESS)
         return f"{state}: {under_way}" if under_way else state
     outputs = stage_outputs(stage.directory.parent, stage.name)
     checkpoint = Path(outputs["ckpt"])
