@@ -201,8 +201,9 @@ def log_tail(path: Path, size: int = 3000) -> str:
     return path.read_bytes()[-size:].decode(errors="replace") if path.is_file() else ""
 
 
-GPU_DEVICE_FILES = ("/dev/nvidiactl", "/dev/kfd", "/dev/dxg")
-"""What a GPU torch could use shows in /dev: NVIDIA's driver, ROCm's, WSL 2's (its CUDA)."""
+GPU_DEVICE_FILES = ("/dev/nvidiactl", "/dev/nvhost-ctrl-gpu", "/dev/kfd", "/dev/dxg")
+"""What a GPU torch could use shows in /dev: NVIDIA's driver, a Jetson's, ROCm's, WSL 2's (its
+CUDA)."""
 
 
 def visible_gpus() -> list[str]:
