@@ -696,10 +696,11 @@ def stage_status(stage: Stage) -> str:
         return "not started"
     pid = running_pid(stage.directory)
     state = "started, not done" if pid is None else f"running (pid {pid})" if pid else "running"
+    label = PROGRESS_LABELS.get(stage.command)
+    under_way = (
+        progress_under_way(stage.directory / LOG, label) if pid is not None and label else ""
+    )
     if stage.command != "fit":
-        under_way = ""
-        if pid is not None and stage.command == "evaluate":
-            under_way = progress_under_way(stage.directory / LOG, EVALUATE_PROGRESS)
         return f"{state}: {under_way}" if under_way else state
     outputs = stage_outputs(stage.directory.parent, stage.name)
     checkpoint = Path(outputs["ckpt"])
@@ -724,15 +725,17 @@ def stage_status(stage: Stage) -> str:
         if total:  # past the last step (its final validation), nothing is left to train
             left = f": {_hours_or_minutes(max(0, total - max(steps)) * lately)} of steps left"
         logged += f" ({lately:.2f} s per step lately{left})"
-    if pid is not None and (
-        validating := progress_under_way(stage.directory / LOG, VALIDATION_PROGRESS)
-    ):
-        logged += f"; {validating}"
+    if under_way:
+        logged += f"; {under_way}"
     resumes = (
         "resumes from its last checkpoint" if checkpoint.is_file()
         else "no checkpoint yet: starts again"
     )  # fmt: skip
     return f"{state}: {logged}; {resumes}"
+
+
+PROGRESS_LABELS = {"fit": VALIDATION_PROGRESS, "evaluate": EVALUATE_PROGRESS}
+"""How the progress lines of a command's stage begin (``ProgressLines``), for ``--status``."""
 
 
 def progress_under_way(log: Path, label: str) -> str:
