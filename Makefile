@@ -36,10 +36,12 @@ demo: $(VENV)/.installed
 # tests' one environment); `-m "install or not install"` adds the install tests, left out of a
 # plain run: a fresh `pip install capvector[lerobot]` without the simulator, on numpy 2, trains
 # from a LeRobot folder (minutes, beside the other tests). The 25 slowest tests are listed at the
-# end, so a CI log says where the suite's time goes.
+# end, so a CI log says where the suite's time goes. A test still running after 15 min (the
+# slowest take ~1.5) has hung: pytest-timeout fails it with its stack and the run goes on (its
+# default signal method; the thread method ends the worker, and xdist then reruns the test).
 test: $(VENV)/.installed
 	tools/slurm/install.sh
-	$(PY) -m pytest -q -n 2 --dist loadfile -m "install or not install" --durations=25
+	$(PY) -m pytest -q -n 2 --dist loadfile -m "install or not install" --durations=25 --timeout 900
 
 lint: $(VENV)/.installed
 	$(VENV)/bin/ruff check . && $(VENV)/bin/ruff format --check .

@@ -580,7 +580,13 @@ class _FrameNotFound(Exception):
 
 
 class _VideoFiles:
-    """PyAV containers open in this process, the least recently used closed first."""
+    """PyAV containers open in this process, the least recently used closed first.
+
+    FFmpeg decodes and converts on one thread here (its default is a pool of one per core): a
+    DataLoader worker forks with its parent's open containers, and freeing a decoder whose pool
+    threads stayed in the parent, or starting a pool beside them, hung a worker for good (36 of
+    100 loaders under load). The workers are the parallelism.
+    """
 
     def __init__(self, max_open: int = _MAX_OPEN_VIDEOS) -> None:
         self.pid = os.getpid()
@@ -591,7 +597,9 @@ class _VideoFiles:
         if path in self._open:
             self._open.move_to_end(path)
         else:
-            self._open[path] = _av().open(str(path))
+            container = _av().open(str(path))
+            container.streams.video[0].codec_context.thread_count = 1
+            self._open[path] = container
             if len(self._open) > self.max_open:
                 self._open.popitem(last=False)[1].close()
         return self._open[path]
@@ -615,7 +623,7 @@ class _VideoFiles:
                     continue
                 t = frame.pts * time_base
                 if abs(t - time_s) < tolerance_s:
-                    return frame.to_ndarray(format="rgb24")
+                    return frame.to_ndarray(format="rgb24", threads=1)
                 decoded.append(t)
                 if t > time_s:
                     break
