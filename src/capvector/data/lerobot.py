@@ -584,8 +584,8 @@ class _VideoFiles:
 
     FFmpeg decodes and converts on one thread here (its default is a pool of one per core): a
     DataLoader worker forks with its parent's open containers, and freeing a decoder whose pool
-    threads stayed in the parent, or starting a pool beside them, hung a worker for good (36 of
-    100 loaders under load). The workers are the parallelism.
+    threads stayed in the parent, or starting a pool beside them, hung or crashed the worker (34
+    of 100 loaders in a row). The workers are the parallelism.
     """
 
     def __init__(self, max_open: int = _MAX_OPEN_VIDEOS) -> None:
