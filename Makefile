@@ -34,8 +34,8 @@ demo: $(VENV)/.installed
 # installed here when missing, where apt-get runs as root; elsewhere that test says why it skips.
 # Two pytest-xdist workers, a test file on one worker (its module fixtures built once; the install
 # tests' one environment); `-m "install or not install"` adds the install tests, left out of a
-# plain run: a fresh `pip install capvector[lerobot]` without the simulator, on numpy 2, trains
-# from a LeRobot folder (minutes, beside the other tests). The 25 slowest tests are listed at the
+# plain run: a fresh `pip install capvector[lerobot]` without the simulator, on numpy 2 and
+# LeRobot 0.4's PyAV 15, trains from a LeRobot folder (minutes, beside the other tests). The 25 slowest tests are listed at the
 # end, so a CI log says where the suite's time goes. A test still running after 15 min (the
 # slowest take ~1.5) has hung: pytest-timeout fails it with its stack and the run goes on (its
 # default signal method; the thread method ends the worker, and xdist then reruns the test).

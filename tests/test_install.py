@@ -39,19 +39,23 @@ def _run(*args: str | Path, ok: bool = True) -> subprocess.CompletedProcess[str]
 
 @pytest.fixture(scope="module")
 def venv(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A new environment with capvector[lerobot] at the verified versions, and no simulator."""
+    """A new environment with capvector[lerobot] at the verified versions, and no simulator;
+    PyAV as LeRobot 0.4 pins it (av>=15,<16), older than the test suite's own, so the LeRobot
+    reader runs on a PyAV before 17 too (17 added threaded conversion and its `threads`)."""
     venv = tmp_path_factory.mktemp("install") / "venv"
     _run(sys.executable, "-m", "venv", venv)
     # --no-compile: byte-compiling all of torch and transformers added ~3 min to the install here
     # (setup 394 s -> 216 s); the commands below compile only what they import.
     _run(venv / "bin/python", "-m", "pip", "install", "--quiet", "--no-compile",
-         "-c", ROOT / "constraints.txt", f"{ROOT}[lerobot]")  # fmt: skip
+         "-c", ROOT / "constraints.txt", f"{ROOT}[lerobot]", "av>=15,<16")  # fmt: skip
     return venv
 
 
 def test_without_the_sim_extra_numpy_is_2_and_the_simulator_absent(venv: Path) -> None:
     version = _run(venv / "bin/python", "-c", "import numpy; print(numpy.__version__)").stdout
     assert int(version.split(".")[0]) >= 2, version
+    version = _run(venv / "bin/python", "-c", "import av; print(av.__version__)").stdout
+    assert version.startswith("15."), version
     for simulator in ("robosuite", "mujoco"):
         done = _run(venv / "bin/python", "-c", f"import {simulator}", ok=False)
         assert f"No module named '{simulator}'" in done.stderr

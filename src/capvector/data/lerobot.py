@@ -592,6 +592,10 @@ class _VideoFiles:
         self.pid = os.getpid()
         self.max_open = max_open
         self._open: OrderedDict[Path, av.container.InputContainer] = OrderedDict()
+        # PyAV 17 converts on a pool unless told `threads`; earlier ones use one thread and
+        # refuse the argument (LeRobot 0.4 pins av < 16).
+        pooled = int(_av().__version__.split(".")[0]) >= 17
+        self._to_rgb: dict[str, Any] = {"format": "rgb24", **({"threads": 1} if pooled else {})}
 
     def _container(self, path: Path) -> av.container.InputContainer:
         if path in self._open:
@@ -623,7 +627,7 @@ class _VideoFiles:
                     continue
                 t = frame.pts * time_base
                 if abs(t - time_s) < tolerance_s:
-                    return frame.to_ndarray(format="rgb24", threads=1)
+                    return frame.to_ndarray(**self._to_rgb)
                 decoded.append(t)
                 if t > time_s:
                     break
