@@ -588,21 +588,26 @@ class _VideoFiles:
     of 100 loaders in a row). The workers are the parallelism.
     """
 
-    def __init__(self, max_open: int = _MAX_OPEN_VIDEOS) -> None:
+    def __init__(self, max_open: int = _MAX_OPEN_VIDEOS, threads: int = 1) -> None:
+        """``threads``: FFmpeg's per decoder and conversion; 0 is its default pool (what
+        ``benchmarks/bench_video_decode.py`` compares against)."""
         self.pid = os.getpid()
         self.max_open = max_open
+        self.threads = threads
         self._open: OrderedDict[Path, av.container.InputContainer] = OrderedDict()
         # PyAV 17 converts on a pool unless told `threads`; earlier ones use one thread and
         # refuse the argument (LeRobot 0.4 pins av < 16).
         pooled = int(_av().__version__.split(".")[0]) >= 17
-        self._to_rgb: dict[str, Any] = {"format": "rgb24", **({"threads": 1} if pooled else {})}
+        self._to_rgb: dict[str, Any] = {"format": "rgb24"} | (
+            {"threads": threads} if pooled else {}
+        )
 
     def _container(self, path: Path) -> av.container.InputContainer:
         if path in self._open:
             self._open.move_to_end(path)
         else:
             container = _av().open(str(path))
-            container.streams.video[0].codec_context.thread_count = 1
+            container.streams.video[0].codec_context.thread_count = self.threads
             self._open[path] = container
             if len(self._open) > self.max_open:
                 self._open.popitem(last=False)[1].close()
