@@ -9,6 +9,9 @@ SFT.
 
 For LIBERO's layout: ``--cameras agentview robot0_eye_in_hand --proprio-keys ee_states
 gripper_states`` (configs/recipes/libero_train.yaml).
+
+Every arm holds a model of its own: about 2 GB each for the mini (``--pretrained`` a mini export),
+so pick the arms with ``--arms`` where memory is short.
 """
 
 from __future__ import annotations
@@ -57,9 +60,17 @@ ARMS: dict[str, Callable[[], list[Objective]]] = {
     "+ reasoning, 4 samples, every position projected": lambda: [
         ReasoningEveryPosition(weight=0.1, samples=4)
     ],
+    "+ reasoning, 2 samples": lambda: [ReasoningCoTraining(weight=0.1, samples=2)],
+    "+ reasoning, 2 samples, answer vocabulary": lambda: [
+        ReasoningCoTraining(weight=0.1, samples=2, vocabulary="answers")
+    ],
     "aux_sft.yaml (spatial + reasoning on 4)": lambda: [
         spatial(),
         ReasoningCoTraining(weight=0.1, samples=4),
+    ],
+    "mini_study_aux.yaml (spatial + reasoning on 2, answer vocabulary)": lambda: [
+        spatial(),
+        ReasoningCoTraining(weight=0.1, samples=2, vocabulary="answers"),
     ],
 }
 
@@ -74,6 +85,7 @@ def step_function(
         module = VLAModule(backbone=args.preset, data_spec=data.spec)
     for objective in objectives:  # as AuxiliaryObjective.setup attaches them
         objective.bind(module.backbone)
+        objective.bind_data(data.train_dataset, module.backbone)
         module.add_objective(objective)
     optimizer = torch.optim.AdamW([p for p in module.parameters() if p.requires_grad], lr=1e-4)
 

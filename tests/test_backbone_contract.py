@@ -315,6 +315,29 @@ def test_language_model_logits_label_only_the_answer_and_are_causal(preset: str)
 
 
 @each_preset
+def test_answer_logits_over_a_vocabulary_are_its_columns_of_the_full_logits(preset: str) -> None:
+    """``vocabulary``: the same hidden states projected on those tokens' rows of the head alone,
+    and each label its index there. ``answer_label_ids`` are the labels ``text_pass`` scores, so a
+    vocabulary built from them covers every answer; a label outside it is an error."""
+    model = build(preset).eval()
+    batch = make_batch(model, actions=False)
+    prompts, answers = ["Where?", "Which cube?"], ["left", "the red one"]
+    _, labels = model.text_pass(batch, prompts, answers)
+    for row, answer in enumerate(answers):
+        assert labels[row][labels[row] != IGNORE_INDEX].tolist() == model.answer_label_ids(answer)
+    used = {i for answer in answers for i in model.answer_label_ids(answer)}
+    vocabulary = torch.tensor(sorted(used | {0, 5}))  # and two tokens no answer uses
+    with torch.no_grad():
+        full, targets = model.answer_logits(batch, prompts, answers)
+        some, indices = model.answer_logits(batch, prompts, answers, vocabulary)
+    assert some.shape == (len(targets), len(vocabulary))
+    torch.testing.assert_close(some, full[:, vocabulary])
+    assert torch.equal(vocabulary[indices], targets)
+    with pytest.raises(BackboneError, match="not in the 2-token answer vocabulary"):
+        model.answer_logits(batch, prompts, answers, torch.tensor([0, 5]))
+
+
+@each_preset
 def test_answer_logits_give_the_next_token_loss_of_every_position(preset: str) -> None:
     """The reasoning loss projects only answer positions onto the vocabulary: the same loss, and
     the same gradients, as scoring every position's logits with -100 where no answer token follows."""

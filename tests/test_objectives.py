@@ -232,6 +232,42 @@ def test_reasoning_samples_scores_the_batchs_first_samples_alone(demo_file: Path
         ReasoningCoTraining(samples=0)
 
 
+def test_reasoning_answer_vocabulary_is_the_training_annotations_tokens(
+    demo_file: Path, tmp_path: Path
+) -> None:
+    """vocabulary="answers": collected from every annotation of the training set when the fit
+    starts, and the loss is the cross-entropy over those tokens' logits alone."""
+    import h5py
+
+    dm = datamodule(demo_file)
+    module = VLAModule(data_spec=dm.spec)
+    objective = ReasoningCoTraining(vocabulary="answers")
+    fit(module, dm, tmp_path, [AuxiliaryObjective(objective)], steps=2)
+    backbone = module.backbone
+    with h5py.File(demo_file) as f:
+        texts = [t.decode() for demo in f["data"].values() for t in demo["annotations"][:]]
+    expected = sorted({i for text in texts for i in backbone.answer_label_ids(text)})
+    assert objective.answer_vocabulary.tolist() == expected
+    assert len(expected) < len(backbone.tokenizer) / 10
+    batch = {**first_batch(dm, size=2)}
+    prompts, answers = objective.text_inputs(batch)[1:]
+    with torch.no_grad():
+        logits, labels = backbone.language_model_logits(batch, prompts, answers)
+        scored = labels[:, 1:] != -100
+        columns = logits[:, :-1][scored][:, objective.answer_vocabulary]
+        targets = torch.searchsorted(objective.answer_vocabulary, labels[:, 1:][scored])
+        expected_loss = torch.nn.functional.cross_entropy(columns, targets)
+        torch.testing.assert_close(objective(batch, None, backbone), expected_loss)
+    with pytest.raises(CapVectorError, match="collected from the training set"):
+        ReasoningCoTraining(vocabulary="answers")(batch, None, backbone)
+    with pytest.raises(CapVectorError, match="must be 'full' or 'answers'"):
+        ReasoningCoTraining(vocabulary="some")
+    no_text = RobotDataModule(train_files=[str(demo_file)], batch_size=4)
+    no_text.setup("fit")
+    with pytest.raises(CapVectorError, match="does not load annotations"):
+        ReasoningCoTraining(vocabulary="answers").bind_data(no_text.train_dataset, backbone)
+
+
 @pytest.mark.parametrize("preset", ["openvla-oft-tiny", "pi05-tiny"])
 def test_reasoning_runs_past_the_tiny_presets_512_positions(
     preset: str, demo_file: Path, caplog: pytest.LogCaptureFixture
@@ -373,6 +409,27 @@ def test_each_single_objective_lever_drops_the_other_objective_and_nothing_else(
     assert len(dropped) == 1
     base["trainer"]["callbacks"].remove(dropped[0])
     assert lever == base
+
+
+def test_the_mini_studys_aux_arm_changes_only_the_reasoning_samples_and_vocabulary(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    data = write_demo_file(tmp_path / "demos.hdf5")
+    base = resolved_aux_sft(capsys, data)
+    arm = resolved_aux_sft(
+        capsys, data, "--config", str(REPO / "configs/recipes/mini_study_aux.yaml")
+    )
+    reasoning = [
+        c["init_args"]["objective"]["init_args"]
+        for config in (base, arm)
+        for c in objective_callbacks(config)
+        if c["init_args"]["objective"]["class_path"].endswith("ReasoningCoTraining")
+    ]
+    assert [(r.pop("samples"), r.pop("vocabulary")) for r in reasoning] == [
+        (4, "full"),
+        (2, "answers"),
+    ]
+    assert arm == base
 
 
 def test_aux_sft_config_trains_through_the_cli(tmp_path: Path) -> None:

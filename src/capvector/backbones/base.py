@@ -51,6 +51,18 @@ from capvector.registry import Registry
 IGNORE_INDEX = -100
 """Label of the positions a text loss skips (``torch.nn.functional.cross_entropy``'s default)."""
 
+
+def project_onto_vocabulary(
+    hidden: Tensor, weight: Tensor, bias: Tensor | None = None, vocabulary: Tensor | None = None
+) -> Tensor:
+    """``hidden @ weight.T + bias``, a language head's logits; with ``vocabulary``, only the
+    rows of ``weight`` (and ``bias``) of those token ids (``VLABackbone.language_head``)."""
+    if vocabulary is not None:
+        weight = weight[vocabulary]
+        bias = None if bias is None else bias[vocabulary]
+    return torch.nn.functional.linear(hidden, weight, bias)
+
+
 EMBEDDING_PARAMETERS = "embedding_parameters"
 
 
@@ -233,8 +245,14 @@ class VLABackbone(nn.Module, ABC):
         """
         raise BackboneError(f"{type(self).__name__} has no language-model head for text objectives")
 
-    def language_head(self, hidden: Tensor) -> Tensor:
-        """Vocabulary logits of final hidden states (``text_pass``'s), any leading shape."""
+    def answer_label_ids(self, answer: str) -> list[int]:
+        """The token ids ``text_pass`` scores for ``answer``: its tokens and the token that ends
+        it. Families with a language head override it, and build ``text_pass``'s labels with it."""
+        raise BackboneError(f"{type(self).__name__} has no language-model head for text objectives")
+
+    def language_head(self, hidden: Tensor, vocabulary: Tensor | None = None) -> Tensor:
+        """Vocabulary logits of final hidden states (``text_pass``'s), any leading shape; with
+        ``vocabulary`` (sorted token ids), only those columns, in that order."""
         raise BackboneError(f"{type(self).__name__} has no language-model head for text objectives")
 
     def language_model_logits(
@@ -245,15 +263,34 @@ class VLABackbone(nn.Module, ABC):
         return self.language_head(hidden), labels
 
     def answer_logits(
-        self, batch: Batch, prompts: list[str], answers: list[str]
+        self,
+        batch: Batch,
+        prompts: list[str],
+        answers: list[str],
+        vocabulary: Tensor | None = None,
     ) -> tuple[Tensor, Tensor]:
         """(N, V) logits of the N positions whose next token is an answer label, and those (N,)
         labels: the next-token loss of ``language_model_logits`` without projecting every visual
         and prompt position onto the vocabulary (Gemma's 262 k: most of the mini's text pass).
+
+        With ``vocabulary`` (sorted token ids that hold every label), the logits are only its
+        columns and each label is its index there: a softmax over those tokens alone.
         """
         hidden, labels = self.text_pass(batch, prompts, answers)
         scored = labels[:, 1:] != IGNORE_INDEX
-        return self.language_head(hidden[:, :-1][scored]), labels[:, 1:][scored]
+        targets = labels[:, 1:][scored]
+        if vocabulary is not None:
+            vocabulary = vocabulary.to(targets.device)
+            index = torch.searchsorted(vocabulary, targets).clamp(max=len(vocabulary) - 1)
+            missing = targets[vocabulary[index] != targets]
+            if len(missing):
+                raise BackboneError(
+                    f"answer token ids {sorted(set(missing.tolist()))[:10]} are not in the "
+                    f"{len(vocabulary)}-token answer vocabulary; build it from every answer the "
+                    "objective scores"
+                )
+            targets = index
+        return self.language_head(hidden[:, :-1][scored], vocabulary), targets
 
     _tokenizer: Any = None
     missing_tokenizer_hint: ClassVar[str] = (

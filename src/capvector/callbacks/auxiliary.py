@@ -23,6 +23,10 @@ class AuxiliaryObjective(L.Callback):
         if self.objective.name in pl_module.objectives:
             return  # setup runs again for validate/test after fit
         self.objective.bind(pl_module.backbone)
+        # the datamodule's setup ran before this hook (Lightning's _call_setup_hook)
+        dataset = getattr(trainer.datamodule, "train_dataset", None)
+        if dataset is not None:
+            self.objective.bind_data(dataset, pl_module.backbone)
         pl_module.add_objective(self.objective)
 
     def weight_at(self, step: int) -> float:

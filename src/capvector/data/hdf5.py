@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -353,6 +353,20 @@ class HDF5RobotDataset(Dataset):
 
     def __len__(self) -> int:
         return len(self.index)
+
+    def annotations(self) -> Iterator[str]:
+        """Every step's annotation of every episode, the text the reasoning objective scores (read
+        with handles of its own, so none is left open across a DataLoader worker's fork)."""
+        if not self.load_annotations:
+            raise DatasetError(
+                "this dataset does not load annotations: set data.load_annotations=true"
+            )
+        for file_index, path in enumerate(self.files):
+            with _open(path) as f:
+                for episode in self.episodes:
+                    if episode.file == file_index:
+                        for text in f["data"][episode.demo]["annotations"][:]:
+                            yield text.decode() if isinstance(text, bytes) else str(text)
 
     def _file(self, index: int) -> h5py.File:
         # One handle per process: h5py handles must not cross a DataLoader worker fork.

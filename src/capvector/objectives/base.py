@@ -6,6 +6,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Iterable
 
 from torch import Tensor, nn
+from torch.utils.data import Dataset
 
 from capvector.backbones.base import OutputRequest, VLABackbone, VLAOutput
 from capvector.data.batch import Batch
@@ -31,6 +32,10 @@ class Objective(nn.Module, ABC):
 
     def bind(self, backbone: VLABackbone) -> None:  # noqa: B027 (optional hook, empty by default)
         """Build parameters that depend on the backbone (called once, before optimizers exist)."""
+
+    def bind_data(self, dataset: Dataset, backbone: VLABackbone) -> None:  # noqa: B027
+        """Build what depends on the training set (called once after ``bind``, when the fit's
+        datamodule has a ``train_dataset``); empty by default."""
 
     @abstractmethod
     def forward(self, batch: Batch, output: VLAOutput, backbone: VLABackbone) -> Tensor:

@@ -31,6 +31,7 @@ from capvector.backbones.base import (
     VLABackbone,
     VLAOutput,
     keep_hidden_states,
+    project_onto_vocabulary,
     register_family,
 )
 from capvector.backbones.common import MLPResNet, check_cameras, right_pad
@@ -551,8 +552,18 @@ class OpenVLAOFT(VLABackbone):
         n_prefix = prefix_tokens.shape[1]
         return embeds, valid, slot_pos + n_prefix, n_prefix
 
-    def language_head(self, hidden: Tensor) -> Tensor:
-        return self.language_model.lm_head(hidden)
+    def language_head(self, hidden: Tensor, vocabulary: Tensor | None = None) -> Tensor:
+        head = self.language_model.lm_head
+        return project_onto_vocabulary(hidden, head.weight, head.bias, vocabulary)
+
+    def answer_label_ids(self, answer: str) -> list[int]:
+        tok = self.require_tokenizer()
+        # verbose=False: a scene annotation can run past the tokenizer's model_max_length (the
+        # tiny preset's 512), which rotary positions allow: its "indexing errors" is wrong here
+        return [
+            *tok(answer, add_special_tokens=False, verbose=False)["input_ids"],
+            tok.eos_token_id,
+        ]
 
     def text_pass(
         self, batch: Batch, prompts: list[str], answers: list[str]
@@ -567,10 +578,7 @@ class OpenVLAOFT(VLABackbone):
         rows, label_rows = [], []
         for prompt, answer in zip(prompts, answers, strict=True):
             prompt_ids = tok(prompt, add_special_tokens=False)["input_ids"]
-            # verbose=False: a scene annotation can run past the tokenizer's model_max_length (the
-            # tiny preset's 512), which rotary positions allow: its "indexing errors" is wrong here
-            answer_ids = tok(answer, add_special_tokens=False, verbose=False)["input_ids"]
-            answer_ids = [*answer_ids, tok.eos_token_id]
+            answer_ids = self.answer_label_ids(answer)
             rows.append([tok.bos_token_id, *prompt_ids, *answer_ids])
             label_rows.append([IGNORE_INDEX] * (1 + len(prompt_ids)) + answer_ids)
         ids, text_valid = right_pad(rows, tok.pad_token_id, device)

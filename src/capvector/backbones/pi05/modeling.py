@@ -47,6 +47,7 @@ from capvector.backbones.base import (
     VLABackbone,
     VLAOutput,
     draw_flow_noise,
+    project_onto_vocabulary,
     register_family,
 )
 from capvector.backbones.common import (
@@ -869,8 +870,18 @@ class Pi05(VLABackbone):
         """Spatial Forcing aligns pi0's layer 12 of 18: two thirds of the depth."""
         return max(1, round(2 * self.num_layers / 3))
 
-    def language_head(self, hidden: Tensor) -> Tensor:
-        return F.linear(hidden, self.language_model.embed_tokens.weight)  # tied, as PaliGemma's
+    def language_head(self, hidden: Tensor, vocabulary: Tensor | None = None) -> Tensor:
+        # tied to the token embedding, as PaliGemma's
+        weight = self.language_model.embed_tokens.weight
+        return project_onto_vocabulary(hidden, weight, vocabulary=vocabulary)
+
+    def answer_label_ids(self, answer: str) -> list[int]:
+        tok = self.require_tokenizer()
+        # verbose=False: as OpenVLA-OFT's text pass (a long annotation, rotary positions)
+        return [
+            *tok(answer, add_special_tokens=False, verbose=False)["input_ids"],
+            tok.eos_token_id,
+        ]
 
     def text_pass(
         self, batch: Batch, prompts: list[str], answers: list[str]
@@ -888,9 +899,7 @@ class Pi05(VLABackbone):
         rows, ar_rows, label_rows = [], [], []
         for prompt, answer in zip(prompts, answers, strict=True):
             prompt_ids = [tok.bos_token_id, *tok(prompt, add_special_tokens=False)["input_ids"]]
-            # verbose=False: as OpenVLA-OFT's text pass (a long annotation, rotary positions)
-            answer_ids = tok(answer, add_special_tokens=False, verbose=False)["input_ids"]
-            answer_ids = [*answer_ids, tok.eos_token_id]
+            answer_ids = self.answer_label_ids(answer)
             rows.append(prompt_ids + answer_ids)
             ar_rows.append([0] * len(prompt_ids) + [1] * len(answer_ids))
             label_rows.append([IGNORE_INDEX] * len(prompt_ids) + answer_ids)

@@ -51,6 +51,7 @@ from capvector.backbones.base import (
     keep_hidden_states,
     load_state_dict_strictly,
     preset_config,
+    project_onto_vocabulary,
     register_family,
 )
 from capvector.backbones.common import check_cameras, discretize_state
@@ -415,8 +416,12 @@ class StarVLA(VLABackbone):
         rows, cols = self.visual_grid
         return chat.replace(IMAGE_PAD, IMAGE_PAD * (rows * cols))
 
-    def language_head(self, hidden: Tensor) -> Tensor:
-        return self.vlm.lm_head(hidden)
+    def language_head(self, hidden: Tensor, vocabulary: Tensor | None = None) -> Tensor:
+        head = self.vlm.lm_head
+        return project_onto_vocabulary(hidden, head.weight, head.bias, vocabulary)
+
+    def answer_label_ids(self, answer: str) -> list[int]:
+        return self.require_tokenizer().encode(answer + "<|im_end|>", add_special_tokens=False)
 
     def text_pass(
         self, batch: Batch, prompts: list[str], answers: list[str]
@@ -434,7 +439,7 @@ class StarVLA(VLABackbone):
         rows, label_rows = [], []
         for prompt, answer in zip(prompts, answers, strict=True):
             prompt_ids = tok.encode(self.render_chat(prompt, n_cam), add_special_tokens=False)
-            answer_ids = tok.encode(answer + "<|im_end|>", add_special_tokens=False)
+            answer_ids = self.answer_label_ids(answer)
             rows.append(prompt_ids + answer_ids)
             label_rows.append([IGNORE_INDEX] * len(prompt_ids) + answer_ids)
         length = max(len(r) for r in rows)
