@@ -368,21 +368,37 @@ def objective_callbacks(config: dict) -> list[dict]:
     return [c for c in config["trainer"]["callbacks"] if "objective" in c.get("init_args", {})]
 
 
-def test_the_alignment_layer_lever_changes_only_the_layer(
-    capsys: pytest.CaptureFixture[str], tmp_path: Path
+@pytest.mark.parametrize(
+    ("config", "objective", "changed"),
+    [
+        ("aux_sft_layer2.yaml", "SpatialAlignment", {"layer": (None, 2)}),
+        (
+            "mini_study_aux.yaml",
+            "ReasoningCoTraining",
+            {"samples": (4, 2), "vocabulary": ("full", "answers")},
+        ),
+    ],
+)
+def test_a_lever_config_changes_only_its_objective_settings(
+    config: str,
+    objective: str,
+    changed: dict[str, tuple],
+    capsys: pytest.CaptureFixture[str],
+    tmp_path: Path,
 ) -> None:
-    # configs/recipes/aux_sft_layer2.yaml repeats aux_sft.yaml's callbacks (a config replaces the
-    # list): resolved, the two configs differ in the spatial alignment's layer and nothing else.
+    # These configs repeat aux_sft.yaml's callbacks (a config replaces the list): resolved, they
+    # differ from it in the `changed` settings of one objective and nothing else.
     data = write_demo_file(tmp_path / "demos.hdf5")
     base = resolved_aux_sft(capsys, data)
-    lever = resolved_aux_sft(
-        capsys, data, "--config", str(REPO / "configs/recipes/aux_sft_layer2.yaml")
-    )
-    objectives = [
-        c["init_args"]["objective"] for config in (base, lever) for c in objective_callbacks(config)
+    lever = resolved_aux_sft(capsys, data, "--config", str(REPO / "configs/recipes" / config))
+    settings = [
+        c["init_args"]["objective"]["init_args"]
+        for resolved in (base, lever)
+        for c in objective_callbacks(resolved)
+        if c["init_args"]["objective"]["class_path"].endswith(objective)
     ]
-    spatial = [o["init_args"] for o in objectives if o["class_path"].endswith("SpatialAlignment")]
-    assert [s.pop("layer") for s in spatial] == [None, 2]
+    for key, values in changed.items():
+        assert tuple(s.pop(key) for s in settings) == values, key
     assert lever == base
 
 
@@ -409,27 +425,6 @@ def test_each_single_objective_lever_drops_the_other_objective_and_nothing_else(
     assert len(dropped) == 1
     base["trainer"]["callbacks"].remove(dropped[0])
     assert lever == base
-
-
-def test_the_mini_studys_aux_arm_changes_only_the_reasoning_samples_and_vocabulary(
-    capsys: pytest.CaptureFixture[str], tmp_path: Path
-) -> None:
-    data = write_demo_file(tmp_path / "demos.hdf5")
-    base = resolved_aux_sft(capsys, data)
-    arm = resolved_aux_sft(
-        capsys, data, "--config", str(REPO / "configs/recipes/mini_study_aux.yaml")
-    )
-    reasoning = [
-        c["init_args"]["objective"]["init_args"]
-        for config in (base, arm)
-        for c in objective_callbacks(config)
-        if c["init_args"]["objective"]["class_path"].endswith("ReasoningCoTraining")
-    ]
-    assert [(r.pop("samples"), r.pop("vocabulary")) for r in reasoning] == [
-        (4, "full"),
-        (2, "answers"),
-    ]
-    assert arm == base
 
 
 def test_aux_sft_config_trains_through_the_cli(tmp_path: Path) -> None:
