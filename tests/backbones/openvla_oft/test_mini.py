@@ -158,6 +158,22 @@ def test_forward_returns_the_contract_outputs(model) -> None:
     assert set(out.hidden_states) == {0, model.alignment_layer, 6}
 
 
+def test_reasoning_over_the_answers_tokens_is_those_columns_of_gemmas_head(model) -> None:
+    """The mini study's aux-SFT arm (vocabulary="answers"): the same hidden states projected on
+    the answer tokens' rows of Gemma's tied 262 k-token head alone."""
+    prompts = ["Where is the bowl?", "What is the robot doing?"]
+    answers = ["The black bowl is at x=-0.08, y=0.21.", "The robot is lifting the bowl."]
+    vocabulary = torch.tensor(sorted({i for a in answers for i in model.answer_label_ids(a)}))
+    with torch.no_grad():
+        full, targets = model.answer_logits(batch(model, actions=False), prompts, answers)
+        some, indices = model.answer_logits(
+            batch(model, actions=False), prompts, answers, vocabulary
+        )
+    assert full.shape[1] == 262_144 and some.shape == (len(targets), len(vocabulary))
+    torch.testing.assert_close(some, full[:, vocabulary])
+    assert torch.equal(vocabulary[indices], targets)
+
+
 def test_lora_trains_only_lora_projector_and_heads_within_the_state_budget() -> None:
     torch.manual_seed(0)
     model = build_backbone(PRESET)
