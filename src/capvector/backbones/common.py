@@ -31,6 +31,15 @@ def right_pad(
     return out.to(device), valid.to(device)
 
 
+def answer_ids_then_eos(tokenizer: Any, answer: str) -> list[int]:
+    """``answer``'s token ids and the tokenizer's end of sequence: what OpenVLA-OFT's and Pi0.5's
+    text passes score. ``verbose=False``: a scene annotation can run past the tokenizer's
+    ``model_max_length`` (the tiny presets' 512), which rotary positions allow, so its warning of
+    "indexing errors" is wrong here."""
+    ids = tokenizer(answer, add_special_tokens=False, verbose=False)["input_ids"]
+    return [*ids, tokenizer.eos_token_id]
+
+
 def rename_prefix(key: str, prefixes: Iterable[tuple[str, str]]) -> str:
     """``key`` with its first matching ``old`` prefix replaced by ``new`` (a checkpoint's key map);
     unchanged when none matches."""

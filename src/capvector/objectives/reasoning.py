@@ -81,7 +81,7 @@ class ReasoningCoTraining(Objective):
             read = getattr(dataset, "annotations", None)
             if read is None:
                 raise CapVectorError(
-                    f"reasoning vocabulary='answers' reads the training set's annotations; "
+                    "reasoning vocabulary='answers' reads the training set's annotations; "
                     f"{type(dataset).__name__} has none: train on HDF5 demos with "
                     "data.load_annotations=true, or set vocabulary='full'"
                 )

@@ -34,7 +34,12 @@ from capvector.backbones.base import (
     project_onto_vocabulary,
     register_family,
 )
-from capvector.backbones.common import MLPResNet, check_cameras, right_pad
+from capvector.backbones.common import (
+    MLPResNet,
+    answer_ids_then_eos,
+    check_cameras,
+    right_pad,
+)
 from capvector.backbones.materialize import float32_until_attached
 from capvector.backbones.openvla_oft.configuration import LlamaSpec, OpenVLAOFTConfig, ViTConfig
 from capvector.data.batch import Batch
@@ -557,13 +562,7 @@ class OpenVLAOFT(VLABackbone):
         return project_onto_vocabulary(hidden, head.weight, head.bias, vocabulary)
 
     def answer_label_ids(self, answer: str) -> list[int]:
-        tok = self.require_tokenizer()
-        # verbose=False: a scene annotation can run past the tokenizer's model_max_length (the
-        # tiny preset's 512), which rotary positions allow: its "indexing errors" is wrong here
-        return [
-            *tok(answer, add_special_tokens=False, verbose=False)["input_ids"],
-            tok.eos_token_id,
-        ]
+        return answer_ids_then_eos(self.require_tokenizer(), answer)
 
     def text_pass(
         self, batch: Batch, prompts: list[str], answers: list[str]

@@ -51,6 +51,7 @@ from capvector.backbones.base import (
     register_family,
 )
 from capvector.backbones.common import (
+    answer_ids_then_eos,
     check_cameras,
     discretize_state,
     right_pad,
@@ -876,12 +877,7 @@ class Pi05(VLABackbone):
         return project_onto_vocabulary(hidden, weight, vocabulary=vocabulary)
 
     def answer_label_ids(self, answer: str) -> list[int]:
-        tok = self.require_tokenizer()
-        # verbose=False: as OpenVLA-OFT's text pass (a long annotation, rotary positions)
-        return [
-            *tok(answer, add_special_tokens=False, verbose=False)["input_ids"],
-            tok.eos_token_id,
-        ]
+        return answer_ids_then_eos(self.require_tokenizer(), answer)
 
     def text_pass(
         self, batch: Batch, prompts: list[str], answers: list[str]
